@@ -1,0 +1,1 @@
+"""The ``dm2`` command line (click)."""

@@ -1,0 +1,116 @@
+"""``dm2 info``: what a trajectory, scan source or bag holds."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+import numpy as np
+
+from dm2_backend.cli.options import (
+    depth_scale_option,
+    intrinsics_option,
+    read_options,
+    times_option,
+    topic_option,
+)
+from dm2_backend.errors import InputError
+from dm2_backend.formats import (
+    SCAN_SOURCES,
+    TRAJECTORY_FORMATS,
+    ReadOptions,
+    detect_scan_source,
+    detect_trajectory_format,
+    open_scans,
+    read_trajectory,
+)
+from dm2_backend.scans import ScanSequence
+from dm2_backend.trajectory import Trajectory
+
+
+def _time_rows(stamps: np.ndarray | None) -> list[tuple[str, str]]:
+    if stamps is None or len(stamps) == 0:
+        return [("timestamps", "none")]
+    rows = [("time span", f"{stamps[0]!r} .. {stamps[-1]!r} ({stamps[-1] - stamps[0]:.3f} s)")]
+    if len(stamps) > 1:
+        dt = np.diff(stamps)
+        rows.append(("rate", f"{1.0 / np.median(dt):.3f} Hz median (dt {dt.min():.4g} .. {dt.max():.4g} s)"))
+    return rows
+
+
+def trajectory_rows(traj: Trajectory) -> list[tuple[str, str]]:
+    return [
+        ("poses", str(len(traj))),
+        ("planar", "yes (2D)" if traj.planar else "no (3D)"),
+        *_time_rows(traj.timestamps),
+        ("path length", f"{traj.path_length:.3f} m"),
+    ]
+
+
+def scan_rows(seq: ScanSequence, sample: int = 5) -> list[tuple[str, str]]:
+    idx = np.unique(np.linspace(0, len(seq) - 1, min(sample, len(seq))).astype(int))
+    counts = [len(seq[int(i)]) for i in idx]
+    rows = [
+        ("scans", str(len(seq))),
+        ("planar", "yes (2D)" if seq.planar else "no (3D)"),
+        ("points per scan", f"{min(counts)} .. {max(counts)} (sampled {len(idx)})"),
+        *_time_rows(seq.timestamps),
+    ]
+    for name, traj in seq.trajectories.items():
+        rows.append((f"poses '{name}'", f"{len(traj)} ({traj.path_length:.3f} m)"))
+    return rows
+
+
+def _try(detect, path: Path) -> str | None:
+    try:
+        return detect(path)
+    except InputError:
+        return None
+
+
+def describe(path: Path, fmt: str | None, options: ReadOptions) -> list[tuple[str, str]]:
+    """Rows of facts about ``path``; raises :class:`InputError` when nothing can read it."""
+    if not path.exists():
+        raise InputError(path, "no such file or folder")
+    traj_fmt = fmt if fmt in TRAJECTORY_FORMATS else (None if fmt else _try(detect_trajectory_format, path))
+    scan_fmt = fmt if fmt in SCAN_SOURCES else (None if fmt else _try(detect_scan_source, path))
+    if traj_fmt is None and scan_fmt is None:
+        if fmt:
+            raise InputError(path, f"unknown format {fmt!r}")
+        detect_trajectory_format(path)  # raises with the list of choices
+    rows: list[tuple[str, str]] = [("path", str(path))]
+    spec = TRAJECTORY_FORMATS.get(traj_fmt) or SCAN_SOURCES.get(scan_fmt)
+    rows.append(("format", spec.name + " — " + spec.description))
+    if spec.describe is not None:
+        rows += spec.describe(path)
+    needs_topic = spec.describe is not None and options.topic is None and "bag" in spec.name
+    if needs_topic:
+        return rows
+    if traj_fmt is not None:
+        try:
+            rows += trajectory_rows(read_trajectory(path, traj_fmt, options))
+        except InputError:
+            if scan_fmt is None:
+                raise
+    if scan_fmt is not None and (traj_fmt is None or scan_fmt == traj_fmt or options.topic):
+        try:
+            rows += scan_rows(open_scans(path, scan_fmt, options))
+        except InputError:
+            if traj_fmt is None:
+                raise
+    return rows
+
+
+@click.command("info")
+@click.argument("path", type=click.Path(path_type=Path))
+@click.option("--format", "fmt", default=None, help="Format name (see `dm2 info --help`).")
+@topic_option
+@times_option
+@intrinsics_option
+@depth_scale_option
+def command(path: Path, fmt, topic, times, intrinsics, depth_scale) -> None:
+    """Show the format, counts, time span, rates and (for bags) topics of PATH."""
+    rows = describe(path, fmt, read_options(topic, times, None, intrinsics, depth_scale))
+    width = max(len(k) for k, _ in rows)
+    for key, value in rows:
+        click.echo(f"{key:<{width}}  {value}")

@@ -1,0 +1,52 @@
+"""``dm2`` entry point: the click group, error handling and sub-command registration."""
+
+from __future__ import annotations
+
+import sys
+import traceback
+
+import click
+
+from dm2_backend import __version__
+from dm2_backend.errors import InputError
+
+
+class Dm2Group(click.Group):
+    """Turns :class:`InputError` (and OS errors on user files) into one line and exit code 2."""
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except (InputError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
+            if ctx.obj and ctx.obj.get("debug"):
+                traceback.print_exc()
+            msg = exc.message if isinstance(exc, InputError) else f"{exc.filename}: {exc.strerror}"
+            click.echo(f"dm2: error: {msg}", err=True)
+            sys.exit(2)
+        except KeyboardInterrupt:
+            click.echo("dm2: interrupted", err=True)
+            sys.exit(130)
+
+
+@click.group(cls=Dm2Group, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="dm2")
+@click.option("--debug", is_flag=True, help="Show tracebacks on errors.")
+@click.pass_context
+def cli(ctx: click.Context, debug: bool) -> None:
+    """dm2: refine any SLAM trajectory with DeepMapping2."""
+    ctx.ensure_object(dict)
+    ctx.obj["debug"] = debug
+
+
+def _register() -> None:
+    from dm2_backend.cli import convert, info, plugins
+
+    for module in (info, convert, plugins):
+        cli.add_command(module.command)
+
+
+_register()
+
+
+def main() -> None:
+    cli(obj={})

@@ -1,0 +1,1 @@
+"""Geometry: the SE(3) toolkit (numpy) and its differentiable twin (torch)."""

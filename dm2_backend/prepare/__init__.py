@@ -1,0 +1,1 @@
+"""Preparation, the paper's first stage: warm start -> map topology -> pairwise registration."""

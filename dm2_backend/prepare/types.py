@@ -1,0 +1,51 @@
+"""Data passed between the preparation steps and into the optimiser."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Frames:
+    """Down-sampled scans held in memory for preparation and optimisation.
+
+    ``points[i]`` is (M_i, 3) float32 in the sensor frame of frame i. ``scale`` holds the lengths derived
+    from the data (see :func:`dm2_backend.prepare.frames.derive_scale`).
+    """
+
+    points: list[np.ndarray]
+    timestamps: np.ndarray | None
+    planar: bool
+    scale: dict[str, float] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+@dataclass
+class Topology:
+    """Map topology as groups: ``groups[i]`` = neighbour indices of anchor i (-1 pads), best first."""
+
+    groups: np.ndarray  # (N, k) int
+    #: every accepted edge (i, j) with i < j, and where it came from ("temporal", "radius", "loop", ...)
+    edges: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))
+    edge_kind: list[str] = field(default_factory=list)
+    log: list[dict] = field(default_factory=list)
+
+    @property
+    def k(self) -> int:
+        return self.groups.shape[1]
+
+
+@dataclass
+class Pairwise:
+    """Pairwise registrations for a topology: ``relative[i, n]`` is T_j^i (frame j = groups[i, n] expressed
+    in frame i), ``valid[i, n]`` False where registration failed its gate (see ``reason``)."""
+
+    relative: np.ndarray  # (N, k, 4, 4)
+    valid: np.ndarray  # (N, k) bool
+    fitness: np.ndarray  # (N, k) overlap fraction
+    rmse: np.ndarray  # (N, k) inlier rmse (m)
+    reason: dict[tuple[int, int], str] = field(default_factory=dict)

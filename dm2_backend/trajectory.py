@@ -1,0 +1,133 @@
+"""Trajectory: N poses in SE(3) with optional timestamps and frame ids."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from dm2_backend.errors import InputError
+from dm2_backend.geometry import se3
+
+
+@dataclass
+class Trajectory:
+    """N poses (N,4,4) float64; timestamps in seconds (float64, never rounded) when known.
+
+    ``planar`` marks 2D data (z = 0, yaw only). ``meta`` carries format details a writer may reuse
+    (e.g. a bag's frame ids).
+    """
+
+    poses: np.ndarray
+    timestamps: np.ndarray | None = None
+    frame_ids: list[str] | None = None
+    planar: bool = False
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.poses = np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4)
+        if self.timestamps is not None:
+            self.timestamps = np.asarray(self.timestamps, dtype=np.float64).reshape(-1)
+            if len(self.timestamps) != len(self.poses):
+                raise ValueError(f"{len(self.timestamps)} timestamps for {len(self.poses)} poses")
+        if self.frame_ids is not None and len(self.frame_ids) != len(self.poses):
+            raise ValueError(f"{len(self.frame_ids)} frame ids for {len(self.poses)} poses")
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self.poses[:, :3, 3]
+
+    @property
+    def path_length(self) -> float:
+        return float(np.linalg.norm(np.diff(self.positions, axis=0), axis=1).sum())
+
+    def subset(self, index: np.ndarray | slice) -> Trajectory:
+        """The trajectory at the given indices (or slice)."""
+        idx = np.arange(len(self))[index]
+        return replace(
+            self,
+            poses=self.poses[idx],
+            timestamps=None if self.timestamps is None else self.timestamps[idx],
+            frame_ids=None if self.frame_ids is None else [self.frame_ids[i] for i in idx],
+        )
+
+    def with_poses(self, poses: np.ndarray) -> Trajectory:
+        """Same timestamps and ids, new poses."""
+        return replace(self, poses=np.asarray(poses, dtype=np.float64))
+
+    def transformed(self, left: np.ndarray | None = None, right: np.ndarray | None = None) -> Trajectory:
+        """``left @ T_i @ right`` for every pose (change of world / body frame)."""
+        poses = self.poses
+        if left is not None:
+            poses = left @ poses
+        if right is not None:
+            poses = poses @ right
+        return self.with_poses(poses)
+
+    def validate(self, source: str | Path | None = None, first_line: int | None = None) -> Trajectory:
+        """Check finiteness, rotations and timestamp order; raise :class:`InputError` naming the pose."""
+        validate_poses(self.poses, source, first_line)
+        if self.timestamps is not None:
+            validate_timestamps(self.timestamps, source, first_line)
+        return self
+
+
+def _line(first_line: int | None, i: int) -> int | None:
+    return None if first_line is None else first_line + i
+
+
+def validate_poses(poses: np.ndarray, source: str | Path | None, first_line: int | None = None) -> None:
+    """Raise :class:`InputError` for non-finite values or rotations that are not rotations."""
+    bad = ~np.isfinite(poses).all(axis=(1, 2))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputError(source, f"pose {i} has NaN or infinite values", line=_line(first_line, i))
+    err = se3.rotation_error(poses[:, :3, :3])
+    if (err > se3.ROTATION_TOL).any():
+        i = int(np.argmax(err > se3.ROTATION_TOL))
+        raise InputError(
+            source, f"pose {i} has a rotation that is not a rotation (error {err[i]:.2g})",
+            line=_line(first_line, i),
+        )
+
+
+def validate_timestamps(stamps: np.ndarray, source: str | Path | None, first_line: int | None = None) -> None:
+    """Raise :class:`InputError` for non-finite, unsorted or duplicate timestamps."""
+    if not np.isfinite(stamps).all():
+        i = int(np.argmax(~np.isfinite(stamps)))
+        raise InputError(source, f"timestamp {i} is not finite", line=_line(first_line, i))
+    d = np.diff(stamps)
+    if (d <= 0).any():
+        i = int(np.argmax(d <= 0)) + 1
+        kind = "duplicate" if d[i - 1] == 0 else "unsorted"
+        raise InputError(
+            source, f"{kind} timestamp {stamps[i]!r} after {stamps[i - 1]!r}", line=_line(first_line, i)
+        )
+
+
+def associate_by_time(a: np.ndarray, b: np.ndarray, max_diff: float) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (ia, ib) pairing each stamp of ``a`` with the nearest unused stamp of ``b`` within
+    ``max_diff`` seconds, as evo's ``associate_trajectories`` does (sorted inputs)."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    pos = np.clip(np.searchsorted(b, a), 1, len(b) - 1) if len(b) > 1 else np.zeros(len(a), int)
+    left = np.maximum(pos - 1, 0)
+    nearest = np.where(np.abs(b[left] - a) <= np.abs(b[pos] - a), left, pos)
+    ok = np.abs(b[nearest] - a) <= max_diff
+    ia = np.flatnonzero(ok)
+    ib = nearest[ok]
+    _, first = np.unique(ib, return_index=True)  # each stamp of b used once
+    keep = np.sort(first)
+    return ia[keep], ib[keep]
+
+
+def associate_by_index(n_a: int, n_b: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pair the first min(n_a, n_b) items by index."""
+    n = min(n_a, n_b)
+    return np.arange(n), np.arange(n)

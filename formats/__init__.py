@@ -1,0 +1,36 @@
+"""Input/output adapters. Importing this package registers every built-in format."""
+
+from dm2_backend.formats import (  # noqa: F401  (each module registers itself)
+    bag,
+    carmen,
+    depth,
+    dm2_priors,
+    euroc,
+    g2o,
+    kitti,
+    scan_folder,
+    tum,
+)
+from dm2_backend.formats.registry import (
+    SCAN_SOURCES,
+    TRAJECTORY_FORMATS,
+    ReadOptions,
+    detect_scan_source,
+    detect_trajectory_format,
+    format_for_output,
+    open_scans,
+    read_trajectory,
+    write_trajectory,
+)
+
+__all__ = [
+    "SCAN_SOURCES",
+    "TRAJECTORY_FORMATS",
+    "ReadOptions",
+    "detect_scan_source",
+    "detect_trajectory_format",
+    "format_for_output",
+    "open_scans",
+    "read_trajectory",
+    "write_trajectory",
+]

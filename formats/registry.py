@@ -1,0 +1,157 @@
+"""Registry of trajectory formats and scan sources, with detection from path and content.
+
+Each adapter module registers itself with :func:`trajectory_format` / :func:`scan_source`;
+``dm2_backend.formats`` imports them all.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from dm2_backend.errors import InputError
+from dm2_backend.scans import ScanSequence
+from dm2_backend.trajectory import Trajectory
+
+
+@dataclass
+class ReadOptions:
+    """Options a reader may use; each reader ignores those that do not apply to it."""
+
+    topic: str | None = None
+    times: Path | None = None
+    calib: Path | None = None
+    #: depth camera intrinsics fx fy cx cy, and depth units per metre
+    intrinsics: tuple[float, float, float, float] | None = None
+    depth_scale: float = 1000.0
+    #: CARMEN: which pose the trajectory reader returns, "odometry" or "logged"
+    pose_source: str = "logged"
+    extra: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class TrajectoryFormat:
+    name: str
+    description: str
+    read: Callable[[Path, ReadOptions], Trajectory]
+    write: Callable[[Trajectory, Path, ReadOptions], None] | None = None
+    #: lower-case suffixes (".txt", ".bag", ".clf.gz") or "/" for a folder
+    suffixes: tuple[str, ...] = ()
+    #: content test for paths whose suffix is shared with other formats
+    sniff: Callable[[Path], bool] | None = None
+    #: extra facts for ``dm2 info`` (e.g. a bag's topics): rows of (key, value)
+    describe: Callable[[Path], list[tuple[str, str]]] | None = None
+
+
+@dataclass(frozen=True)
+class ScanSource:
+    name: str
+    description: str
+    open: Callable[[Path, ReadOptions], ScanSequence]
+    suffixes: tuple[str, ...] = ()
+    sniff: Callable[[Path], bool] | None = None
+    describe: Callable[[Path], list[tuple[str, str]]] | None = None
+
+
+TRAJECTORY_FORMATS: dict[str, TrajectoryFormat] = {}
+SCAN_SOURCES: dict[str, ScanSource] = {}
+
+
+def trajectory_format(fmt: TrajectoryFormat) -> TrajectoryFormat:
+    TRAJECTORY_FORMATS[fmt.name] = fmt
+    return fmt
+
+
+def scan_source(src: ScanSource) -> ScanSource:
+    SCAN_SOURCES[src.name] = src
+    return src
+
+
+def _suffix_matches(path: Path, suffixes: tuple[str, ...]) -> bool:
+    name = path.name.lower()
+    if path.is_dir():
+        return "/" in suffixes
+    return any(name.endswith(s) for s in suffixes if s != "/")
+
+
+def _detect(path: Path, table: dict, kind: str) -> str:
+    if not path.exists():
+        raise InputError(path, "no such file or folder")
+    by_suffix = [f for f in table.values() if _suffix_matches(path, f.suffixes)]
+    if len(by_suffix) == 1 and by_suffix[0].sniff is None:
+        return by_suffix[0].name
+    candidates = by_suffix or list(table.values())
+    sniffed = [f.name for f in candidates if f.sniff is not None and _safe_sniff(f.sniff, path)]
+    if len(sniffed) == 1:
+        return sniffed[0]
+    choices = ", ".join(sniffed or [f.name for f in candidates])
+    if sniffed or len(by_suffix) > 1:
+        raise InputError(path, f"ambiguous {kind} format; say which with --format ({choices})")
+    raise InputError(path, f"unknown {kind} format; say which with --format ({', '.join(table)})")
+
+
+def _safe_sniff(sniff: Callable[[Path], bool], path: Path) -> bool:
+    try:
+        return bool(sniff(path))
+    except (OSError, ValueError, UnicodeDecodeError):
+        return False
+
+
+def detect_trajectory_format(path: str | Path) -> str:
+    """The format name for ``path``; an :class:`InputError` naming the choices when ambiguous."""
+    return _detect(Path(path), TRAJECTORY_FORMATS, "trajectory")
+
+
+def detect_scan_source(path: str | Path) -> str:
+    return _detect(Path(path), SCAN_SOURCES, "scan source")
+
+
+def _lookup(table: dict, name: str, kind: str, path: Path):
+    if name not in table:
+        raise InputError(path, f"unknown {kind} format {name!r}; choices: {', '.join(sorted(table))}")
+    return table[name]
+
+
+def read_trajectory(path: str | Path, fmt: str | None = None, options: ReadOptions | None = None) -> Trajectory:
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "no such file or folder")
+    name = fmt or detect_trajectory_format(path)
+    traj = _lookup(TRAJECTORY_FORMATS, name, "trajectory", path).read(path, options or ReadOptions())
+    traj.meta.setdefault("format", name)
+    return traj
+
+
+def write_trajectory(
+    traj: Trajectory, path: str | Path, fmt: str, options: ReadOptions | None = None
+) -> None:
+    path = Path(path)
+    spec = _lookup(TRAJECTORY_FORMATS, fmt, "trajectory", path)
+    if spec.write is None:
+        writable = ", ".join(sorted(n for n, f in TRAJECTORY_FORMATS.items() if f.write))
+        raise InputError(path, f"format {fmt!r} cannot be written; writable: {writable}")
+    spec.write(traj, path, options or ReadOptions())
+
+
+def open_scans(path: str | Path, fmt: str | None = None, options: ReadOptions | None = None) -> ScanSequence:
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "no such file or folder")
+    name = fmt or detect_scan_source(path)
+    seq = _lookup(SCAN_SOURCES, name, "scan source", path).open(path, options or ReadOptions())
+    seq.meta.setdefault("format", name)
+    return seq
+
+
+def format_for_output(path: str | Path) -> str:
+    """Writable format implied by an output path's suffix (no content to sniff yet)."""
+    path = Path(path)
+    names = [
+        f.name for f in TRAJECTORY_FORMATS.values()
+        if f.write is not None and any(path.name.lower().endswith(s) for s in f.suffixes if s != "/")
+    ]
+    if len(names) == 1:
+        return names[0]
+    choices = ", ".join(names or sorted(n for n, f in TRAJECTORY_FORMATS.items() if f.write))
+    raise InputError(path, f"cannot tell the output format from the name; say which with --to ({choices})")
