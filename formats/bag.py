@@ -1,1 +1,285 @@
-"""Placeholder: being written."""
+"""ROS bags through rosbags (no ROS install): ROS 1 ``.bag``, ROS 2 folders (sqlite3 or mcap, with
+metadata.yaml), bare ``.db3`` and ``.mcap`` files.
+
+Trajectories come from PoseStamped / PoseWithCovarianceStamped / Odometry / TransformStamped topics, or
+from a TF chain named as evo names it (``/tf:parent.child``); stamps are header stamps. Scans come from
+PointCloud2 and LaserScan topics, indexed first and deserialised on access. Trajectories are written as
+geometry_msgs/PoseStamped.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sqlite3
+import struct
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import yaml
+from dm2_backend.formats import bag_messages as bm
+from dm2_backend.formats.bag_tf import TfBuffer, TfError, parse_tf_id
+from dm2_backend.formats.registry import (
+    ReadOptions,
+    ScanSource,
+    TrajectoryFormat,
+    scan_source,
+    trajectory_format,
+)
+from rosbags.highlevel import AnyReader, AnyReaderError
+from rosbags.rosbag1 import ReaderError as ReaderError1
+from rosbags.rosbag1 import Writer as Writer1
+from rosbags.rosbag2 import ReaderError as ReaderError2
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Writer2
+from rosbags.serde import SerdeError
+from rosbags.typesys import Stores, get_typestore
+
+from dm2_backend.atomic import atomic_path
+from dm2_backend.errors import InputError
+from dm2_backend.geometry import se3
+from dm2_backend.scans import Scan, ScanSequence
+from dm2_backend.trajectory import Trajectory
+
+DEFAULT_WRITE_TOPIC = "/dm2/poses"
+SUFFIXES = (".bag", ".db3", ".mcap")
+_READ_ERRORS = (
+    AnyReaderError, ReaderError1, ReaderError2, SerdeError, sqlite3.DatabaseError, struct.error, EOFError,
+)
+
+
+def _kind(path: Path) -> str:
+    if path.is_dir():
+        try:
+            meta = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+            return f"ROS 2 bag folder ({meta['storage_identifier']})"
+        except (OSError, yaml.YAMLError, KeyError, TypeError):
+            return "ROS 2 bag folder"
+    return {".bag": "ROS 1 bag", ".db3": "ROS 2 sqlite3 file", ".mcap": "ROS 2 mcap file"}.get(
+        path.suffix.lower(), "bag"
+    )
+
+
+@contextlib.contextmanager
+def open_bag(path: Path) -> Iterator[AnyReader]:
+    """An open AnyReader; failures to open become :class:`InputError`."""
+    try:
+        reader = AnyReader([Path(path)], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+        reader.open()
+    except Exception as exc:  # rosbags raises many kinds on foreign or truncated files
+        raise InputError(path, f"cannot open as a {_kind(Path(path))}: {exc}") from None
+    try:
+        yield reader
+    except _READ_ERRORS as exc:
+        raise InputError(path, f"cannot read the {_kind(Path(path))}: {exc}") from None
+    finally:
+        reader.close()
+
+
+def _topic_list(reader: AnyReader) -> str:
+    topics = sorted(reader.topics.items())
+    return ", ".join(f"{t} ({i.msgtype or 'mixed types'})" for t, i in topics) or "none"
+
+
+def _pick_topic(reader: AnyReader, path: Path, topic: str | None, types: tuple[str, ...], what: str) -> str:
+    """``topic`` checked against the bag, or the only topic of one of ``types``."""
+    topics = reader.topics
+    if topic is None:
+        fits = sorted(t for t, i in topics.items() if i.msgtype in types and i.msgcount > 0)
+        if len(fits) == 1:
+            return fits[0]
+        if not fits:
+            tf = "/tf" in topics and what == "poses"
+            hint = "; a TF chain is read with --topic /tf:PARENT.CHILD" if tf else ""
+            raise InputError(path, f"no topic with {what}; topics: {_topic_list(reader)}{hint}")
+        raise InputError(path, f"several topics with {what} ({', '.join(fits)}); say which with --topic")
+    if topic not in topics:
+        raise InputError(path, f"no topic {topic!r}; topics: {_topic_list(reader)}")
+    msgtype = topics[topic].msgtype
+    if msgtype not in types:
+        short = ", ".join(t.replace("/msg/", "/") for t in types)
+        hint = "; a TF chain is read as /tf:PARENT.CHILD" if msgtype == bm.TF_TYPE and what == "poses" else ""
+        raise InputError(path, f"type {msgtype} does not hold {what} (readable: {short}){hint}", topic=topic)
+    if topics[topic].msgcount == 0:
+        raise InputError(path, "no messages", topic=topic)
+    if msgtype not in reader.typestore.fielddefs:
+        raise InputError(path, f"the bag carries no definition of {msgtype}", topic=topic)
+    return topic
+
+
+def _checked(path: Path, topic: str, traj: Trajectory) -> Trajectory:
+    try:
+        return traj.validate(path)
+    except InputError as err:
+        raise InputError(path, err.problem, topic=topic) from None
+
+
+def _read_tf(reader: AnyReader, path: Path, topic: str) -> Trajectory:
+    tf_id = parse_tf_id(topic)
+    _pick_topic(reader, path, tf_id.topic, (bm.TF_TYPE,), "TF transforms")
+    buffer = TfBuffer()
+    for name, static in ((tf_id.topic, False), (tf_id.static_topic, True)):
+        conns = [c for c in reader.connections if c.topic == name and c.msgtype == bm.TF_TYPE]
+        for conn, _, raw in reader.messages(connections=conns) if conns else ():
+            buffer.add(reader.deserialize(raw, conn.msgtype), static)
+    try:
+        poses, stamps = buffer.trajectory(tf_id.parent, tf_id.child)
+    except TfError as err:
+        raise InputError(path, str(err), topic=topic) from None
+    if len(poses) == 0:
+        problem = f"no time at which {tf_id.child} in {tf_id.parent} can be looked up"
+        raise InputError(path, problem, topic=topic)
+    meta = {"frame_id": tf_id.parent, "child_frame_id": tf_id.child, "topic": topic}
+    return _checked(path, topic, Trajectory(poses, stamps, meta=meta))
+
+
+def read(path: Path, options: ReadOptions) -> Trajectory:
+    """The trajectory on ``options.topic`` (or the bag's only pose topic)."""
+    with open_bag(path) as reader:
+        if options.topic is not None and parse_tf_id(options.topic) is not None:
+            return _read_tf(reader, path, options.topic)
+        topic = _pick_topic(reader, path, options.topic, bm.POSE_TYPES, "poses")
+        stamps, xyz, quat, frame_id = [], [], [], None
+        for conn, _, raw in reader.messages(connections=reader.topics[topic].connections):
+            msg = reader.deserialize(raw, conn.msgtype)
+            stamps.append(bm.stamp_seconds(msg.header.stamp))
+            p, q = bm.pose_of(msg)
+            xyz.append(p)
+            quat.append(q)
+            frame_id = msg.header.frame_id if frame_id is None else frame_id
+    quat = np.asarray(quat, dtype=np.float64)
+    if (bad := bm.bad_quaternion(quat)).any():
+        i = int(np.argmax(bad))
+        problem = f"message {i} has quaternion {quat[i].tolist()} (not of unit norm)"
+        raise InputError(path, problem, topic=topic)
+    poses = se3.from_xyz_quat(np.asarray(xyz, dtype=np.float64), quat, "xyzw")
+    return _checked(path, topic, Trajectory(poses, stamps, meta={"frame_id": frame_id, "topic": topic}))
+
+
+def _write_messages(traj: Trajectory, writer, typestore, topic: str, ros1: bool) -> None:
+    conn = writer.add_connection(topic, bm.WRITE_TYPE, typestore=typestore)
+    xyz, quat = se3.to_xyz_quat(traj.poses, "xyzw")
+    serialize = typestore.serialize_ros1 if ros1 else typestore.serialize_cdr
+    for i, t in enumerate(traj.timestamps):
+        sec, nsec = bm.seconds_to_sec_nsec(float(t))
+        msg = bm.pose_stamped(typestore, sec, nsec, xyz[i], quat[i], "map", i)
+        writer.write(conn, sec * 1_000_000_000 + nsec, serialize(msg, bm.WRITE_TYPE))
+
+
+def write(traj: Trajectory, path: Path, options: ReadOptions) -> None:
+    """PoseStamped messages (frame "map", header stamps = trajectory stamps) on ``options.topic``:
+    a ROS 1 ``.bag``, a bare ``.mcap`` or ``.db3`` file, or (any other name) a ROS 2 sqlite3 folder."""
+    topic = options.topic or DEFAULT_WRITE_TOPIC
+    if traj.timestamps is None:
+        raise InputError(path, "writing a bag needs timestamps; this trajectory has none")
+    if len(traj) and (not np.isfinite(traj.timestamps).all() or traj.timestamps.min() < 0):
+        raise InputError(path, "bag stamps must be finite and not negative")
+    suffix = path.suffix.lower()
+    with atomic_path(path) as tmp:
+        if suffix == ".bag":
+            with Writer1(tmp) as writer:
+                _write_messages(traj, writer, get_typestore(Stores.ROS1_NOETIC), topic, ros1=True)
+            return
+        plugin = StoragePlugin.MCAP if suffix == ".mcap" else StoragePlugin.SQLITE3
+        with tempfile.TemporaryDirectory(dir=path.parent, prefix=".tmp-bag-") as work:
+            folder = Path(work) / "bag" if suffix in (".mcap", ".db3") else tmp
+            with Writer2(folder, version=8, storage_plugin=plugin) as writer:
+                _write_messages(traj, writer, get_typestore(Stores.ROS2_HUMBLE), topic, ros1=False)
+            if folder != tmp:  # a bare storage file: take it out of the folder rosbags wrote
+                (inner,) = folder.glob(f"*{suffix}")
+                os.replace(inner, tmp)
+
+
+class _LazyMessages:
+    """Messages of one topic, fetched one at a time by (bag time, rank among equal bag times)."""
+
+    def __init__(self, path: Path, topic: str, msgtype: str, keys: list[tuple[int, int]]) -> None:
+        self.path, self.topic, self.msgtype, self.keys = path, topic, msgtype, keys
+        self._stack: contextlib.ExitStack | None = None
+        self._reader: AnyReader | None = None
+        self._pid = -1
+
+    def _open(self) -> AnyReader:
+        if self._reader is None or self._pid != os.getpid():  # reopen in forked workers
+            self._stack = contextlib.ExitStack()
+            self._reader = self._stack.enter_context(open_bag(self.path))
+            self._pid = os.getpid()
+        return self._reader
+
+    def __call__(self, i: int) -> Scan:
+        reader = self._open()
+        bag_ns, rank = self.keys[i]
+        conns = reader.topics[self.topic].connections
+        msgs = reader.messages(connections=conns, start=bag_ns, stop=bag_ns + 1)
+        for k, (conn, _, raw) in enumerate(msgs):
+            if k == rank:
+                try:
+                    return bm.scan_of(reader.deserialize(raw, conn.msgtype), self.msgtype)
+                except ValueError as err:
+                    raise InputError(self.path, f"message {i}: {err}", topic=self.topic) from None
+        raise InputError(self.path, f"message {i} vanished from the bag", topic=self.topic)
+
+    def __getstate__(self) -> dict:  # picklable for spawned data-loader workers
+        return {**self.__dict__, "_stack": None, "_reader": None, "_pid": -1}
+
+    def __del__(self) -> None:
+        if self._stack is not None and self._pid == os.getpid():
+            with contextlib.suppress(Exception):
+                self._stack.close()
+
+
+def open_scans(path: Path, options: ReadOptions) -> ScanSequence:
+    """PointCloud2 or LaserScan messages of ``options.topic`` (or the bag's only scan topic)."""
+    with open_bag(path) as reader:
+        topic = _pick_topic(reader, path, options.topic, bm.SCAN_TYPES, "scans")
+        msgtype = reader.topics[topic].msgtype
+        keys, stamps = [], []
+        for conn, bag_ns, raw in reader.messages(connections=reader.topics[topic].connections):
+            rank = keys[-1][1] + 1 if keys and keys[-1][0] == bag_ns else 0
+            keys.append((bag_ns, rank))
+            stamps.append(bm.stamp_seconds(reader.deserialize(raw, conn.msgtype).header.stamp))
+    stamps = np.asarray(stamps, dtype=np.float64)
+    _checked(path, topic, Trajectory(se3.identity(len(stamps)), stamps))
+    return ScanSequence(
+        loader=_LazyMessages(path, topic, msgtype, keys), count=len(keys), timestamps=stamps,
+        planar=msgtype == bm.LASERSCAN, source=f"{path} [topic {topic}]",
+        meta={"topic": topic, "msgtype": msgtype},
+    )
+
+
+def describe(path: Path) -> list[tuple[str, str]]:
+    """Storage kind, duration, message count and one row per topic."""
+    with open_bag(path) as reader:
+        topics = sorted(reader.topics.items())
+        rows = [
+            ("storage", _kind(path)),
+            ("duration", f"{reader.duration * 1e-9:.3f} s"),
+            ("messages", str(reader.message_count)),
+        ]
+        if topics:
+            w_name = max(len(t) for t, _ in topics)
+            w_type = max(len(i.msgtype or "mixed") for _, i in topics)
+            rows += [
+                ("topic", f"{t:<{w_name}}  {i.msgtype or 'mixed':<{w_type}}  {i.msgcount}") for t, i in topics
+            ]
+    return rows
+
+
+def sniff(path: Path) -> bool:
+    """A folder with metadata.yaml, or a file with a bag suffix."""
+    if path.is_dir():
+        return (path / "metadata.yaml").is_file()
+    return path.suffix.lower() in SUFFIXES
+
+
+trajectory_format(TrajectoryFormat(
+    name="bag", description="ROS 1/2 bag (.bag, .db3, .mcap, bag folder): pose topics or /tf:parent.child",
+    read=read, write=write, suffixes=(*SUFFIXES, "/"), sniff=sniff, describe=describe,
+))
+scan_source(ScanSource(
+    name="bag", description="ROS 1/2 bag: sensor_msgs/PointCloud2 or LaserScan topic",
+    open=open_scans, suffixes=(*SUFFIXES, "/"), sniff=sniff, describe=describe,
+))
+
