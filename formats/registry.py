@@ -22,9 +22,9 @@ class ReadOptions:
     topic: str | None = None
     times: Path | None = None
     calib: Path | None = None
-    #: depth camera intrinsics fx fy cx cy, and depth units per metre
+    #: depth camera intrinsics fx fy cx cy, and depth units per metre (None: the layout's own default)
     intrinsics: tuple[float, float, float, float] | None = None
-    depth_scale: float = 1000.0
+    depth_scale: float | None = None
     #: CARMEN: which pose the trajectory reader returns, "odometry" or "logged"
     pose_source: str = "logged"
     extra: dict = field(default_factory=dict)

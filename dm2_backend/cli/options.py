@@ -14,7 +14,7 @@ def read_options(
     times: Path | None = None,
     calib: Path | None = None,
     intrinsics: str | None = None,
-    depth_scale: float = 1000.0,
+    depth_scale: float | None = None,
 ) -> ReadOptions:
     fx_fy_cx_cy = None
     if intrinsics:
@@ -40,5 +40,6 @@ intrinsics_option = click.option(
     "--intrinsics", default=None, help='Depth camera "fx fy cx cy" (TUM RGB-D layout).'
 )
 depth_scale_option = click.option(
-    "--depth-scale", type=float, default=1000.0, show_default=True, help="Depth units per metre."
+    "--depth-scale", type=float, default=None,
+    help="Depth units per metre [default: 1000 for 7-Scenes, 5000 for TUM RGB-D].",
 )
