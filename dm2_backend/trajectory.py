@@ -104,9 +104,8 @@ def validate_timestamps(stamps: np.ndarray, source: str | Path | None, first_lin
     if (d <= 0).any():
         i = int(np.argmax(d <= 0)) + 1
         kind = "duplicate" if d[i - 1] == 0 else "unsorted"
-        raise InputError(
-            source, f"{kind} timestamp {stamps[i]!r} after {stamps[i - 1]!r}", line=_line(first_line, i)
-        )
+        now, before = float(stamps[i]), float(stamps[i - 1])
+        raise InputError(source, f"{kind} timestamp {now!r} after {before!r}", line=_line(first_line, i))
 
 
 def associate_by_time(a: np.ndarray, b: np.ndarray, max_diff: float) -> tuple[np.ndarray, np.ndarray]:

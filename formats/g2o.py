@@ -1,1 +1,285 @@
-"""Placeholder: being written."""
+"""g2o pose graphs: ``VERTEX_SE3:QUAT`` / ``EDGE_SE3:QUAT`` (3D) and ``VERTEX_SE2`` / ``EDGE_SE2`` (2D).
+
+* ``VERTEX_SE3:QUAT id x y z qx qy qz qw`` and ``EDGE_SE3:QUAT i j x y z qx qy qz qw`` + the 21 upper-triangle
+  entries (row-major) of the 6x6 information matrix, ordered ``[x y z qx qy qz]`` (translation first; GTSAM's
+  Pose3 noise is rotation first, see :meth:`PoseGraph.information_rotation_first`).
+* ``VERTEX_SE2 id x y theta`` and ``EDGE_SE2 i j x y theta`` + 6 upper-triangle entries ``[x y theta]``.
+* An edge ``i j`` holds the pose of node ``j`` in the frame of node ``i``. ``FIX id...`` lines mark fixed
+  nodes. Other lines (``VERTEX_XY``, ``EDGE_SE2_XY``, ...) are skipped and counted in ``meta["skipped"]``.
+
+Quaternions are normalised as ``gtsam.readG2o`` does. Nodes without a vertex line (an edges-only file) get
+initial poses by chaining the odometry edges ``i -> i+1`` from identity, then any other edge in file
+order, which is what ``gtsam.readG2o`` gives for the usual edges-only file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from dm2_backend.formats import _text
+from dm2_backend.formats.registry import ReadOptions, TrajectoryFormat, trajectory_format
+
+from dm2_backend.atomic import atomic_write
+from dm2_backend.errors import InputError
+from dm2_backend.geometry import se3
+from dm2_backend.trajectory import Trajectory
+
+#: tag -> (fields after the tag, 3D?)
+TAGS = {"VERTEX_SE2": (4, False), "EDGE_SE2": (11, False), "VERTEX_SE3:QUAT": (8, True),
+        "EDGE_SE3:QUAT": (30, True)}
+#: g2o SE3 ordering [x y z qx qy qz] -> rotation-first [qx qy qz x y z] (GTSAM Pose3 tangent order)
+ROTATION_FIRST = np.array([3, 4, 5, 0, 1, 2])
+
+
+@dataclass
+class PoseGraph:
+    """Nodes (ascending ids) with initial poses, and relative-pose edges with information matrices."""
+
+    ids: np.ndarray  # (N,) int node ids, ascending
+    poses: np.ndarray  # (N, 4, 4) initial poses
+    edges: np.ndarray  # (E, 2) int node ids (i, j)
+    relative: np.ndarray  # (E, 4, 4) pose of j in the frame of i
+    information: np.ndarray  # (E, 6, 6) g2o order [x y z qx qy qz], or (E, 3, 3) [x y theta] when planar
+    planar: bool = False
+    fixed: list[int] = field(default_factory=list)
+    meta: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def index_of(self) -> dict[int, int]:
+        """Node id -> row in :attr:`poses`."""
+        return {int(n): k for k, n in enumerate(self.ids)}
+
+    def edge_rows(self) -> np.ndarray:
+        """Edges as rows of :attr:`poses` (E, 2)."""
+        index = self.index_of()
+        return np.vectorize(index.__getitem__, otypes=[int])(self.edges).reshape(-1, 2)
+
+    def information_rotation_first(self) -> np.ndarray:
+        """Information matrices in GTSAM's tangent order (rotation first for 3D; unchanged for 2D)."""
+        if self.planar:
+            return self.information.copy()
+        return self.information[:, ROTATION_FIRST][:, :, ROTATION_FIRST]
+
+    def to_trajectory(self) -> Trajectory:
+        meta = {"edges": len(self.edges), **self.meta}
+        return Trajectory(poses=self.poses, frame_ids=[str(int(n)) for n in self.ids], planar=self.planar,
+                          meta=meta)
+
+    @classmethod
+    def from_trajectory(cls, traj: Trajectory) -> PoseGraph:
+        """Vertices of ``traj`` and odometry edges between consecutive poses with identity information."""
+        ids = _ids_of(traj)
+        n = len(traj)
+        dim = 3 if traj.planar else 6
+        return cls(
+            ids=ids, poses=traj.poses.copy(),
+            edges=np.stack([ids[:-1], ids[1:]], axis=1).reshape(-1, 2),
+            relative=se3.relative(traj.poses[:-1], traj.poses[1:]).reshape(-1, 4, 4),
+            information=np.tile(np.eye(dim), (max(n - 1, 0), 1, 1)),
+            planar=traj.planar,
+        )
+
+
+def _ids_of(traj: Trajectory) -> np.ndarray:
+    ids = traj.frame_ids
+    if ids is not None and all(i.isdigit() for i in ids):
+        values = np.array([int(i) for i in ids])
+        if np.all(np.diff(values) > 0):
+            return values
+    return np.arange(len(traj))
+
+
+def _upper_to_full(values: np.ndarray, dim: int) -> np.ndarray:
+    M = np.zeros((len(values), dim, dim))
+    iu = np.triu_indices(dim)
+    M[:, iu[0], iu[1]] = values
+    M[:, iu[1], iu[0]] = values
+    return M
+
+
+class _Parser:
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.is3d: bool | None = None
+        self.vertices: dict[int, tuple[int, list[str]]] = {}
+        self.edges: list[tuple[int, int, list[str], int]] = []
+        self.fixed: list[tuple[int, int]] = []
+        self.skipped: dict[str, int] = {}
+
+    def fail(self, problem: str, line: int) -> InputError:
+        return InputError(self.path, problem, line=line)
+
+    def node_id(self, text: str, line: int) -> int:
+        try:
+            return int(text)
+        except ValueError:
+            raise self.fail(f"node id {text!r} is not an integer", line) from None
+
+    def line(self, number: int, fields: list[str]) -> None:
+        tag = fields[0]
+        if tag == "FIX":
+            if len(fields) < 2:
+                raise self.fail("FIX without a node id", number)
+            self.fixed += [(self.node_id(f, number), number) for f in fields[1:]]
+            return
+        if tag not in TAGS:
+            self.skipped[tag] = self.skipped.get(tag, 0) + 1
+            return
+        count, is3d = TAGS[tag]
+        if len(fields) - 1 != count:
+            raise self.fail(f"{tag} has {len(fields) - 1} fields, expected {count}", number)
+        if self.is3d is None:
+            self.is3d = is3d
+        elif self.is3d != is3d:
+            raise self.fail(f"{tag} in a {'3D' if self.is3d else '2D'} graph (2D and 3D mixed)", number)
+        if tag.startswith("VERTEX"):
+            node = self.node_id(fields[1], number)
+            if node in self.vertices:
+                first = self.vertices[node][0]
+                raise self.fail(f"vertex {node} defined twice (first on line {first})", number)
+            self.vertices[node] = (number, fields[2:])
+        else:
+            i, j = self.node_id(fields[1], number), self.node_id(fields[2], number)
+            if i == j:
+                raise self.fail(f"edge from node {i} to itself", number)
+            self.edges.append((i, j, fields[3:], number))
+
+
+def _table(path: Path, rows: list[list[str]], lines: np.ndarray, width: int) -> np.ndarray:
+    if not rows:
+        return np.zeros((0, width))
+    return _text.to_floats(path, rows, lines.tolist())
+
+
+def _poses_from(values: np.ndarray, lines: np.ndarray, is3d: bool, path: Path) -> np.ndarray:
+    if len(values) == 0:
+        return se3.identity(0)
+    if is3d:
+        _text.check_quaternions(path, values[:, 3:7], lines)
+        return se3.from_xyz_quat(values[:, :3], values[:, 3:7], "xyzw")
+    return se3.from_xy_yaw(values[:, :3])
+
+
+def _check_information(info: np.ndarray, lines: np.ndarray, path: Path) -> None:
+    eig = np.linalg.eigvalsh(info) if len(info) else np.zeros((0, 1))
+    bad = eig[:, 0] < -1e-9 * np.maximum(np.abs(eig).max(axis=1), 1.0)
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise InputError(path, "information matrix is not positive semi-definite", line=int(lines[k]))
+
+
+def _fill_missing(ids: np.ndarray, known: dict[int, np.ndarray], edges: np.ndarray, rel: np.ndarray) -> int:
+    """Initial poses of nodes without a vertex, from odometry edges i -> i+1 first, then any edge.
+
+    Returns how many nodes got a pose."""
+    before = len(known)
+    odometry = np.flatnonzero(edges[:, 1] == edges[:, 0] + 1)
+    order = [odometry[np.argsort(edges[odometry, 0], kind="stable")], np.arange(len(edges))]
+    while True:
+        changed = True
+        while changed:
+            changed = False
+            for group in order:
+                for e in group:
+                    i, j = int(edges[e, 0]), int(edges[e, 1])
+                    if i in known and j not in known:
+                        known[j] = known[i] @ rel[e]
+                        changed = True
+                    elif j in known and i not in known:
+                        known[i] = known[j] @ se3.inverse(rel[e])
+                        changed = True
+        missing = set(ids.tolist()) - known.keys()
+        if not missing:
+            break
+        known[min(missing)] = np.eye(4)  # a component without any vertex starts at identity
+    return len(known) - before
+
+
+def read_g2o(path: str | Path) -> PoseGraph:
+    """Parse a g2o file; :class:`InputError` naming the line for anything malformed."""
+    path = Path(path)
+    parser = _Parser(path)
+    for number, fields in _text.data_lines(_text.open_text(path)):
+        parser.line(number, fields)
+    if parser.is3d is None:
+        raise InputError(path, "no VERTEX_SE2/EDGE_SE2/VERTEX_SE3:QUAT/EDGE_SE3:QUAT lines")
+    is3d = parser.is3d
+    v_ids = np.array(sorted(parser.vertices), dtype=int)
+    v_lines = np.array([parser.vertices[n][0] for n in v_ids], dtype=int)
+    v_values = _table(path, [parser.vertices[n][1] for n in v_ids], v_lines, 7 if is3d else 3)
+    v_poses = _poses_from(v_values, v_lines, is3d, path)
+    edges = np.array([(i, j) for i, j, _, _ in parser.edges], dtype=int).reshape(-1, 2)
+    e_lines = np.array([n for *_, n in parser.edges], dtype=int)
+    e_values = _table(path, [v for _, _, v, _ in parser.edges], e_lines, 28 if is3d else 9)
+    k = 7 if is3d else 3
+    relative = _poses_from(e_values[:, :k], e_lines, is3d, path).reshape(-1, 4, 4)
+    information = _upper_to_full(e_values[:, k:], 6 if is3d else 3)
+    _check_information(information, e_lines, path)
+    ids = np.union1d(v_ids, edges.reshape(-1)).astype(int)
+    known = {int(n): T for n, T in zip(v_ids, v_poses, strict=True)}
+    filled = _fill_missing(ids, known, edges, relative) if len(known) < len(ids) else 0
+    for node, number in parser.fixed:
+        if node not in known:
+            raise InputError(path, f"FIX of unknown node {node}", line=number)
+    meta: dict = {"source": str(path)}
+    if filled:
+        meta["initialised_from_edges"] = filled
+    if parser.skipped:
+        meta["skipped"] = dict(parser.skipped)
+    return PoseGraph(
+        ids=ids, poses=np.stack([known[int(n)] for n in ids]).reshape(-1, 4, 4), edges=edges,
+        relative=relative, information=information, planar=not is3d,
+        fixed=sorted({n for n, _ in parser.fixed}), meta=meta,
+    )
+
+
+def _pose_table(T: np.ndarray, planar: bool) -> np.ndarray:
+    """Rows ``x y theta`` (planar) or ``x y z qx qy qz qw``."""
+    if planar:
+        return se3.to_xy_yaw(T).reshape(-1, 3)
+    xyz, q = se3.to_xyz_quat(T.reshape(-1, 4, 4), "xyzw")
+    return np.concatenate([xyz, q], axis=1)
+
+
+def write_g2o(graph: PoseGraph, path: str | Path) -> None:
+    """Write ``graph`` (exact float text); every node gets a vertex line."""
+    path = Path(path)
+    if graph.planar and not se3.is_planar(np.concatenate([graph.poses, graph.relative])):
+        raise InputError(path, "graph is marked planar (2D) but its poses leave the z = 0 plane")
+    vertex, edge = ("VERTEX_SE2", "EDGE_SE2") if graph.planar else ("VERTEX_SE3:QUAT", "EDGE_SE3:QUAT")
+    iu = np.triu_indices(3 if graph.planar else 6)
+    vertices = _pose_table(graph.poses, graph.planar).tolist()
+    measured = _pose_table(graph.relative, graph.planar).tolist()
+    information = graph.information[:, iu[0], iu[1]].reshape(len(graph.edges), len(iu[0])).tolist()
+    with atomic_write(path) as fh:
+        for n, row in zip(graph.ids.tolist(), vertices, strict=True):
+            fh.write(f"{vertex} {n} {' '.join(map(repr, row))}\n")
+        if graph.fixed:
+            fh.write("FIX " + " ".join(str(int(n)) for n in graph.fixed) + "\n")
+        for (i, j), row, info in zip(graph.edges.tolist(), measured, information, strict=True):
+            fh.write(f"{edge} {i} {j} {' '.join(map(repr, row + info))}\n")
+
+
+def _read(path: Path, options: ReadOptions) -> Trajectory:
+    return read_g2o(path).to_trajectory()
+
+
+def _write(traj: Trajectory, path: Path, options: ReadOptions) -> None:
+    if len(traj) == 0:
+        raise InputError(path, "no poses to write")
+    write_g2o(PoseGraph.from_trajectory(traj), path)
+
+
+FORMAT = trajectory_format(
+    TrajectoryFormat(
+        name="g2o",
+        description="g2o pose graph (VERTEX/EDGE_SE3:QUAT or VERTEX/EDGE_SE2); vertices as the trajectory",
+        read=_read,
+        write=_write,
+        suffixes=(".g2o",),
+    )
+)

@@ -31,7 +31,7 @@ from dm2_backend.trajectory import Trajectory
 def _time_rows(stamps: np.ndarray | None) -> list[tuple[str, str]]:
     if stamps is None or len(stamps) == 0:
         return [("timestamps", "none")]
-    rows = [("time span", f"{stamps[0]!r} .. {stamps[-1]!r} ({stamps[-1] - stamps[0]:.3f} s)")]
+    rows = [("time span", f"{float(stamps[0])!r} .. {float(stamps[-1])!r} ({stamps[-1] - stamps[0]:.3f} s)")]
     if len(stamps) > 1:
         dt = np.diff(stamps)
         rows.append(("rate", f"{1.0 / np.median(dt):.3f} Hz median (dt {dt.min():.4g} .. {dt.max():.4g} s)"))
@@ -86,18 +86,22 @@ def describe(path: Path, fmt: str | None, options: ReadOptions) -> list[tuple[st
     needs_topic = spec.describe is not None and options.topic is None and "bag" in spec.name
     if needs_topic:
         return rows
+    traj_error: InputError | None = None
     if traj_fmt is not None:
         try:
             rows += trajectory_rows(read_trajectory(path, traj_fmt, options))
-        except InputError:
+        except InputError as err:
             if scan_fmt is None:
                 raise
+            traj_error = err
     if scan_fmt is not None and (traj_fmt is None or scan_fmt == traj_fmt or options.topic):
         try:
             rows += scan_rows(open_scans(path, scan_fmt, options))
         except InputError:
             if traj_fmt is None:
                 raise
+            if traj_error is not None:  # neither reader could use it (e.g. an unknown bag topic)
+                raise traj_error from None
     return rows
 
 

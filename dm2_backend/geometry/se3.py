@@ -110,10 +110,20 @@ def to_xyz_euler(T: np.ndarray) -> np.ndarray:
     return np.concatenate([T[..., :3, 3], matrix_to_euler_xyz(T[..., :3, :3])], axis=-1)
 
 
+def rpy_to_matrix(rpy: np.ndarray) -> np.ndarray:
+    """Roll, pitch, yaw (fixed axes x, y, z): ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``."""
+    return Rotation.from_euler("xyz", np.asarray(rpy, dtype=np.float64)).as_matrix()
+
+
+def matrix_to_rpy(R: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`rpy_to_matrix`: ``roll pitch yaw`` of rotation matrices."""
+    return _rotation(R).as_euler("xyz")
+
+
 def from_xy_yaw(v: np.ndarray) -> np.ndarray:
     """Planar poses from (N,3) ``x y yaw`` (z = 0)."""
     v = np.asarray(v, dtype=np.float64)
-    R = Rotation.from_euler("z", v[..., 2]).as_matrix()
+    R = Rotation.from_euler("z", v[..., 2:3]).as_matrix()
     t = np.concatenate([v[..., :2], np.zeros_like(v[..., :1])], axis=-1)
     return make_poses(R, t)
 

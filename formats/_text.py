@@ -1,0 +1,165 @@
+"""Shared helpers of the text trajectory formats: numeric tables with line numbers, exact float text,
+validation that names the file line."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from dm2_backend.errors import InputError
+from dm2_backend.trajectory import Trajectory, validate_poses, validate_timestamps
+
+#: Largest accepted deviation of a parsed quaternion's norm from 1 (print rounding is far smaller;
+#: a larger one means a wrong column or a broken file).
+QUAT_NORM_TOL = 1e-2
+
+
+def open_text(path: Path) -> list[str]:
+    """All lines of a text file; :class:`InputError` for a missing, unreadable or binary file."""
+    if not path.exists():
+        raise InputError(path, "no such file")
+    if path.is_dir():
+        raise InputError(path, "is a folder, expected a text file")
+    try:
+        return path.read_text(encoding="utf-8").splitlines()
+    except UnicodeDecodeError as exc:
+        raise InputError(path, f"not a text file ({exc.reason} at byte {exc.start})") from None
+    except OSError as exc:
+        raise InputError(path, exc.strerror or str(exc)) from None
+
+
+def data_lines(lines: list[str], comment: str = "#") -> Iterator[tuple[int, list[str]]]:
+    """(1-based line number, fields) of each non-blank, non-comment line; commas count as spaces."""
+    for number, text in enumerate(lines, start=1):
+        text = text.strip()
+        if not text or text.startswith(comment):
+            continue
+        yield number, text.replace(",", " ").split()
+
+
+def parse_floats(path: Path, number: int, fields: list[str]) -> list[float]:
+    """Floats of one line; :class:`InputError` naming the line for text or NaN/inf."""
+    try:
+        values = [float(f) for f in fields]
+    except ValueError:
+        bad = next(f for f in fields if not is_float(f))
+        raise InputError(path, f"not a number: {bad!r}", line=number) from None
+    if not all(math.isfinite(v) for v in values):
+        raise InputError(path, "NaN or infinite value", line=number)
+    return values
+
+
+def is_float(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def read_table(
+    path: Path, columns: tuple[int, ...], what: str, comment: str = "#"
+) -> tuple[np.ndarray, np.ndarray]:
+    """Numeric rows (N, C) float64 and their line numbers (N,); every row must have the column count
+    of the first one, which must be one of ``columns``."""
+    rows: list[list[str]] = []
+    numbers: list[int] = []
+    width = None
+    for number, fields in data_lines(open_text(path), comment):
+        if width is None:
+            if len(fields) not in columns:
+                raise InputError(path, count_problem(len(fields), columns, what), line=number)
+            width = len(fields)
+        elif len(fields) != width:
+            raise InputError(path, count_problem(len(fields), (width,), what), line=number)
+        rows.append(fields)
+        numbers.append(number)
+    if not rows:
+        raise InputError(path, f"no {what} lines (empty file?)")
+    return to_floats(path, rows, numbers), np.asarray(numbers)
+
+
+def to_floats(path: Path, rows: list[list[str]], numbers: list[int]) -> np.ndarray:
+    """Rows of number strings (equal lengths) to float64, naming the line of text or NaN/inf."""
+    try:
+        data = np.array(rows, dtype=np.float64)
+    except ValueError:
+        for number, fields in zip(numbers, rows, strict=True):
+            parse_floats(path, number, fields)
+        raise
+    finite = np.isfinite(data).all(axis=1)
+    if not finite.all():
+        raise InputError(path, "NaN or infinite value", line=numbers[int(np.argmax(~finite))])
+    return data
+
+
+def count_problem(got: int, expected: tuple[int, ...], what: str) -> str:
+    want = " or ".join(str(c) for c in expected)
+    return f"{got} columns, expected {want} ({what})"
+
+
+def check_quaternions(path: Path, q: np.ndarray, lines: np.ndarray) -> None:
+    """:class:`InputError` naming the line of a quaternion whose norm is far from 1."""
+    bad = np.abs(np.linalg.norm(q, axis=1) - 1.0) > QUAT_NORM_TOL
+    if bad.any():
+        i = int(np.argmax(bad))
+        norm = float(np.linalg.norm(q[i]))
+        raise InputError(path, f"quaternion norm {norm:.4g} is not 1 (not a rotation)", line=int(lines[i]))
+
+
+def validate(traj: Trajectory, path: Path, lines: np.ndarray) -> Trajectory:
+    """Validate poses and timestamps, naming the file line of the first bad row."""
+    try:
+        validate_poses(traj.poses, path, 0)
+        if traj.timestamps is not None:
+            validate_timestamps(traj.timestamps, path, 0)
+    except InputError as exc:
+        line = None if exc.line is None else int(lines[exc.line])
+        raise InputError(path, exc.problem, line=line) from None
+    return traj
+
+
+def drop_duplicate_times(
+    stamps: np.ndarray, rows: np.ndarray, lines: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
+    """Keep the first of each run of equal consecutive timestamps; also returns the dropped lines."""
+    keep = np.ones(len(stamps), bool)
+    keep[1:] = np.diff(stamps) != 0
+    return stamps[keep], rows[keep], lines[keep], [int(n) for n in lines[~keep]]
+
+
+def duplicate_policy(extra: dict) -> str:
+    """``ReadOptions.extra["duplicate_times"]``: "error" (default) or "keep-first"."""
+    policy = extra.get("duplicate_times", "error")
+    if policy not in ("error", "keep-first"):
+        raise ValueError(f"duplicate_times must be 'error' or 'keep-first', not {policy!r}")
+    return policy
+
+
+def fmt(value: float) -> str:
+    """Shortest text that reads back as the same float64 (Python's repr)."""
+    return repr(float(value))
+
+
+def fmt_row(values: np.ndarray) -> str:
+    return " ".join(map(repr, np.asarray(values, dtype=np.float64).tolist()))
+
+
+def sniff_rows(path: Path, columns: int, max_lines: int = 20, comment: str = "#") -> np.ndarray | None:
+    """The first data lines (up to ``max_lines``) as floats when all have ``columns`` numeric fields."""
+    rows = []
+    with open(path, encoding="utf-8") as fh:
+        for number, line in enumerate(fh):
+            if number > 10 * max_lines or len(rows) >= max_lines:
+                break
+            text = line.strip()
+            if not text or text.startswith(comment):
+                continue
+            fields = text.replace(",", " ").split()
+            if len(fields) != columns or not all(is_float(f) for f in fields):
+                return None
+            rows.append([float(f) for f in fields])
+    return np.asarray(rows) if rows else None
