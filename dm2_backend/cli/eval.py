@@ -1,0 +1,170 @@
+"""``dm2 eval``: APE/RPE (through evo), the paper ATE and the Freiburg relations metric of estimates."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+import numpy as np
+
+from dm2_backend.errors import InputError
+from dm2_backend.evaluation import plots
+from dm2_backend.evaluation.ape_rpe import ALIGN_MODES, DELTA_UNITS, evaluate_poses
+from dm2_backend.evaluation.paper_ate import paper_ate
+from dm2_backend.evaluation.relations import MAX_DT, load_relations, relations_error
+from dm2_backend.evaluation.report import (
+    EstimateReport,
+    EvalReport,
+    read_run_report,
+    safe_name,
+    terminal_text,
+    write_csv,
+    write_evo_results,
+    write_json,
+    write_markdown,
+)
+from dm2_backend.formats import ReadOptions, read_trajectory
+
+path_type = click.Path(path_type=Path)
+
+
+def _labels(paths: tuple[Path, ...]) -> list[str]:
+    labels: list[str] = []
+    for p in paths:
+        name = p.name
+        for suffix in (".gz", ".bz2", ".xz", ".zip"):
+            name = name.removesuffix(suffix)
+        label = (Path(name).stem if p.is_file() else name) or str(p)
+        while label in labels:
+            label = f"{label}#{len(labels) + 1}"
+        labels.append(label)
+    return labels
+
+
+def _check_delta(delta: float, unit: str) -> None:
+    if delta <= 0:
+        raise click.BadParameter("must be positive", param_hint="--delta")
+    if unit == "f" and not float(delta).is_integer():
+        raise click.BadParameter("must be a whole number of frames with --delta-unit f", param_hint="--delta")
+
+
+def _plots(
+    folder: Path, report: EvalReport, gt_positions: np.ndarray | None, run_report: Path | None
+) -> list:
+    written = []
+    estimates = {}
+    for est in report.estimates:
+        pe = est.poses
+        estimates[est.label] = pe.est.positions_xyz if pe is not None else est.positions
+    written.append(plots.plot_trajectories(folder / "trajectories.png", gt_positions, estimates))
+    for est in report.estimates:
+        if est.poses is None:
+            continue
+        m = est.poses.metrics
+        errors = {"APE trans": (m["ape_trans"].errors, "m"), "APE rot": (m["ape_rot"].errors, "deg")}
+        written.append(plots.plot_error_map(folder / f"errors_{safe_name(est.label)}.png", est.label,
+                                            est.poses.est.positions_xyz, errors, gt_positions))
+    if run_report is not None:
+        epochs = read_run_report(run_report).get("epochs", [])
+        out = plots.plot_error_vs_epoch(folder / "epochs.png", epochs)
+        if out is None:
+            click.echo(f"note: {run_report}: no epoch has an 'ate' entry; no error-vs-epoch plot", err=True)
+        else:
+            written.append(out)
+    return written
+
+
+@click.command("eval")
+@click.option("--gt", "gt_path", type=path_type, default=None, help="Ground-truth trajectory.")
+@click.option("--est", "est_paths", type=path_type, multiple=True, required=True,
+              help="Estimated trajectory (repeat for several).")
+@click.option("--gt-format", default=None, help="Format of --gt (detected when unambiguous).")
+@click.option("--est-format", default=None, help="Format of every --est (detected when unambiguous).")
+@click.option("--gt-topic", default=None, help="Bag topic of the ground truth.")
+@click.option("--est-topic", default=None, help="Bag topic of the estimates.")
+@click.option("--gt-times", type=path_type, default=None, help="KITTI times.txt for --gt.")
+@click.option("--est-times", type=path_type, default=None, help="KITTI times.txt for --est.")
+@click.option("--relations", "relations_path", type=path_type, default=None,
+              help="Freiburg .relations file (t1 t2 x y z roll pitch yaw); --gt may then be omitted.")
+@click.option("--relations-max-dt", type=float, default=MAX_DT, show_default=True,
+              help="Max. seconds between a relation stamp and the nearest estimated pose.")
+@click.option("--align", type=click.Choice(ALIGN_MODES), default=None,
+              help="Alignment onto the ground truth [default: se3; none with --align-origin].")
+@click.option("--align-origin", is_flag=True, help="Align the first poses only (evo's --align_origin).")
+@click.option("--max-diff", type=float, default=0.01, show_default=True,
+              help="Max. seconds between associated stamps (association by index when a file has none).")
+@click.option("--delta", type=float, default=1.0, show_default=True, help="RPE pair distance.")
+@click.option("--delta-unit", type=click.Choice(list(DELTA_UNITS)), default="f", show_default=True,
+              help="RPE delta unit: f frames, m metres.")
+@click.option("--json", "json_path", type=path_type, default=None, help="Write the results as JSON.")
+@click.option("--csv", "csv_path", type=path_type, default=None, help="Write the table as CSV.")
+@click.option("--markdown", "md_path", type=path_type, default=None, help="Write the table as Markdown.")
+@click.option("--plot", "plot_dir", type=path_type, default=None, help="Write plots (PNG) into this folder.")
+@click.option("--run-report", type=path_type, default=None,
+              help="A refine run's report.json (or its folder): adds an error-vs-epoch plot to --plot.")
+@click.option("--save-evo", "evo_dir", type=path_type, default=None,
+              help="Write evo result archives (.zip, readable by evo_res) into this folder.")
+def command(gt_path, est_paths, gt_format, est_format, gt_topic, est_topic, gt_times, est_times,
+            relations_path, relations_max_dt, align, align_origin, max_diff, delta, delta_unit, json_path,
+            csv_path, md_path, plot_dir, run_report, evo_dir) -> None:
+    """Evaluate one or more estimated trajectories against a ground truth and/or relations.
+
+    APE and RPE (translation m, rotation deg) are computed with evo and equal evo_ape / evo_rpe;
+    "paper ATE" is the DeepMapping2 paper's own definition; --relations adds the Freiburg relations metric.
+    """
+    if gt_path is None and relations_path is None:
+        raise click.UsageError("give --gt, --relations or both")
+    if align_origin and align not in (None, "none"):
+        raise click.UsageError("--align-origin excludes --align se3/sim3 (as in evo)")
+    align = align or ("none" if align_origin else "se3")
+    _check_delta(delta, delta_unit)
+    if max_diff < 0:
+        raise click.BadParameter("must not be negative", param_hint="--max-diff")
+    if relations_max_dt < 0:
+        raise click.BadParameter("must not be negative", param_hint="--relations-max-dt")
+    if run_report is not None and plot_dir is None:
+        raise click.UsageError("--run-report is used for the error-vs-epoch plot: give --plot DIR too")
+
+    gt = read_trajectory(gt_path, gt_format, ReadOptions(topic=gt_topic, times=gt_times)) if gt_path else None
+    if gt is not None and len(gt) == 0:
+        raise InputError(gt_path, "no poses")
+    relations = load_relations(relations_path) if relations_path else None
+    report = EvalReport(
+        ground_truth=str(gt_path) if gt_path else None,
+        relations_file=str(relations_path) if relations_path else None,
+        settings={"align": align, "align_origin": align_origin, "max_diff": max_diff, "delta": delta,
+                  "delta_unit": delta_unit, "relations_max_dt": relations_max_dt},
+    )
+    est_options = ReadOptions(topic=est_topic, times=est_times)
+    for path, label in zip(est_paths, _labels(est_paths), strict=True):
+        est = read_trajectory(path, est_format, est_options)
+        if len(est) == 0:
+            raise InputError(path, "no poses")
+        entry = EstimateReport(label=label, path=str(path), positions=est.positions)
+        if gt is not None:
+            entry.poses = evaluate_poses(gt, est, align=align, align_origin=align_origin, max_diff=max_diff,
+                                         delta=delta, delta_unit=delta_unit, names=("ground truth", label),
+                                         source=path)
+            if entry.poses.n_matched >= 3:
+                entry.paper = paper_ate(np.array(entry.poses.ref.poses_se3), entry.poses.est_raw)
+        if relations is not None:
+            entry.relations = relations_error(est, relations, max_dt=relations_max_dt, source=path)
+        report.estimates.append(entry)
+
+    click.echo(terminal_text(report))
+    written = []
+    if json_path:
+        write_json(report, json_path)
+        written.append(json_path)
+    if csv_path:
+        write_csv(report, csv_path)
+        written.append(csv_path)
+    if md_path:
+        write_markdown(report, md_path)
+        written.append(md_path)
+    if plot_dir:
+        written += _plots(plot_dir, report, gt.positions if gt is not None else None, run_report)
+    if evo_dir:
+        written += write_evo_results(report, evo_dir)
+    for p in written:
+        click.echo(f"wrote {p}")

@@ -1,0 +1,315 @@
+"""Evaluation reports: terminal table, JSON, CSV and Markdown (written atomically), evo result archives,
+and the run report (``report.json``) that ``dm2 compare`` reads.
+
+Run report schema (``<run folder>/report.json``, one JSON object)::
+
+    method       str               what produced the run, e.g. "dm2 refine" or "KISS-ICP warm start"
+    metrics      {name: number}    flat metrics, units in the names (see :func:`run_metrics`), e.g.
+                                   "ape_trans_rmse_m", "ape_rot_rmse_deg", "relations_trans_mean_m"
+    timings      {stage: seconds}  wall-clock seconds per stage, e.g. {"prepare": 12.1, "refine": 340.2}
+    peak_rss_mb  number            peak resident memory of the run, MiB
+    epochs       [ {...} ]         optional, per refinement epoch: "epoch" (int), "loss" and "ate" (numbers),
+                                   each key optional; "ate" may also be {name: number}
+
+Evaluation JSON (``dm2 eval --json``): ``format`` ("dm2-eval/1"), ``ground_truth``, ``relations``,
+``settings`` and ``estimates`` (a list with ``label``, ``path``, ``association``, ``alignment`` and
+``metrics``: ``ape_trans``/``ape_rot``/``rpe_trans``/``rpe_rot`` with evo's statistics, ``paper_ate`` and
+``relations``). CSV and Markdown hold one row per estimate and metric with the columns of
+:data:`COLUMNS`; ``value`` is the headline figure of the row (rmse for APE/RPE, mean for relations, the
+paper's figure for the paper ATE).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from evo.tools import file_interface
+
+from dm2_backend.atomic import atomic_write
+from dm2_backend.errors import InputError
+from dm2_backend.evaluation.ape_rpe import STAT_KEYS, PoseErrors
+from dm2_backend.evaluation.paper_ate import LABEL as PAPER_LABEL
+from dm2_backend.evaluation.paper_ate import PaperATE
+from dm2_backend.evaluation.relations import RelationsResult
+
+FORMAT = "dm2-eval/1"
+COLUMNS = ("estimate", "metric", "unit", "count", "value", *STAT_KEYS)
+_LABELS = {
+    "ape_trans": "APE trans",
+    "ape_rot": "APE rot",
+    "rpe_trans": "RPE trans",
+    "rpe_rot": "RPE rot",
+    "paper_ate_trans": f"{PAPER_LABEL} trans",
+    "paper_ate_rot": f"{PAPER_LABEL} rot",
+    "relations_trans": "relations trans",
+    "relations_trans_sq": "relations trans^2",
+    "relations_rot": "relations rot",
+    "relations_rot_sq": "relations rot^2",
+}
+
+
+@dataclass
+class EstimateReport:
+    """Everything computed for one estimate."""
+
+    label: str
+    path: str
+    poses: PoseErrors | None = None
+    paper: PaperATE | None = None
+    relations: RelationsResult | None = None
+    positions: np.ndarray | None = None  # estimated positions as read (plots without ground truth)
+
+
+@dataclass
+class EvalReport:
+    ground_truth: str | None
+    relations_file: str | None
+    settings: dict
+    estimates: list[EstimateReport] = field(default_factory=list)
+
+
+def _num(v: float | None) -> float | None:
+    """JSON-safe number (NaN/inf become null)."""
+    return None if v is None or not math.isfinite(v) else float(v)
+
+
+def rows(report: EvalReport) -> list[dict]:
+    """One dict per estimate and metric, keys :data:`COLUMNS` (missing statistics are absent)."""
+    out = []
+    for est in report.estimates:
+        if est.poses is not None:
+            for key, m in est.poses.metrics.items():
+                out.append({"estimate": est.label, "metric": key, "unit": m.unit, "count": m.count,
+                            "value": m.stats["rmse"], **m.stats})
+        if est.paper is not None:
+            p = est.paper
+            out.append({"estimate": est.label, "metric": "paper_ate_trans", "unit": "sqrt(m)",
+                        "count": p.count, "value": p.trans})
+            out.append({"estimate": est.label, "metric": "paper_ate_rot", "unit": "deg",
+                        "count": p.count, "value": p.rot_deg, "mean": p.rot_deg})
+        if est.relations is not None:
+            s = est.relations.stats
+            for key, unit in (("trans", "m"), ("trans_sq", "m^2"), ("rot", "deg"), ("rot_sq", "deg^2")):
+                out.append({"estimate": est.label, "metric": f"relations_{key}", "unit": unit,
+                            "count": est.relations.used, "value": s[f"{key}_mean"],
+                            "mean": s[f"{key}_mean"], "std": s[f"{key}_std"]})
+    return out
+
+
+def to_json(report: EvalReport) -> dict:
+    estimates = []
+    for est in report.estimates:
+        entry: dict = {"label": est.label, "path": est.path, "metrics": {}}
+        if est.poses is not None:
+            pe = est.poses
+            entry["association"] = {"mode": pe.association, "matched": pe.n_matched, "gt_poses": pe.n_gt,
+                                    "est_poses": pe.n_est, "max_diff": pe.max_diff}
+            entry["alignment"] = {"mode": pe.align, "align_origin": pe.align_origin, "scale": pe.scale,
+                                  "sim3": None if pe.alignment is None else pe.alignment.tolist()}
+            for key, m in pe.metrics.items():
+                entry["metrics"][key] = {"unit": m.unit, "count": m.count, "title": m.title,
+                                         **{k: _num(v) for k, v in m.stats.items()}}
+        if est.paper is not None:
+            entry["metrics"]["paper_ate"] = {
+                "label": PAPER_LABEL, "count": est.paper.count, "trans_sqrt_m": _num(est.paper.trans),
+                "rot_deg": _num(est.paper.rot_deg),
+                "definition": "DeepMapping2 utils/geometry_utils.py compute_ate: rigid alignment; "
+                              "trans = sqrt(mean per-frame distance), rot = mean |yaw error| (deg)",
+            }
+        if est.relations is not None:
+            r = est.relations
+            entry["metrics"]["relations"] = {"used": r.used, "skipped": r.skipped, "planar": r.planar,
+                                             "max_dt": r.max_dt, "units": {"trans": "m", "rot": "deg"},
+                                             **{k: _num(v) for k, v in r.stats.items()}}
+        estimates.append(entry)
+    return {"format": FORMAT, "ground_truth": report.ground_truth, "relations": report.relations_file,
+            "settings": report.settings, "estimates": estimates}
+
+
+def run_metrics(est: EstimateReport) -> dict[str, float]:
+    """Flat metrics of one estimate for a run report's ``metrics`` (units in the names)."""
+    out: dict[str, float] = {}
+    if est.poses is not None:
+        for key, m in est.poses.metrics.items():
+            out[f"{key}_rmse_{m.unit}"] = m.stats["rmse"]
+    if est.paper is not None:
+        out["paper_ate_trans"] = est.paper.trans
+        out["paper_ate_rot_deg"] = est.paper.rot_deg
+    if est.relations is not None:
+        out["relations_trans_mean_m"] = est.relations.stats["trans_mean"]
+        out["relations_rot_mean_deg"] = est.relations.stats["rot_mean"]
+    return out
+
+
+def fmt(v) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, bool) or isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if not math.isfinite(v):
+            return "-"
+        return f"{v:.6f}" if abs(v) < 1e6 else f"{v:.6g}"
+    return str(v)
+
+
+def format_table(header: list[str], body: list[list]) -> str:
+    """Plain aligned text table (numbers right-aligned)."""
+    cells = [[fmt(c) for c in r] for r in body]
+    widths = [max(len(h), *(len(r[i]) for r in cells)) if cells else len(h) for i, h in enumerate(header)]
+    numeric = [all(isinstance(r[i], (int, float)) or r[i] is None for r in body) for i in range(len(header))]
+
+    def line(items: list[str]) -> str:
+        cols = zip(items, widths, numeric, strict=True)
+        return "  ".join(s.rjust(w) if num else s.ljust(w) for s, w, num in cols).rstrip()
+
+    return "\n".join([line(header), line(["-" * w for w in widths]), *(line(r) for r in cells)])
+
+
+def _display_rows(report: EvalReport) -> tuple[list[str], list[list]]:
+    header = ["estimate", "metric", "unit", "count", "value", *STAT_KEYS]
+    body = [[r["estimate"], _LABELS[r["metric"]], r["unit"], r["count"], r["value"],
+             *(r.get(k) for k in STAT_KEYS)] for r in rows(report)]
+    return header, body
+
+
+def describe(est: EstimateReport) -> list[str]:
+    """Lines on how an estimate was associated and aligned."""
+    lines = []
+    if est.poses is not None:
+        pe = est.poses
+        how = f"by time (max diff {pe.max_diff} s)" if pe.association == "time" else "by index"
+        align = "origin" if pe.align_origin else pe.align
+        scale = f", scale {pe.scale:.6f}" if pe.align == "sim3" else ""
+        lines.append(f"{est.label}: {pe.n_matched} pose pairs associated {how} "
+                     f"(gt {pe.n_gt}, estimate {pe.n_est}); alignment {align}{scale}")
+        if pe.association == "index" and pe.n_gt != pe.n_est:
+            lines.append(f"{est.label}: warning: no timestamps to associate by and the lengths differ; "
+                         f"only the first {pe.n_matched} poses of each are compared")
+    if est.relations is not None:
+        r = est.relations
+        lines.append(f"{est.label}: {r.used} relations used, {r.skipped} skipped (no pose within "
+                     f"{r.max_dt} s); {'SE(2)' if r.planar else 'SE(3)'}")
+    return lines
+
+
+def terminal_text(report: EvalReport) -> str:
+    lines = [line for est in report.estimates for line in describe(est)]
+    header, body = _display_rows(report)
+    lines += ["", format_table(header, body)]
+    if any(e.paper is not None for e in report.estimates):
+        lines.append(f"\n{PAPER_LABEL}: the DeepMapping2 paper's definition (trans = sqrt of the mean "
+                     "distance after rigid alignment, sqrt(m); rot = mean |yaw error|); not comparable "
+                     "with APE")
+    return "\n".join(lines)
+
+
+def write_json(report: EvalReport, path: str | Path) -> None:
+    with atomic_write(path) as fh:
+        json.dump(to_json(report), fh, indent=2, allow_nan=False)
+        fh.write("\n")
+
+
+def write_csv(report: EvalReport, path: str | Path) -> None:
+    with atomic_write(path, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(COLUMNS))
+        writer.writeheader()
+        for r in rows(report):
+            writer.writerow({k: _csv_cell(r.get(k)) for k in COLUMNS})
+
+
+def _csv_cell(v):
+    return "" if v is None or (isinstance(v, float) and not math.isfinite(v)) else v
+
+
+def write_markdown(report: EvalReport, path: str | Path) -> None:
+    header, body = _display_rows(report)
+    lines = ["# Trajectory evaluation", ""]
+    if report.ground_truth:
+        lines.append(f"Ground truth: `{report.ground_truth}`  ")
+    if report.relations_file:
+        lines.append(f"Relations: `{report.relations_file}`  ")
+    lines += [f"- {line}" for est in report.estimates for line in describe(est)]
+    lines += ["", "| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(fmt(c) for c in r) + " |" for r in body]
+    if any(e.paper is not None for e in report.estimates):
+        lines += ["", f"*{PAPER_LABEL}*: DeepMapping2's official definition (sqrt of the mean distance after "
+                  "rigid alignment; mean absolute yaw error). Not comparable with APE."]
+    with atomic_write(path) as fh:
+        fh.write("\n".join(lines) + "\n")
+
+
+def safe_name(label: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", label).strip("_") or "estimate"
+
+
+def write_evo_results(report: EvalReport, folder: str | Path) -> list[Path]:
+    """evo result archives (``evo_res`` reads them), one per estimate and metric."""
+    folder = Path(folder)
+    written = []
+    for est in report.estimates:
+        if est.poses is None:
+            continue
+        for key, m in est.poses.metrics.items():
+            path = folder / f"{safe_name(est.label)}_{key}.zip"
+            with atomic_write(path, "wb") as fh:
+                file_interface.save_res_file(fh, m.result)
+            written.append(path)
+    return written
+
+
+# --- run reports ---------------------------------------------------------------------------------------
+
+def read_run_report(path: str | Path) -> dict:
+    """A run report (a folder holding ``report.json``, or the file); types are checked."""
+    path = Path(path)
+    file = path / "report.json" if path.is_dir() else path
+    if not file.is_file():
+        raise InputError(file, "no such run report")
+    try:
+        data = json.loads(file.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(file, f"not valid JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise InputError(file, "a run report is a JSON object")
+    for key in ("metrics", "timings"):
+        if not isinstance(data.get(key, {}), dict):
+            raise InputError(file, f"'{key}' must be an object of name: number")
+    if "epochs" in data and not isinstance(data["epochs"], list):
+        raise InputError(file, "'epochs' must be a list")
+    return data
+
+
+def compare_table(reports: dict[str, dict]) -> str:
+    """One table, a column per run and a row per method / metric / timing / memory."""
+    runs = list(reports)
+    metric_keys = list(dict.fromkeys(k for r in reports.values() for k in r.get("metrics", {})))
+    stage_keys = list(dict.fromkeys(k for r in reports.values() for k in r.get("timings", {})))
+    body: list[list] = [["method", *(str(reports[r].get("method", "-")) for r in runs)]]
+    for k in metric_keys:
+        body.append([k, *(_as_number(reports[r].get("metrics", {}).get(k)) for r in runs)])
+    for k in stage_keys:
+        body.append([f"time {k} [s]", *(_as_number(reports[r].get("timings", {}).get(k)) for r in runs)])
+    if stage_keys:
+        totals = []
+        for r in runs:
+            vals = [_as_number(v) for v in reports[r].get("timings", {}).values()]
+            nums = [v for v in vals if isinstance(v, float)]
+            totals.append(sum(nums) if nums else None)
+        body.append(["time total [s]", *totals])
+    body.append(["peak RSS [MB]", *(_as_number(reports[r].get("peak_rss_mb")) for r in runs)])
+    return format_table(["quantity", *runs], body)
+
+
+def _as_number(v):
+    if isinstance(v, bool) or v is None:
+        return v
+    if isinstance(v, (int, float)):
+        return float(v)
+    return str(v)
