@@ -105,7 +105,10 @@ def validate_timestamps(stamps: np.ndarray, source: str | Path | None, first_lin
         i = int(np.argmax(d <= 0)) + 1
         kind = "duplicate" if d[i - 1] == 0 else "unsorted"
         now, before = float(stamps[i]), float(stamps[i - 1])
-        raise InputError(source, f"{kind} timestamp {now!r} after {before!r}", line=_line(first_line, i))
+        hint = " (--duplicate-times keep-first keeps the first pose of each)" if kind == "duplicate" else ""
+        raise InputError(
+            source, f"{kind} timestamp {now!r} after {before!r}{hint}", line=_line(first_line, i)
+        )
 
 
 def associate_by_time(a: np.ndarray, b: np.ndarray, max_diff: float) -> tuple[np.ndarray, np.ndarray]:

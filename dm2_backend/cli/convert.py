@@ -6,7 +6,13 @@ from pathlib import Path
 
 import click
 
-from dm2_backend.cli.options import calib_option, read_options, times_option, topic_option
+from dm2_backend.cli.options import (
+    calib_option,
+    duplicate_times_option,
+    read_options,
+    times_option,
+    topic_option,
+)
 from dm2_backend.formats import format_for_output, read_trajectory, write_trajectory
 
 
@@ -19,9 +25,12 @@ from dm2_backend.formats import format_for_output, read_trajectory, write_trajec
 @topic_option
 @times_option
 @calib_option
-def command(input_path, output_path, src_fmt, dst_fmt, out_topic, topic, times, calib) -> None:
+@duplicate_times_option
+def command(
+    input_path, output_path, src_fmt, dst_fmt, out_topic, topic, times, calib, duplicate_times
+) -> None:
     """Convert the trajectory in INPUT to OUTPUT."""
-    options = read_options(topic, times, calib)
+    options = read_options(topic, times, calib, duplicate_times=duplicate_times)
     traj = read_trajectory(input_path, src_fmt, options)
     fmt = dst_fmt or format_for_output(output_path)
     out_options = read_options(out_topic or topic, None, calib)

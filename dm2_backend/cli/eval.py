@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from dm2_backend.cli.options import duplicate_times_option
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.ape_rpe import ALIGN_MODES, DELTA_UNITS, evaluate_poses
@@ -104,9 +105,10 @@ def _plots(
               help="A refine run's report.json (or its folder): adds an error-vs-epoch plot to --plot.")
 @click.option("--save-evo", "evo_dir", type=path_type, default=None,
               help="Write evo result archives (.zip, readable by evo_res) into this folder.")
+@duplicate_times_option
 def command(gt_path, est_paths, gt_format, est_format, gt_topic, est_topic, gt_times, est_times,
             relations_path, relations_max_dt, align, align_origin, max_diff, delta, delta_unit, json_path,
-            csv_path, md_path, plot_dir, run_report, evo_dir) -> None:
+            csv_path, md_path, plot_dir, run_report, evo_dir, duplicate_times) -> None:
     """Evaluate one or more estimated trajectories against a ground truth and/or relations.
 
     APE and RPE (translation m, rotation deg) are computed with evo and equal evo_ape / evo_rpe;
@@ -125,7 +127,9 @@ def command(gt_path, est_paths, gt_format, est_format, gt_topic, est_topic, gt_t
     if run_report is not None and plot_dir is None:
         raise click.UsageError("--run-report is used for the error-vs-epoch plot: give --plot DIR too")
 
-    gt = read_trajectory(gt_path, gt_format, ReadOptions(topic=gt_topic, times=gt_times)) if gt_path else None
+    dup = {"duplicate_times": duplicate_times}
+    gt_options = ReadOptions(topic=gt_topic, times=gt_times, extra=dup)
+    gt = read_trajectory(gt_path, gt_format, gt_options) if gt_path else None
     if gt is not None and len(gt) == 0:
         raise InputError(gt_path, "no poses")
     relations = load_relations(relations_path) if relations_path else None
@@ -135,7 +139,7 @@ def command(gt_path, est_paths, gt_format, est_format, gt_topic, est_topic, gt_t
         settings={"align": align, "align_origin": align_origin, "max_diff": max_diff, "delta": delta,
                   "delta_unit": delta_unit, "relations_max_dt": relations_max_dt},
     )
-    est_options = ReadOptions(topic=est_topic, times=est_times)
+    est_options = ReadOptions(topic=est_topic, times=est_times, extra=dup)
     for path, label in zip(est_paths, _labels(est_paths), strict=True):
         est = read_trajectory(path, est_format, est_options)
         if len(est) == 0:

@@ -9,6 +9,7 @@ import numpy as np
 
 from dm2_backend.cli.options import (
     depth_scale_option,
+    duplicate_times_option,
     intrinsics_option,
     read_options,
     times_option,
@@ -112,9 +113,10 @@ def describe(path: Path, fmt: str | None, options: ReadOptions) -> list[tuple[st
 @times_option
 @intrinsics_option
 @depth_scale_option
-def command(path: Path, fmt, topic, times, intrinsics, depth_scale) -> None:
+@duplicate_times_option
+def command(path: Path, fmt, topic, times, intrinsics, depth_scale, duplicate_times) -> None:
     """Show the format, counts, time span, rates and (for bags) topics of PATH."""
-    rows = describe(path, fmt, read_options(topic, times, None, intrinsics, depth_scale))
+    rows = describe(path, fmt, read_options(topic, times, None, intrinsics, depth_scale, duplicate_times))
     width = max(len(k) for k, _ in rows)
     for key, value in rows:
         click.echo(f"{key:<{width}}  {value}")

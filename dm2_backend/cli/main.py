@@ -39,9 +39,9 @@ def cli(ctx: click.Context, debug: bool) -> None:
 
 
 def _register() -> None:
-    from dm2_backend.cli import convert, info, plugins
+    from dm2_backend.cli import compare, convert, demo, eval, info, plugins, refine
 
-    for module in (info, convert, plugins):
+    for module in (info, convert, refine, demo, eval, compare, plugins):
         cli.add_command(module.command)
 
 

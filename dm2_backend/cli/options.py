@@ -15,6 +15,7 @@ def read_options(
     calib: Path | None = None,
     intrinsics: str | None = None,
     depth_scale: float | None = None,
+    duplicate_times: str = "error",
 ) -> ReadOptions:
     fx_fy_cx_cy = None
     if intrinsics:
@@ -25,7 +26,10 @@ def read_options(
         if len(values) != 4:
             raise click.BadParameter("give four numbers: fx fy cx cy", param_hint="--intrinsics")
         fx_fy_cx_cy = values
-    return ReadOptions(topic=topic, times=times, calib=calib, intrinsics=fx_fy_cx_cy, depth_scale=depth_scale)
+    return ReadOptions(
+        topic=topic, times=times, calib=calib, intrinsics=fx_fy_cx_cy, depth_scale=depth_scale,
+        extra={"duplicate_times": duplicate_times},
+    )
 
 
 existing_path = click.Path(exists=False, path_type=Path)
@@ -42,4 +46,8 @@ intrinsics_option = click.option(
 depth_scale_option = click.option(
     "--depth-scale", type=float, default=None,
     help="Depth units per metre [default: 1000 for 7-Scenes, 5000 for TUM RGB-D].",
+)
+duplicate_times_option = click.option(
+    "--duplicate-times", type=click.Choice(["error", "keep-first"]), default="error", show_default=True,
+    help="A repeated timestamp in a trajectory file is an error, or keep the first pose of each.",
 )

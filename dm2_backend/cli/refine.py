@@ -1,0 +1,105 @@
+"""``dm2 refine``: refine a SLAM trajectory with DeepMapping2."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from dm2_backend import config
+from dm2_backend.cli.options import (
+    calib_option,
+    depth_scale_option,
+    duplicate_times_option,
+    intrinsics_option,
+    read_options,
+    times_option,
+    topic_option,
+)
+from dm2_backend.pipeline.inputs import load_inputs
+from dm2_backend.prepare.pipeline import default_cache_dir
+
+path_type = click.Path(path_type=Path)
+
+
+def run_options(f):
+    """Options shared by ``refine`` and ``baseline``: inputs, config, plugins, cache."""
+    decorators = [
+        click.option("--scans", "-s", type=path_type, required=True,
+                     help="Scan source: folder, bag (+ --topic), CARMEN log, depth sequence."),
+        click.option("--poses", "-p", type=path_type, default=None,
+                     help="Trajectory to refine (any format); optional when a warm-start plugin computes one "
+                          "or the scan source carries odometry."),
+        click.option("--out", "-o", type=path_type, required=True, help="Run folder to write."),
+        click.option("--format", "scans_format", default=None, help="Scan source format (else detected)."),
+        click.option("--poses-format", default=None, help="Trajectory format (detected otherwise)."),
+        click.option("--config", "-c", "config_path", type=path_type, default=None, help="YAML config."),
+        click.option("--gt", type=path_type, default=None, help="Ground truth: live ATE and metrics."),
+        click.option("--gt-format", default=None),
+        click.option("--relations", type=path_type, default=None,
+                     help="Freiburg relations file: live relations metric and metrics."),
+        click.option("--warm-start", default=None, help="Warm-start plugin (default: poses; icp without).") ,
+        click.option("--place-recognition", default=None, help="Place-recognition plugin (default radius)."),
+        click.option("--registration", default=None, help="Pairwise registration plugin (default icp)."),
+        click.option("--seed", type=int, default=None, help="Random seed (deterministic runs)."),
+        click.option("--cache-dir", type=path_type, default=None,
+                     help="Preparation cache (default $DM2_CACHE_DIR or ~/.cache/dm2)."),
+        click.option("--no-cache", is_flag=True, help="Recompute the preparation steps."),
+        click.option("--max-diff", type=float, default=0.01, show_default=True,
+                     help="Seconds allowed between a scan and its pose when associating by time."),
+        click.option("--quiet", "-q", is_flag=True, help="No progress bars."),
+        topic_option, times_option, calib_option, intrinsics_option, depth_scale_option,
+        duplicate_times_option,
+    ]
+    for d in reversed(decorators):
+        f = d(f)
+    return f
+
+
+def prepare_run(kw: dict, overrides: dict):
+    """Read the inputs and the effective config of a run from the shared options."""
+    options = read_options(kw["topic"], kw["times"], kw["calib"], kw["intrinsics"], kw["depth_scale"],
+                           kw["duplicate_times"])
+    inputs = load_inputs(kw["scans"], kw["scans_format"], kw["poses"], kw["poses_format"], options,
+                         kw["gt"], kw["gt_format"], kw["relations"], kw["max_diff"])
+    for key, section in (("warm_start", "warm_start"), ("place_recognition", "place_recognition"),
+                         ("registration", "registration")):
+        if kw[key]:
+            overrides[section] = {"name": kw[key]}
+    if kw["seed"] is not None:
+        overrides["seed"] = kw["seed"]
+    cfg = config.load(kw["config_path"], overrides)
+    if not kw["warm_start"] and inputs.given is None and cfg["warm_start"]["name"] == "poses":
+        cfg["warm_start"] = {"name": "icp", "options": {}}
+    cache = None if kw["no_cache"] else (kw["cache_dir"] or default_cache_dir())
+    return inputs, cfg, cache
+
+
+@click.command("refine")
+@run_options
+@click.option("--epochs", type=int, default=None, help="Optimisation epochs.")
+@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None, help="Torch device.")
+@click.option("--resume", is_flag=True, help="Continue an interrupted run in --out from its checkpoint.")
+def command(epochs, device, resume, **kw) -> None:
+    """Refine the poses of a scan sequence with DeepMapping2 and write a run folder."""
+    from dm2_backend.pipeline.refine import refine
+
+    overrides: dict = {}
+    if epochs is not None:
+        overrides["optimiser"] = {"epochs": epochs}
+    if device is not None:
+        overrides["device"] = device
+    inputs, cfg, cache = prepare_run(kw, overrides)
+    report = refine(inputs, cfg, kw["out"], cache, resume=resume, progress=not kw["quiet"])
+    print_summary(report, kw["out"])
+
+
+def print_summary(report: dict, out: Path) -> None:
+    before, after = report.get("warm_start_metrics", {}), report.get("metrics", {})
+    for key in after:
+        if key in before:
+            click.echo(f"{key:<28} warm start {before[key]:10.4f}  ->  {report['method']} {after[key]:10.4f}")
+    t = report["timings"]
+    mem = report["peak_rss_mb"]
+    click.echo(f"{report['frames']} frames in {t['total']:.1f} s, peak memory {mem:.0f} MiB")
+    click.echo(f"wrote {out}")
