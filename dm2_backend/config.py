@@ -1,0 +1,68 @@
+"""The YAML run configuration: defaults, loading, merging and dumping the effective config."""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import asdict
+from pathlib import Path
+
+import yaml
+
+from dm2_backend.atomic import atomic_write
+from dm2_backend.errors import InputError
+from dm2_backend.optim.config import OptimConfig
+
+DEFAULTS: dict = {
+    "seed": 0,
+    "device": "auto",
+    "frames": {"max_points": 1024, "voxel": None},
+    "warm_start": {"name": "poses", "options": {}},
+    "place_recognition": {"name": "radius", "options": {}},
+    "registration": {"name": "icp", "options": {}},
+    "optimiser": asdict(OptimConfig()),
+}
+
+
+def merge(base: dict, override: dict) -> dict:
+    """Recursive dict merge; ``override`` wins. Plugin ``options`` are replaced when the name changes."""
+    out = copy.deepcopy(base)
+    for key, value in (override or {}).items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            if "name" in value and value["name"] != out[key].get("name"):
+                out[key] = {"name": value["name"], "options": {}}
+            out[key] = merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def load(path: str | Path | None, overrides: dict | None = None) -> dict:
+    """Defaults, then the YAML file (if any), then command-line overrides."""
+    cfg = copy.deepcopy(DEFAULTS)
+    if path is not None:
+        path = Path(path)
+        try:
+            user = yaml.safe_load(path.read_text()) or {}
+        except FileNotFoundError as exc:
+            raise InputError(path, "no such file") from exc
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None)
+            raise InputError(path, f"invalid YAML: {getattr(exc, 'problem', exc)}",
+                             line=None if mark is None else mark.line + 1) from exc
+        if not isinstance(user, dict):
+            raise InputError(path, "the config must be a mapping")
+        unknown = set(user) - set(DEFAULTS)
+        if unknown:
+            raise InputError(path, f"unknown config sections: {', '.join(sorted(unknown))}")
+        cfg = merge(cfg, user)
+    cfg = merge(cfg, overrides or {})
+    try:
+        OptimConfig.from_dict(cfg["optimiser"])
+    except (TypeError, ValueError) as exc:
+        raise InputError(path, str(exc)) from exc
+    return cfg
+
+
+def dump(cfg: dict, path: str | Path) -> None:
+    with atomic_write(path) as fh:
+        yaml.safe_dump(cfg, fh, sort_keys=False)

@@ -1,0 +1,71 @@
+"""Optimiser settings (the ``optimiser:`` section of the YAML config) and the values derived from the data."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+
+@dataclass
+class OptimConfig:
+    """Defaults work without tuning: every length left as None is derived from the data (see :func:`derive`)."""
+
+    epochs: int = 12
+    #: anchors (groups) per optimisation step
+    batch_groups: int = 16
+    #: "topology" (the paper), "temporal" (DeepMapping) or "random": which frames share a group
+    batching: str = "topology"
+    #: "direct" per-frame corrections or "lnet" (PointNet, the paper's L-Net)
+    pose_model: str = "direct"
+    #: drift parameters: corrections that carry over to all later frames (see pose_model.py)
+    drift: bool = True
+    #: step of each drift parameter relative to the direct ones (None: 1/sqrt(frames))
+    drift_factor: float | None = None
+    points_per_frame: int = 256
+    #: points per frame (a subset of the above) and free-space samples per ray for the occupancy BCE
+    bce_points_per_frame: int = 64
+    samples_per_ray: int = 2
+    #: loss weights: total = bce + alpha * chamfer + beta * consistency (lengths in units of ``unit``)
+    alpha: float = 1.0
+    beta: float = 1.0
+    use_bce: bool = True
+    use_chamfer: bool = True
+    use_consistency: bool = True
+    lr_pose: float = 1.0
+    lr_field: float = 1e-2
+    lr_network: float = 1e-3
+    #: final learning rate as a fraction of the initial one (cosine schedule)
+    lr_final: float = 0.05
+    grid_levels: int = 8
+    grid_features: int = 2
+    #: cells of the finest occupancy grid level (memory bound): about 1024^2 in 2D, 128^3 in 3D
+    grid_max_cells: int = 2**21
+    # derived from the data when None:
+    unit: float | None = None  # length unit of losses (m): 2 x point spacing
+    finest_cell: float | None = None  # finest occupancy grid cell (m): = unit
+    free_margin: float | None = None  # free-space samples stop this short of the hit (m): = unit
+    chamfer_truncate: float | None = None  # m: 10 x unit
+    step_translation: float | None = None  # Adam step on translation (m): unit / 10
+    step_rotation: float | None = None  # Adam step on rotation (rad): step_translation / range_median
+
+    @classmethod
+    def from_dict(cls, values: dict | None) -> OptimConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = set(values or {}) - known
+        if unknown:
+            raise ValueError(f"unknown optimiser options: {', '.join(sorted(unknown))}")
+        return cls(**(values or {}))
+
+
+def derive(cfg: OptimConfig, scale: dict[str, float]) -> dict[str, float]:
+    """Fill the None lengths from the data's scale (Frames.scale)."""
+    spacing = max(scale.get("spacing", 0.0), scale.get("voxel", 0.0), 1e-3)
+    unit = cfg.unit or 2.0 * spacing
+    step_t = cfg.step_translation or unit / 10.0
+    return {
+        "unit": unit,
+        "finest_cell": cfg.finest_cell or unit,
+        "free_margin": cfg.free_margin or unit,
+        "chamfer_truncate": cfg.chamfer_truncate or 10.0 * unit,
+        "step_translation": step_t,
+        "step_rotation": cfg.step_rotation or step_t / max(scale.get("range_median", 1.0), 1e-3),
+    }

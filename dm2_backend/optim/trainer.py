@@ -1,0 +1,248 @@
+"""Training as optimisation: the DeepMapping2 loop over anchor groups, with checkpoints and resume."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from dm2_backend.atomic import atomic_write
+from dm2_backend.geometry import se3_torch
+from dm2_backend.optim import losses
+from dm2_backend.optim.batching import make_groups
+from dm2_backend.optim.config import OptimConfig, derive
+from dm2_backend.optim.occupancy import GridOccupancy
+from dm2_backend.optim.pose_model import PoseModel
+from dm2_backend.prepare.types import Frames, Pairwise, Topology
+
+CHECKPOINT = "checkpoint.pt"
+
+
+@dataclass
+class OptimResult:
+    poses: np.ndarray
+    best_epoch: int
+    history: list[dict] = field(default_factory=list)
+    derived: dict = field(default_factory=dict)
+    stopped: str | None = None
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def sample_points(frames: Frames, m: int, seed: int) -> np.ndarray:
+    """Exactly ``m`` points per frame (random subset, or with repeats for small frames): (N, m, 3)."""
+    rng = np.random.default_rng(seed)
+    out = np.empty((len(frames), m, 3), dtype=np.float32)
+    for i, p in enumerate(frames.points):
+        out[i] = p[rng.choice(len(p), m, replace=len(p) < m)]
+    return out
+
+
+class Optimiser:
+    """Refines warm-start poses by minimising BCE + alpha Chamfer + beta consistency over anchor groups."""
+
+    def __init__(
+        self,
+        frames: Frames,
+        warm_start: np.ndarray,
+        topology: Topology,
+        pairwise: Pairwise,
+        cfg: OptimConfig,
+        seed: int = 0,
+        device: str = "auto",
+        metric: Callable[[np.ndarray], float] | None = None,
+        progress: bool = True,
+    ) -> None:
+        self.cfg = cfg
+        self.seed = seed
+        self.metric = metric
+        self.progress = progress
+        self.device = resolve_device(device)
+        self.derived = derive(cfg, frames.scale)
+        self.planar = frames.planar
+        self.n = len(frames)
+        torch.manual_seed(seed)
+        pts = sample_points(frames, cfg.points_per_frame, seed)
+        self.points = torch.from_numpy(pts).to(self.device)
+        self.topo_groups = topology.groups
+        self.groups = make_groups(cfg.batching, topology.groups, seed)
+        self.relative = torch.from_numpy(pairwise.relative).to(self.device)
+        self.valid = torch.from_numpy(pairwise.valid & (topology.groups >= 0)).to(self.device)
+        self.model = PoseModel(
+            warm_start, frames.planar, self.derived["step_translation"], self.derived["step_rotation"],
+            kind=cfg.pose_model, drift=cfg.drift, points=self.points,
+            length_scale=frames.scale.get("range_median", 1.0), drift_factor=cfg.drift_factor,
+        ).to(self.device)
+        lo, hi = self._map_box(warm_start, pts)
+        self.field = GridOccupancy(
+            lo, hi, self.derived["finest_cell"], levels=cfg.grid_levels, features=cfg.grid_features,
+            max_cells=cfg.grid_max_cells,
+        ).to(self.device)
+        groups = [
+            {"params": self.field.parameters(), "lr": cfg.lr_field},
+            {"params": self.model.pose_parameters(), "lr": cfg.lr_pose},
+        ]
+        if self.model.network_parameters():
+            groups.append({"params": self.model.network_parameters(), "lr": cfg.lr_network})
+        self.optim = torch.optim.Adam(groups)
+        self.steps_per_epoch = math.ceil(self.n / cfg.batch_groups)
+        total = max(1, cfg.epochs * self.steps_per_epoch)
+        self.sched = torch.optim.lr_scheduler.LambdaLR(
+            self.optim,
+            lambda s: cfg.lr_final + (1 - cfg.lr_final) * 0.5 * (1 + math.cos(math.pi * min(s, total) / total)),
+        )
+
+    def _map_box(self, poses: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        sub = pts[:, :: max(1, pts.shape[1] // 32)]
+        world = np.einsum("nij,nmj->nmi", poses[:, :3, :3], sub) + poses[:, None, :3, 3]
+        lo, hi = world.reshape(-1, 3).min(0), world.reshape(-1, 3).max(0)
+        pad = 0.2 * (hi - lo).max() + 4 * self.derived["unit"]
+        dims = 2 if self.planar else 3
+        return lo[:dims] - pad, hi[:dims] + pad
+
+    # ------------------------------------------------------------------ one step
+    def _step_loss(self, anchors: np.ndarray, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        cfg, unit = self.cfg, self.derived["unit"]
+        groups = self.groups[anchors]
+        topo = self.topo_groups[anchors]
+        frames = np.unique(np.concatenate([anchors, groups[groups >= 0], topo[topo >= 0]]))
+        slot = np.full(self.n, -1)
+        slot[frames] = np.arange(len(frames))
+        fidx = torch.from_numpy(frames).to(self.device)
+        T = self.model(fidx)  # (F,4,4) float64
+        Tf = T.float()
+        local = self.points[fidx]
+        world = se3_torch.transform(Tf, local)  # (F,M,3)
+        out: dict[str, torch.Tensor] = {}
+        total = torch.zeros((), device=self.device)
+        member = np.unique(np.concatenate([anchors, groups[groups >= 0]]))
+        ms = torch.from_numpy(slot[member]).to(self.device)
+        if cfg.use_bce:
+            hits = world[ms, : cfg.bce_points_per_frame]
+            free = losses.free_space_samples(
+                hits, Tf[ms, :3, 3], cfg.samples_per_ray, self.derived["free_margin"], generator
+            )
+            out["bce"] = losses.occupancy_bce(self.field, hits, free)
+            total = total + out["bce"]
+        if cfg.use_chamfer:
+            out["chamfer"] = self._chamfer(anchors, groups, slot, T, world) / unit
+            total = total + cfg.alpha * out["chamfer"]
+        if cfg.use_consistency:
+            a = torch.from_numpy(slot[anchors]).to(self.device)
+            nb = torch.from_numpy(slot[np.where(topo >= 0, topo, anchors[:, None])]).to(self.device)
+            rel = self.relative[torch.from_numpy(anchors).to(self.device)]
+            via = T[nb] @ se3_torch.inverse(rel)  # (B,k,4,4)
+            a1 = se3_torch.transform(Tf[a], local[a])  # (B,M,3)
+            a2 = se3_torch.transform(via.float(), local[a].unsqueeze(1))  # (B,k,M,3)
+            d = (a2 - a1.unsqueeze(1)).norm(dim=-1).mean(-1)  # (B,k)
+            valid = self.valid[torch.from_numpy(anchors).to(self.device)]
+            out["consistency"] = (d * valid).sum() / valid.sum().clamp_min(1) / unit
+            total = total + cfg.beta * out["consistency"]
+        out["loss"] = total
+        return out
+
+    def _chamfer(self, anchors, groups, slot, T, world) -> torch.Tensor:
+        """Chamfer between each anchor and its group members. Nearest neighbours come from one KD-tree over
+        the batch's current world points with the frame number as a far-apart 4th coordinate, so every query
+        only finds points of the frame it asks about."""
+        pairs = np.array([(a, j) for a, row in zip(anchors, groups) for j in row if j >= 0 and j != a])
+        if len(pairs) == 0:
+            return torch.zeros((), device=self.device)
+        pts = world.detach().cpu().numpy().astype(np.float64)  # (F, M, 3)
+        f, m = pts.shape[:2]
+        layer = 1e3 * (np.abs(pts).max() + 1.0)
+        ids = np.repeat(np.arange(f, dtype=np.float64), m)[:, None] * layer
+        tree = losses.cKDTree(np.hstack([pts.reshape(-1, 3), ids]))
+        sa, sj = slot[pairs[:, 0]], slot[pairs[:, 1]]
+
+        def query(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+            q = np.concatenate([pts[src], np.broadcast_to(dst[:, None, None] * layer, (len(src), m, 1))], -1)
+            _, idx = tree.query(q.reshape(-1, 4), k=1)
+            return (idx - np.repeat(dst, m) * m).reshape(len(src), m)
+
+        ian = torch.from_numpy(query(sa, sj)).to(self.device)
+        ina = torch.from_numpy(query(sj, sa)).to(self.device)
+        sa_t, sj_t = torch.from_numpy(sa).to(self.device), torch.from_numpy(sj).to(self.device)
+        A, N = world[sa_t], world[sj_t]  # (P,M,3)
+        nA = torch.gather(N, 1, ian.unsqueeze(-1).expand(-1, -1, 3))
+        nN = torch.gather(A, 1, ina.unsqueeze(-1).expand(-1, -1, 3))
+        cut = self.derived["chamfer_truncate"]
+        return (A - nA).norm(dim=-1).clamp(max=cut).mean() + (N - nN).norm(dim=-1).clamp(max=cut).mean()
+
+    # ------------------------------------------------------------------ epochs
+    def poses(self) -> np.ndarray:
+        """Current poses, re-anchored so the first frame keeps its warm-start pose (fixes the gauge)."""
+        with torch.no_grad():
+            T = self.model().cpu().numpy()
+        T0 = self.model.T0[0].cpu().numpy()
+        return T0 @ np.linalg.inv(T[0]) @ T
+
+    def _state(self, epoch: int, best: dict, history: list[dict]) -> dict:
+        return {
+            "epoch": epoch, "model": self.model.state_dict(), "field": self.field.state_dict(),
+            "optim": self.optim.state_dict(), "sched": self.sched.state_dict(), "best": best,
+            "history": history, "config": asdict(self.cfg), "seed": self.seed,
+        }
+
+    def _save(self, path: Path, state: dict) -> None:
+        with atomic_write(path, "wb") as fh:
+            torch.save(state, fh)
+
+    def run(self, checkpoint_dir: Path | None = None, resume: bool = False) -> OptimResult:
+        history: list[dict] = []
+        best = {"loss": math.inf, "epoch": -1, "poses": self.poses()}
+        start = 0
+        ckpt = checkpoint_dir / CHECKPOINT if checkpoint_dir else None
+        if resume and ckpt is not None and ckpt.exists():
+            state = torch.load(ckpt, map_location=self.device, weights_only=False)
+            self.model.load_state_dict(state["model"])
+            self.field.load_state_dict(state["field"])
+            self.optim.load_state_dict(state["optim"])
+            self.sched.load_state_dict(state["sched"])
+            best, history, start = state["best"], state["history"], state["epoch"] + 1
+        stopped = None
+        bar = tqdm(range(start, self.cfg.epochs), desc="refine", disable=not self.progress, unit="epoch")
+        for epoch in bar:
+            t0 = time.perf_counter()
+            rng = np.random.default_rng([self.seed, epoch])
+            gen = torch.Generator(device="cpu").manual_seed(int(rng.integers(2**31)))
+            order = rng.permutation(self.n)
+            sums: dict[str, float] = {}
+            for s in range(self.steps_per_epoch):
+                anchors = order[s * self.cfg.batch_groups : (s + 1) * self.cfg.batch_groups]
+                if len(anchors) == 0:
+                    continue
+                parts = self._step_loss(anchors, gen)
+                if not torch.isfinite(parts["loss"]):
+                    stopped = f"non-finite loss at epoch {epoch} step {s}; kept the best epoch"
+                    break
+                self.optim.zero_grad(set_to_none=True)
+                parts["loss"].backward()
+                self.optim.step()
+                self.sched.step()
+                for key, val in parts.items():
+                    sums[key] = sums.get(key, 0.0) + float(val.detach())
+            if stopped:
+                break
+            row = {k: v / self.steps_per_epoch for k, v in sums.items()}
+            row.update(epoch=epoch, seconds=time.perf_counter() - t0)
+            poses = self.poses()
+            if self.metric is not None:
+                row["ate"] = float(self.metric(poses))
+            history.append(row)
+            if row["loss"] < best["loss"]:
+                best = {"loss": row["loss"], "epoch": epoch, "poses": poses}
+            bar.set_postfix({k: f"{row[k]:.4g}" for k in ("loss", "ate") if k in row})
+            if ckpt is not None:
+                self._save(ckpt, self._state(epoch, best, history))
+        return OptimResult(best["poses"], best["epoch"], history, self.derived, stopped)

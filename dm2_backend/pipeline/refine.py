@@ -1,0 +1,127 @@
+"""``dm2 refine`` as a function: inputs -> prepare -> DeepMapping2 optimiser -> run folder."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from evo.core.geometry import umeyama_alignment
+
+from dm2_backend import __version__, config
+from dm2_backend.evaluation.ape_rpe import evaluate_poses
+from dm2_backend.evaluation.paper_ate import paper_ate
+from dm2_backend.evaluation.relations import relations_error
+from dm2_backend.evaluation.report import EstimateReport, run_metrics
+from dm2_backend.optim.config import OptimConfig
+from dm2_backend.optim.trainer import Optimiser
+from dm2_backend.pipeline import outputs
+from dm2_backend.pipeline.inputs import RunInputs
+from dm2_backend.prepare.pipeline import Prepared, prepare
+from dm2_backend.trajectory import Trajectory
+
+
+def ate_rmse(gt: np.ndarray, est: np.ndarray) -> float:
+    """Translation ATE RMSE (m) after rigid (SE(3)) alignment of positions."""
+    R, t, _ = umeyama_alignment(est[:, :3, 3].T, gt[:, :3, 3].T, with_scale=False)
+    d = est[:, :3, 3] @ R.T + t - gt[:, :3, 3]
+    return float(np.sqrt((d * d).sum(1).mean()))
+
+
+def live_metric(inputs: RunInputs, timestamps: np.ndarray | None) -> Callable[[np.ndarray], float] | None:
+    """Per-epoch accuracy for the progress bar: ATE against --gt, else the relations metric."""
+    if inputs.gt is not None:
+        return lambda poses: ate_rmse(inputs.gt.poses, poses)
+    if inputs.relations is not None and timestamps is not None:
+        rel = inputs.relations
+        return lambda poses: relations_error(Trajectory(poses, timestamps, planar=True), rel).stats["trans_mean"]
+    return None
+
+
+def metrics_of(traj: Trajectory, inputs: RunInputs) -> dict[str, float]:
+    """Accuracy of ``traj`` against the ground truth / relations given to the run (empty without)."""
+    est = EstimateReport(label="", path="")
+    if inputs.gt is not None:
+        gt = replace(inputs.gt, timestamps=None)
+        est.poses = evaluate_poses(gt, replace(traj, timestamps=None), align="se3")
+        est.paper = paper_ate(inputs.gt.poses, traj.poses)
+    if inputs.relations is not None and traj.timestamps is not None:
+        est.relations = relations_error(traj, inputs.relations)
+    return run_metrics(est)
+
+
+def output_timestamps(inputs: RunInputs) -> np.ndarray:
+    if inputs.scans.timestamps is not None:
+        return inputs.scans.timestamps
+    if inputs.given is not None and inputs.given.timestamps is not None:
+        return inputs.given.timestamps
+    return np.arange(len(inputs.scans), dtype=np.float64)
+
+
+def trajectory_of(poses: np.ndarray, inputs: RunInputs) -> Trajectory:
+    meta = {}
+    if inputs.given_format == "carmen":
+        meta["template"] = inputs.scans.source
+    return Trajectory(poses, output_timestamps(inputs), planar=inputs.scans.planar, meta=meta)
+
+
+def write_common(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final: np.ndarray, method: str,
+                 timings: dict, extra: dict | None = None, epochs: list[dict] | None = None) -> dict:
+    """The parts of a run folder shared by ``refine`` and ``baseline``; returns the report."""
+    out.mkdir(parents=True, exist_ok=True)
+    config.dump(cfg, out / "config.yaml")
+    warm_traj = trajectory_of(prep.warm_start, inputs)
+    final_traj = trajectory_of(final, inputs)
+    files = outputs.write_trajectories(out, final_traj, inputs.given_path, inputs.given_format)
+    files += outputs.write_trajectories(out, warm_traj, None, None, stem="warm_start")
+    outputs.write_map(out / "map.ply", prep.frames, final, 2 * prep.frames.scale.get("spacing", 0.0))
+    outputs.write_prior_files(out / "prior", prep.warm_start, prep.topology, prep.pairwise)
+    per_frame = None
+    if inputs.gt is not None:
+        per_frame = {"translation error": (paper_ate(inputs.gt.poses, final).trans_errors, "m")}
+    outputs.write_plots(out, {"warm start": prep.warm_start, method: final}, inputs.gt, per_frame, epochs)
+    report = {
+        "method": method,
+        "dm2_version": __version__,
+        "frames": len(prep.frames),
+        "planar": prep.frames.planar,
+        "metrics": metrics_of(final_traj, inputs),
+        "warm_start_metrics": metrics_of(warm_traj, inputs),
+        "timings": timings,
+        "peak_rss_mb": outputs.peak_rss_mb(),
+        "prepare": {
+            "cached": prep.cached,
+            "scale": prep.frames.scale,
+            "topology_edges": int(len(prep.topology.edges)),
+            "pairs": int((prep.topology.groups >= 0).sum()),
+            "pairs_valid": int(prep.pairwise.valid.sum()),
+        },
+        "files": files,
+        **(extra or {}),
+    }
+    if epochs is not None:
+        report["epochs"] = epochs
+    outputs.write_report(out / "report.json", report)
+    return report
+
+
+def refine(inputs: RunInputs, cfg: dict, out: Path, cache_dir: Path | None, resume: bool = False,
+           progress: bool = True) -> dict:
+    """Run the whole pipeline; returns the report (also written to ``out/report.json``)."""
+    t_start = time.perf_counter()
+    out.mkdir(parents=True, exist_ok=True)
+    prep = prepare(inputs.scans, inputs.given, cfg, cache_dir, progress)
+    ocfg = OptimConfig.from_dict(cfg["optimiser"])
+    stamps = output_timestamps(inputs)
+    opt = Optimiser(prep.frames, prep.warm_start, prep.topology, prep.pairwise, ocfg, seed=cfg["seed"],
+                    device=cfg["device"], metric=live_metric(inputs, stamps), progress=progress)
+    t_opt = time.perf_counter()
+    result = opt.run(checkpoint_dir=out, resume=resume)
+    timings = dict(prep.timings)
+    timings["optimise"] = time.perf_counter() - t_opt
+    timings["total"] = time.perf_counter() - t_start
+    extra = {"best_epoch": result.best_epoch, "stopped": result.stopped, "derived": result.derived,
+             "device": str(opt.device)}
+    return write_common(out, cfg, inputs, prep, result.poses, "dm2 refine", timings, extra, result.history)

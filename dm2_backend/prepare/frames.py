@@ -1,0 +1,73 @@
+"""Load and down-sample scans into :class:`Frames`, and derive the data's length scales."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+from tqdm import tqdm
+
+from dm2_backend.prepare.types import Frames
+from dm2_backend.scans import ScanSequence
+
+
+def downsample(points: np.ndarray, voxel: float, max_points: int, rng: np.random.Generator) -> np.ndarray:
+    """Voxel-grid down-sample (open3d), then cap the count by random sampling."""
+    if voxel > 0 and len(points) > max_points:
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+        points = np.asarray(pcd.voxel_down_sample(voxel).points, dtype=np.float32)
+    if len(points) > max_points:
+        points = points[np.sort(rng.choice(len(points), max_points, replace=False))]
+    return np.ascontiguousarray(points, dtype=np.float32)
+
+
+def point_spacing(points: np.ndarray) -> float:
+    """Median nearest-neighbour distance within one scan (open3d KD-tree)."""
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+    d = np.asarray(pcd.compute_nearest_neighbor_distance())
+    return float(np.median(d[d > 0])) if (d > 0).any() else 0.0
+
+
+def derive_scale(seq: ScanSequence, sample: int = 20) -> dict[str, float]:
+    """Lengths taken from the data: median/90th-percentile range and median point spacing of raw scans."""
+    idx = np.unique(np.linspace(0, len(seq) - 1, min(sample, len(seq))).astype(int))
+    ranges, spacings = [], []
+    for i in idx:
+        pts = seq[int(i)].points
+        r = np.linalg.norm(pts, axis=1)
+        ranges.append(r)
+        spacings.append(point_spacing(pts[:: max(1, len(pts) // 4096)]))
+    r = np.concatenate(ranges)
+    return {
+        "range_median": float(np.median(r)),
+        "range_p90": float(np.percentile(r, 90)),
+        "spacing_raw": float(np.median(spacings)),
+    }
+
+
+def load_frames(
+    seq: ScanSequence,
+    max_points: int,
+    voxel: float | None = None,
+    seed: int = 0,
+    progress: bool = True,
+) -> Frames:
+    """Down-sample every scan. ``voxel`` defaults to ``range_median / 40`` (3D) or no voxel grid (planar)."""
+    scale = derive_scale(seq)
+    if voxel is None:
+        voxel = 0.0 if seq.planar else scale["range_median"] / 40.0
+    rng = np.random.default_rng(seed)
+    points = [
+        downsample(scan.points, voxel, max_points, rng)
+        for scan in tqdm(seq, total=len(seq), desc="load scans", disable=not progress, leave=False)
+    ]
+    sub = points[:: max(1, len(points) // 20)]
+    scale["voxel"] = float(voxel)
+    scale["spacing"] = float(np.median([point_spacing(p) for p in sub]))
+    return Frames(points=points, timestamps=seq.timestamps, planar=seq.planar, scale=scale)
+
+
+def motion_per_frame(poses: np.ndarray) -> float:
+    """Median translation between consecutive poses."""
+    if len(poses) < 2:
+        return 0.0
+    return float(np.median(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)))
