@@ -39,9 +39,9 @@ def cli(ctx: click.Context, debug: bool) -> None:
 
 
 def _register() -> None:
-    from dm2_backend.cli import compare, convert, demo, eval, info, plugins, refine
+    from dm2_backend.cli import baseline, compare, convert, demo, eval, info, plugins, refine, simulate
 
-    for module in (info, convert, refine, demo, eval, compare, plugins):
+    for module in (info, convert, refine, baseline, demo, eval, compare, plugins, simulate):
         cli.add_command(module.command)
 
 

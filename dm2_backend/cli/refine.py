@@ -22,10 +22,12 @@ from dm2_backend.prepare.pipeline import default_cache_dir
 path_type = click.Path(path_type=Path)
 
 
-def run_options(f):
+def run_options(f=None, *, scans_required: bool = True):
     """Options shared by ``refine`` and ``baseline``: inputs, config, plugins, cache."""
+    if f is None:
+        return lambda g: run_options(g, scans_required=scans_required)
     decorators = [
-        click.option("--scans", "-s", type=path_type, required=True,
+        click.option("--scans", "-s", type=path_type, required=scans_required,
                      help="Scan source: folder, bag (+ --topic), CARMEN log, depth sequence."),
         click.option("--poses", "-p", type=path_type, default=None,
                      help="Trajectory to refine (any format); optional when a warm-start plugin computes one "

@@ -1,0 +1,135 @@
+"""Build a pose graph from the preparation results (warm start, topology, pairwise registrations).
+
+Edges (``(i, j)``, i < j, the pose of frame j in frame i):
+
+* odometry ``(i, i+1)`` for every consecutive pair: the pairwise registration when ``(i, i+1)`` is a valid
+  topology pair, else the warm-start relative pose ``inv(T_i) @ T_{i+1}`` (keeps the graph connected);
+* loop: every other valid pairwise registration, once per unordered pair.
+
+Information model (documented in :func:`registration_information`): a registration with inlier rmse ``r``,
+overlap ``fitness`` of the neighbour's ``M`` points and lever arm ``L`` (rms range of the neighbour's points)
+gets isotropic ``sigma_t = max(r, floor) / sqrt(fitness * M)`` and ``sigma_r = sigma_t / L``. Warm-start
+odometry edges get the median registration information times ``fallback_weight``.
+
+Information matrices are tangent-space (GTSAM semantics, as ``gtsam.readG2o`` reads them) in g2o order:
+``[x y z rx ry rz]`` (3D) or ``[x y theta]`` (planar data -> SE2 graph).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dm2_backend.formats.g2o import PoseGraph
+from dm2_backend.geometry import se3
+from dm2_backend.prepare.types import Frames, Pairwise, Topology
+
+MODEL_TEXT = "sigma_t = max(rmse, floor) / sqrt(fitness * points), sigma_r = sigma_t / lever arm"
+
+
+@dataclass
+class InformationModel:
+    #: lower bound on the inlier rmse (m); default 0.1 * max(voxel, point spacing)
+    rmse_floor: float | None = None
+    #: warm-start odometry edges: median registration information times this
+    fallback_weight: float = 0.1
+
+
+@dataclass
+class PairEdge:
+    """One valid registration of frame b onto frame a (a < b)."""
+
+    relative: np.ndarray  # T_b^a
+    fitness: float
+    rmse: float
+    points: int  # points of the registered (neighbour) frame
+
+
+def valid_pairs(topology: Topology, pairwise: Pairwise, frames: Frames) -> dict[tuple[int, int], PairEdge]:
+    """Valid registrations keyed by (a, b), a < b; of (i, j) and (j, i) the lower-rmse one is kept."""
+    groups = np.asarray(topology.groups)
+    out: dict[tuple[int, int], PairEdge] = {}
+    for i, n in zip(*np.nonzero((groups >= 0) & pairwise.valid), strict=True):
+        j = int(groups[i, n])
+        i = int(i)
+        if i == j:
+            continue
+        a, b = min(i, j), max(i, j)
+        T = pairwise.relative[i, n] if i == a else se3.inverse(pairwise.relative[i, n])
+        edge = PairEdge(T, float(pairwise.fitness[i, n]), float(pairwise.rmse[i, n]), len(frames.points[j]))
+        if (a, b) not in out or edge.rmse < out[(a, b)].rmse:
+            out[(a, b)] = edge
+    return out
+
+
+def lever_arms(frames: Frames) -> np.ndarray:
+    """Rms range (m) of each frame's points (x, y only when planar); at least 1e-3."""
+    dims = 2 if frames.planar else 3
+    arms = [np.sqrt((p[:, :dims].astype(np.float64) ** 2).sum(1).mean()) if len(p) else 0.0
+            for p in frames.points]
+    return np.maximum(np.asarray(arms), 1e-3)
+
+
+def rmse_floor(frames: Frames, model: InformationModel) -> float:
+    if model.rmse_floor is not None:
+        return model.rmse_floor
+    s = frames.scale
+    base = max(s.get("voxel", 0.0), s.get("spacing", 0.0))
+    return 0.1 * base if base > 0 else 1e-3
+
+
+def registration_information(rmse: float, fitness: float, points: int, lever: float, planar: bool,
+                             floor: float) -> np.ndarray:
+    """Diagonal information of one registration: ``sigma_t = max(rmse, floor) / sqrt(fitness * points)``
+    (standard error of the mean inlier residual), ``sigma_r = sigma_t / lever`` (rad)."""
+    inliers = max(fitness * points, 1.0)
+    sigma_t = max(rmse if np.isfinite(rmse) else floor, floor) / np.sqrt(inliers)
+    sigma_r = sigma_t / lever
+    sig = [sigma_t, sigma_t, sigma_r] if planar else [sigma_t] * 3 + [sigma_r] * 3
+    return np.diag(1.0 / np.square(sig))
+
+
+def build_graph(frames: Frames, warm: np.ndarray, topology: Topology, pairwise: Pairwise,
+                model: InformationModel | None = None) -> PoseGraph:
+    """The pose graph of module docstring; node ids 0..N-1, initial poses = warm start."""
+    model = model or InformationModel()
+    planar = frames.planar
+    n = len(warm)
+    poses = se3.from_xy_yaw(se3.to_xy_yaw(warm)) if planar else np.asarray(warm, dtype=np.float64)
+    pairs = valid_pairs(topology, pairwise, frames)
+    arms, floor = lever_arms(frames), rmse_floor(frames, model)
+    info = {p: registration_information(e.rmse, e.fitness, e.points, arms[p[1]], planar, floor)
+            for p, e in pairs.items()}
+    if info:
+        fallback = np.median(np.stack(list(info.values())), axis=0) * model.fallback_weight
+    else:
+        sigma = max(frames.scale.get("voxel", 0.0), frames.scale.get("spacing", 0.0)) or 0.1
+        fallback = registration_information(sigma, 1.0, 1, float(np.median(arms)), planar, floor)
+    edges, relative, information = [], [], []
+    warm_odometry = 0
+    for i in range(n - 1):
+        e = pairs.get((i, i + 1))
+        edges.append((i, i + 1))
+        if e is not None:
+            relative.append(e.relative)
+            information.append(info[(i, i + 1)])
+        else:
+            relative.append(se3.relative(poses[i], poses[i + 1]))
+            information.append(fallback)
+            warm_odometry += 1
+    loops = sorted(p for p in pairs if p[1] - p[0] > 1)
+    for p in loops:
+        edges.append(p)
+        relative.append(pairs[p].relative)
+        information.append(info[p])
+    relative = np.asarray(relative, dtype=np.float64).reshape(-1, 4, 4)
+    if planar:
+        relative = se3.from_xy_yaw(se3.to_xy_yaw(relative)).reshape(-1, 4, 4)
+    dim = 3 if planar else 6
+    return PoseGraph(
+        ids=np.arange(n), poses=poses.reshape(-1, 4, 4), edges=np.asarray(edges, dtype=int).reshape(-1, 2),
+        relative=relative, information=np.asarray(information).reshape(-1, dim, dim), planar=planar,
+        meta={"odometry_edges": n - 1, "odometry_from_warm_start": warm_odometry, "loop_edges": len(loops),
+              "rmse_floor": floor, "information_model": MODEL_TEXT},
+    )

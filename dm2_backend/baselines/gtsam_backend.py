@@ -1,0 +1,124 @@
+"""Solve a :class:`PoseGraph` with GTSAM: Pose3 / Pose2 between factors, a prior on the first (or FIX)
+node, optional robust kernel, Levenberg-Marquardt."""
+
+from __future__ import annotations
+
+import time
+
+import gtsam
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from dm2_backend.baselines.options import KERNELS, GraphResult, SolverOptions
+from dm2_backend.errors import InputError
+from dm2_backend.formats.g2o import PoseGraph
+from dm2_backend.geometry import se3
+
+#: robust kernel name -> GTSAM m-estimator
+ESTIMATORS = {
+    "huber": gtsam.noiseModel.mEstimator.Huber,
+    "cauchy": gtsam.noiseModel.mEstimator.Cauchy,
+    "tukey": gtsam.noiseModel.mEstimator.Tukey,
+    "welsch": gtsam.noiseModel.mEstimator.Welsch,
+    "geman-mcclure": gtsam.noiseModel.mEstimator.GemanMcClure,
+    "fair": gtsam.noiseModel.mEstimator.Fair,
+    "dcs": gtsam.noiseModel.mEstimator.DCS,
+}
+assert set(ESTIMATORS) == set(KERNELS)
+
+
+def components(graph: PoseGraph) -> np.ndarray:
+    """Connected-component label of each node (graph order)."""
+    rows = graph.edge_rows()
+    n = len(graph)
+    adjacency = coo_matrix((np.ones(len(rows)), (rows[:, 0], rows[:, 1])), shape=(n, n))
+    return connected_components(adjacency, directed=False)[1]
+
+
+def anchors(graph: PoseGraph) -> list[int]:
+    """Node ids held at their initial pose (prior / fixed): the FIX nodes, else the first node; plus the
+    first node of every connected component without one (its placement is otherwise undetermined)."""
+    labels = components(graph)
+    held = [int(n) for n in graph.fixed] if graph.fixed else [int(graph.ids[0])]
+    index = graph.index_of()
+    covered = {int(labels[index[n]]) for n in held}
+    for row in range(len(graph)):
+        if int(labels[row]) not in covered:
+            covered.add(int(labels[row]))
+            held.append(int(graph.ids[row]))
+    return held
+
+
+def to_values(graph: PoseGraph, poses: np.ndarray | None = None) -> gtsam.Values:
+    values = gtsam.Values()
+    poses = graph.poses if poses is None else poses
+    if graph.planar:
+        for n, (x, y, th) in zip(graph.ids.tolist(), se3.to_xy_yaw(poses).tolist(), strict=True):
+            values.insert(n, gtsam.Pose2(x, y, th))
+    else:
+        for n, T in zip(graph.ids.tolist(), poses, strict=True):
+            values.insert(n, gtsam.Pose3(T))
+    return values
+
+
+def from_values(graph: PoseGraph, values: gtsam.Values) -> np.ndarray:
+    if graph.planar:
+        xyt = np.array([[p.x(), p.y(), p.theta()] for p in (values.atPose2(n) for n in graph.ids.tolist())])
+        return se3.from_xy_yaw(xyt).reshape(-1, 4, 4)
+    return np.stack([values.atPose3(n).matrix() for n in graph.ids.tolist()]).reshape(-1, 4, 4)
+
+
+def factor_graph(graph: PoseGraph, options: SolverOptions | None = None) -> gtsam.NonlinearFactorGraph:
+    """Between factors (information in GTSAM's rotation-first order) plus the anchor prior."""
+    options = options or SolverOptions()
+    options.check()
+    fg = gtsam.NonlinearFactorGraph()
+    info = graph.information_rotation_first()
+    index = graph.index_of()
+    dim = 3 if graph.planar else 6
+    prior = gtsam.noiseModel.Diagonal.Sigmas(np.full(dim, options.prior_sigma))
+    for n in anchors(graph):
+        T = graph.poses[index[n]]
+        if graph.planar:
+            fg.add(gtsam.PriorFactorPose2(n, gtsam.Pose2(*se3.to_xy_yaw(T)), prior))
+        else:
+            fg.add(gtsam.PriorFactorPose3(n, gtsam.Pose3(T), prior))
+    robust = ESTIMATORS[options.robust].Create(options.kernel_k()) if options.robust else None
+    for (i, j), Z, omega in zip(graph.edges.tolist(), graph.relative, info, strict=True):
+        noise = gtsam.noiseModel.Gaussian.Information(omega)
+        if robust is not None:
+            noise = gtsam.noiseModel.Robust.Create(robust, noise)
+        if graph.planar:
+            fg.add(gtsam.BetweenFactorPose2(i, j, gtsam.Pose2(*se3.to_xy_yaw(Z)), noise))
+        else:
+            fg.add(gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(Z), noise))
+    return fg
+
+
+def lm_params(options: SolverOptions) -> gtsam.LevenbergMarquardtParams:
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(options.max_iterations)
+    params.setRelativeErrorTol(options.relative_error_tol)
+    return params
+
+
+def optimize(graph: PoseGraph, options: SolverOptions | None = None) -> GraphResult:
+    """Levenberg-Marquardt from the graph's initial poses."""
+    options = options or SolverOptions()
+    t = time.perf_counter()
+    fg = factor_graph(graph, options)
+    initial = to_values(graph)
+    try:
+        optimizer = gtsam.LevenbergMarquardtOptimizer(fg, initial, lm_params(options))
+        result = optimizer.optimize()
+    except RuntimeError as exc:  # indeterminate system: a disconnected or degenerate graph
+        why = str(exc).strip().splitlines()[0]
+        raise InputError(graph.meta.get("source"), f"GTSAM could not solve the graph: {why}") from exc
+    return GraphResult(
+        poses=from_values(graph, result), initial_error=float(fg.error(initial)),
+        final_error=float(fg.error(result)), iterations=int(optimizer.iterations()),
+        seconds=time.perf_counter() - t, solver="gtsam",
+        meta={"robust": options.robust, "robust_k": options.kernel_k() if options.robust else None,
+              "anchored": anchors(graph)},
+    )

@@ -1,0 +1,61 @@
+"""Baseline names and solver options (no heavy imports: the CLI reads these at start-up)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dm2_backend.errors import InputError
+
+#: method -> description (``dm2 baseline --help``)
+METHODS = {
+    "gtsam": "pose graph (odometry + loop registrations) solved by GTSAM Levenberg-Marquardt",
+    "g2o": "the same pose graph solved by g2o (needs dm2[g2o])",
+    "multiway": "Open3D multiway registration (global_optimization with line-process loop pruning)",
+    "icp": "the incremental ICP warm start itself",
+}
+#: methods that solve a g2o pose graph (``--graph``)
+GRAPH_METHODS = ("gtsam", "g2o")
+#: robust kernel -> default threshold on the whitened residual (95 % asymptotic efficiency where defined)
+KERNELS = {"huber": 1.345, "cauchy": 2.3849, "tukey": 4.6851, "welsch": 2.9846, "geman-mcclure": 1.0,
+           "fair": 1.3998, "dcs": 1.0}
+
+
+@dataclass
+class SolverOptions:
+    max_iterations: int = 100
+    relative_error_tol: float = 1e-5
+    robust: str | None = None  # a key of KERNELS
+    robust_k: float | None = None  # kernel threshold (whitened residual); default per kernel
+    prior_sigma: float = 1e-3  # sigma (m and rad) of the prior on the anchored node(s)
+
+    def kernel_k(self) -> float:
+        return self.robust_k if self.robust_k is not None else KERNELS[self.robust]
+
+    def check(self) -> None:
+        if self.robust is not None and self.robust not in KERNELS:
+            raise InputError(None, f"unknown robust kernel {self.robust!r}; choices: {', '.join(KERNELS)}")
+        if self.robust_k is not None and not self.robust_k > 0:
+            raise InputError(None, f"robust kernel threshold must be positive, got {self.robust_k}")
+        if self.max_iterations < 1:
+            raise InputError(None, f"max iterations must be at least 1, got {self.max_iterations}")
+        if not self.relative_error_tol >= 0:
+            raise InputError(None, f"relative tolerance must be >= 0, got {self.relative_error_tol}")
+
+
+@dataclass
+class GraphResult:
+    """Optimised poses (N,4,4) in the graph's node order; errors in GTSAM's convention (0.5 * chi2)."""
+
+    poses: np.ndarray
+    initial_error: float | None
+    final_error: float | None
+    iterations: int | None
+    seconds: float
+    solver: str
+    meta: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        return {"solver": self.solver, "initial_error": self.initial_error, "final_error": self.final_error,
+                "iterations": self.iterations, "seconds": self.seconds, **self.meta}

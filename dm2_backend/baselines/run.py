@@ -1,0 +1,101 @@
+"""``dm2 baseline`` as functions: a run folder from scans (same preparation as ``dm2 refine``), or an
+existing g2o file optimised."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from dm2_backend.atomic import atomic_write
+from dm2_backend.baselines import g2o_backend, gtsam_backend
+from dm2_backend.baselines.graph import build_graph
+from dm2_backend.baselines.multiway import multiway
+from dm2_backend.baselines.options import GRAPH_METHODS, METHODS, GraphResult, SolverOptions
+from dm2_backend.errors import InputError
+from dm2_backend.evaluation import plots
+from dm2_backend.formats import write_trajectory
+from dm2_backend.formats.g2o import PoseGraph, read_g2o, write_g2o
+from dm2_backend.pipeline import outputs
+from dm2_backend.pipeline.inputs import RunInputs
+from dm2_backend.pipeline.refine import write_common
+from dm2_backend.prepare.pipeline import prepare
+from dm2_backend.trajectory import Trajectory
+
+GRAPH_SOLVERS = {"gtsam": gtsam_backend.optimize, "g2o": g2o_backend.optimize}
+assert set(GRAPH_SOLVERS) == set(GRAPH_METHODS)
+
+
+def solve(method: str, graph: PoseGraph, options: SolverOptions) -> GraphResult:
+    if method not in GRAPH_SOLVERS:
+        choices = " or ".join(GRAPH_SOLVERS)
+        raise InputError(None, f"method {method!r} does not solve g2o graphs; use {choices}")
+    return GRAPH_SOLVERS[method](graph, options)
+
+
+def baseline(method: str, inputs: RunInputs, cfg: dict, out: Path, cache_dir: Path | None,
+             options: SolverOptions, progress: bool = True) -> dict:
+    """Prepare (cached, shared with ``dm2 refine``), run the baseline, write the run folder."""
+    if method not in METHODS:
+        raise InputError(None, f"unknown baseline {method!r}; choices: {', '.join(METHODS)}")
+    options.check()
+    t_start = time.perf_counter()
+    out.mkdir(parents=True, exist_ok=True)
+    prep = prepare(inputs.scans, inputs.given, cfg, cache_dir, progress)
+    t_opt = time.perf_counter()
+    extra: dict = {}
+    if method == "icp":
+        final = prep.warm_start
+        extra["baseline"] = {"solver": f"warm start ({cfg['warm_start']['name']})"}
+    elif method == "multiway":
+        result = multiway(prep.frames, prep.warm_start, prep.topology, prep.pairwise, options)
+        final = result.poses
+        extra["baseline"] = result.summary()
+    else:
+        graph = build_graph(prep.frames, prep.warm_start, prep.topology, prep.pairwise)
+        write_g2o(graph, out / "graph.g2o")
+        result = solve(method, graph, options)
+        final = result.poses
+        extra["baseline"] = {**result.summary(), "graph": "graph.g2o", "nodes": len(graph),
+                             "edges": len(graph.edges), **graph.meta}
+    timings = dict(prep.timings)
+    timings["optimise"] = time.perf_counter() - t_opt
+    timings["total"] = time.perf_counter() - t_start
+    report = write_common(out, cfg, inputs, prep, final, method, timings, extra)
+    if method in GRAPH_SOLVERS:
+        report["files"].append("graph.g2o")
+        outputs.write_report(out / "report.json", report)
+    return report
+
+
+def optimise_file(method: str, path: Path, out: Path, options: SolverOptions) -> dict:
+    """Optimise a g2o file; writes ``poses.g2o`` (optimised vertices, same edges), ``poses_kitti.txt``,
+    ``poses.npy``, ``trajectory.png`` and ``report.json``."""
+    t_start = time.perf_counter()
+    graph = read_g2o(path)
+    t_read = time.perf_counter() - t_start
+    result = solve(method, graph, options)
+    out.mkdir(parents=True, exist_ok=True)
+    write_g2o(replace(graph, poses=result.poses), out / "poses.g2o")
+    traj = Trajectory(result.poses, planar=graph.planar)
+    write_trajectory(traj, out / "poses_kitti.txt", "kitti")
+    with atomic_write(out / "poses.npy", "wb") as fh:
+        np.save(fh, result.poses)
+    plots.plot_trajectories(out / "trajectory.png", None, {"initial": graph.poses[:, :3, 3],
+                                                           method: result.poses[:, :3, 3]})
+    report = {
+        "method": method,
+        "graph": str(path),
+        "nodes": len(graph),
+        "edges": int(len(graph.edges)),
+        "planar": graph.planar,
+        **result.summary(),
+        "graph_meta": graph.meta,
+        "timings": {"read": t_read, "optimise": result.seconds, "total": time.perf_counter() - t_start},
+        "peak_rss_mb": outputs.peak_rss_mb(),
+        "files": ["poses.g2o", "poses_kitti.txt", "poses.npy", "trajectory.png", "report.json"],
+    }
+    outputs.write_report(out / "report.json", report)
+    return report

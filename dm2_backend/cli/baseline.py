@@ -1,0 +1,59 @@
+"""``dm2 baseline``: classical back-ends on the same inputs and preparation as ``dm2 refine``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from dm2_backend.baselines.options import GRAPH_METHODS, KERNELS, METHODS, SolverOptions
+from dm2_backend.cli.refine import prepare_run, print_summary, run_options
+
+path_type = click.Path(path_type=Path)
+_HELP = "\n".join(f"  {name:<9} {text}" for name, text in METHODS.items())
+
+
+@click.command("baseline", help=f"""Run a baseline back-end METHOD and write a run folder like refine's.
+
+\b
+{_HELP}
+
+\b
+With --graph FILE.g2o (gtsam, g2o) an existing pose graph is optimised instead of scans.""")
+@click.argument("method", type=click.Choice(list(METHODS)))
+@run_options(scans_required=False)
+@click.option("--graph", "graph_path", type=path_type, default=None,
+              help="Optimise this g2o pose graph (no scans needed).")
+@click.option("--robust", type=click.Choice(list(KERNELS)), default=None, help="Robust kernel on every edge.")
+@click.option("--robust-k", type=float, default=None, help="Kernel threshold (whitened residual).")
+@click.option("--max-iterations", type=int, default=100, show_default=True)
+@click.option("--relative-tol", type=float, default=1e-5, show_default=True,
+              help="Stop when the error decreases by less than this fraction.")
+def command(method, graph_path, robust, robust_k, max_iterations, relative_tol, **kw) -> None:
+    options = SolverOptions(max_iterations=max_iterations, relative_error_tol=relative_tol, robust=robust,
+                            robust_k=robust_k)
+    options.check()
+    if graph_path is not None:
+        from dm2_backend.baselines.run import optimise_file
+
+        if method not in GRAPH_METHODS:
+            raise click.UsageError(f"--graph works with {' and '.join(GRAPH_METHODS)}, not {method}")
+        if kw["scans"] is not None:
+            raise click.UsageError("give either --graph or --scans")
+        report = optimise_file(method, graph_path, kw["out"], options)
+        r = report
+        click.echo(f"{r['nodes']} nodes, {r['edges']} edges: error {r['initial_error']:.6g} -> "
+                   f"{r['final_error']:.6g} in {r['iterations']} iterations, "
+                   f"{r['timings']['optimise']:.2f} s")
+        click.echo(f"wrote {kw['out']}")
+        return
+    if kw["scans"] is None:
+        raise click.UsageError("Missing option '--scans' / '-s' (or --graph).")
+    from dm2_backend.baselines.run import baseline
+
+    overrides: dict = {}
+    if method == "icp" and not kw["warm_start"]:
+        overrides["warm_start"] = {"name": "icp"}
+    inputs, cfg, cache = prepare_run(kw, overrides)
+    report = baseline(method, inputs, cfg, kw["out"], cache, options, progress=not kw["quiet"])
+    print_summary(report, kw["out"])
