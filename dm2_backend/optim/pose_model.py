@@ -1,9 +1,9 @@
 """Pose models: global poses as corrections on the warm start, starting at the identity.
 
-``T_i = C_i @ A_i @ T0_i`` where ``T0_i`` is the warm start, ``A_i`` a per-frame correction (rotation about the
-frame's warm-start position, then a translation) produced either directly from per-frame parameters
-(``direct``) or by L-Net, a PointNet on the frame's points (``lnet``, the paper's design), and ``C_i`` an optional
-*drift* correction: the product of small corrections of all frames up to i, so one parameter can bend the rest of
+``T_i = A(xi_i) @ T0_i`` where ``T0_i`` is the warm start and ``A(xi)`` a correction (rotation about the frame's
+warm-start position, then a translation). ``xi_i`` is the sum of a per-frame term, produced either directly from
+per-frame parameters (``direct``) or by L-Net, a PointNet on the frame's points (``lnet``, the paper's design), and
+an optional *drift* term: the accumulated corrections of all frames up to i, so one parameter can bend the rest of
 the trajectory the way odometry drift does, which lets loop closures propagate in a few steps instead of
 diffusing frame by frame.
 """
@@ -91,15 +91,24 @@ class PoseModel(nn.Module):
             return self.local[idx]
         return self.lnet(idx).double()
 
+    def drift_xi(self) -> torch.Tensor:
+        """Accumulated drift corrections (N,6) as (v, w) about each frame's warm-start position.
+
+        Frame m's drift parameter rotates every later frame i about c_m and shifts it; to first order in the
+        rotation that is a rotation by ``W_i = sum_{m<=i} w_m`` about c_i plus the translation
+        ``sum_{m<=i} v_m + w_m x (c_i - c_m)``: cumulative sums, O(N), instead of a chain of N products.
+        """
+        d = self.drift * (self.scale * self.drift_factor)
+        v, w = d[:, :3], d[:, 3:]
+        W = torch.cumsum(w, 0)
+        swept = W.cross(self.centres, dim=-1) - torch.cumsum(w.cross(self.centres, dim=-1), 0)
+        return torch.cat([torch.cumsum(v, 0) + swept, W], -1)
+
     def forward(self, idx: torch.Tensor | None = None) -> torch.Tensor:
         """Poses (len(idx),4,4) float64 of the frames ``idx`` (all frames when None)."""
         if idx is None:
             idx = torch.arange(len(self.T0), device=self.T0.device)
-        A = se3_torch.correction(self._local(idx) * self.scale, self.centres[idx])
-        T = A @ self.T0[idx]
+        xi = self._local(idx) * self.scale
         if self.drift is not None:
-            C = se3_torch.prefix_product(
-                se3_torch.correction(self.drift * (self.scale * self.drift_factor), self.centres)
-            )
-            T = C[idx] @ T
-        return T
+            xi = xi + self.drift_xi()[idx]
+        return se3_torch.correction(xi, self.centres[idx]) @ self.T0[idx]
