@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from dm2_backend.atomic import atomic_write
@@ -162,7 +163,7 @@ class Optimiser:
         f, m = pts.shape[:2]
         layer = 1e3 * (np.abs(pts).max() + 1.0)
         ids = np.repeat(np.arange(f, dtype=np.float64), m)[:, None] * layer
-        tree = losses.cKDTree(np.hstack([pts.reshape(-1, 3), ids]))
+        tree = cKDTree(np.hstack([pts.reshape(-1, 3), ids]))
         sa, sj = slot[pairs[:, 0]], slot[pairs[:, 1]]
 
         def query(src: np.ndarray, dst: np.ndarray) -> np.ndarray:

@@ -49,10 +49,13 @@ def _source_key(scans: ScanSequence) -> list:
     return [str(src.resolve()) if src else "", stat.st_mtime_ns if stat else 0, len(scans)]
 
 
-def _plugin(group: str, section: dict):
+def _plugin(group: str, section: dict, progress: bool = True):
     cls = load_plugin(group, section["name"])
+    options = dict(section.get("options") or {})
+    if not progress and "progress" in getattr(cls, "__dataclass_fields__", {}):
+        options.setdefault("progress", False)  # --quiet silences the plugins' bars too
     try:
-        return cls(**(section.get("options") or {}))
+        return cls(**options)
     except TypeError as exc:
         raise InputError(None, f"{group} plugin {section['name']!r}: {exc}") from exc
 
@@ -113,7 +116,7 @@ def prepare(
     if hit is not None:
         warm = hit["poses"]
     else:
-        warm = _plugin("dm2.warm_start", ws).run(frames, given)
+        warm = _plugin("dm2.warm_start", ws, progress).run(frames, given)
         cache.put(f"warm-{k_ws}.npz", poses=warm)
     timings["warm_start"], cached["warm_start"] = time.perf_counter() - t, hit is not None
 
@@ -124,7 +127,7 @@ def prepare(
     if hit is not None:
         topo = Topology(hit["groups"], hit["edges"], json.loads(str(hit["edge_kind"])), json.loads(str(hit["log"])))
     else:
-        topo = _plugin("dm2.place_recognition", pr).run(frames, warm)
+        topo = _plugin("dm2.place_recognition", pr, progress).run(frames, warm)
         cache.put(
             f"topology-{k_pr}.npz", groups=topo.groups, edges=topo.edges,
             edge_kind=json.dumps(topo.edge_kind), log=json.dumps(topo.log, default=float),
@@ -139,7 +142,7 @@ def prepare(
         reasons = {tuple(map(int, k.split(","))): v for k, v in json.loads(str(hit["reason"])).items()}
         pair = Pairwise(hit["relative"], hit["valid"], hit["fitness"], hit["rmse"], reasons)
     else:
-        pair = _plugin("dm2.registration", reg).run(frames, warm, topo)
+        pair = _plugin("dm2.registration", reg, progress).run(frames, warm, topo)
         cache.put(
             f"pairwise-{k_reg}.npz", relative=pair.relative, valid=pair.valid, fitness=pair.fitness,
             rmse=pair.rmse, reason=json.dumps({f"{i},{j}": r for (i, j), r in pair.reason.items()}),

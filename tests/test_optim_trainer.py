@@ -1,0 +1,220 @@
+"""The DeepMapping2 training loop: it lowers the error of a drifting warm start, the ablation switches run,
+runs are deterministic under a seed, resuming from a checkpoint equals an uninterrupted run, and a
+non-finite loss stops the run with the best poses kept."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from optim_cases import Case, frames_of, one_thread, planar_case, small_config
+
+from dm2_backend.optim import losses
+from dm2_backend.optim.batching import make_groups, random_groups, temporal_groups
+from dm2_backend.optim.config import OptimConfig, derive
+from dm2_backend.optim.trainer import CHECKPOINT, Optimiser, OptimResult
+from dm2_backend.pipeline.refine import ate_rmse
+from dm2_backend.plugins.topology_radius import RadiusTopology
+from dm2_backend.simulate.lidar import LidarModel
+from dm2_backend.simulate.sequence import SimSettings, simulate
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _single_thread():
+    yield from one_thread()
+
+
+EPOCHS = 4
+
+
+@pytest.fixture(scope="module")
+def case() -> Case:
+    return planar_case()
+
+
+def optimiser(case: Case, seed: int = 0, metric=None, pairwise=None, **cfg) -> Optimiser:
+    return Optimiser(case.frames, case.warm, case.topology, pairwise or case.pairwise,
+                     small_config(**{"epochs": EPOCHS, **cfg}), seed=seed, device="cpu", metric=metric,
+                     progress=False)
+
+
+class Recorder:
+    """Metric callback: ATE against the ground truth, keeping every epoch's poses; raises
+    KeyboardInterrupt (like Ctrl-C) when called for epoch ``interrupt_at``."""
+
+    def __init__(self, gt: np.ndarray, interrupt_at: int | None = None) -> None:
+        self.gt, self.interrupt_at, self.poses = gt, interrupt_at, []
+
+    def __call__(self, poses: np.ndarray) -> float:
+        if self.interrupt_at is not None and len(self.poses) == self.interrupt_at:
+            raise KeyboardInterrupt
+        self.poses.append(poses.copy())
+        return ate_rmse(self.gt, poses)
+
+
+def strip_times(history: list[dict]) -> list[dict]:
+    return [{k: v for k, v in row.items() if k != "seconds"} for row in history]
+
+
+@pytest.fixture(scope="module")
+def full_run(case, tmp_path_factory) -> tuple[OptimResult, Recorder, object]:
+    """An uninterrupted run with checkpoints (``resume`` on an empty folder starts from scratch)."""
+    folder = tmp_path_factory.mktemp("full")
+    rec = Recorder(case.gt)
+    return optimiser(case, metric=rec).run(checkpoint_dir=folder, resume=True), rec, folder
+
+
+def test_refine_lowers_ate_with_icp_pairwise(case, full_run):
+    result, rec, folder = full_run
+    before, after = ate_rmse(case.gt, case.warm), ate_rmse(case.gt, result.poses)
+    assert after <= 0.7 * before, (before, after)
+    assert len(result.history) == EPOCHS and result.stopped is None
+    assert [row["epoch"] for row in result.history] == list(range(EPOCHS))
+    assert all({"loss", "bce", "chamfer", "consistency", "ate"} <= set(row) for row in result.history)
+    assert result.history[-1]["ate"] == pytest.approx(ate_rmse(case.gt, rec.poses[-1]))
+    assert result.best_epoch == int(np.argmin([row["loss"] for row in result.history]))
+    np.testing.assert_array_equal(result.poses, rec.poses[result.best_epoch])
+    np.testing.assert_allclose(result.poses[0], case.warm[0], atol=1e-9)  # the gauge: frame 0 stays put
+    assert (folder / CHECKPOINT).is_file()
+    assert set(result.derived) == {"unit", "finest_cell", "free_margin", "chamfer_truncate",
+                                   "step_translation", "step_rotation"}
+
+
+def test_refine_lowers_ate_with_ground_truth_pairwise(case):
+    result = optimiser(case, pairwise=case.pairwise_from(case.gt)).run()
+    assert ate_rmse(case.gt, result.poses) <= 0.7 * ate_rmse(case.gt, case.warm)
+
+
+@pytest.mark.parametrize("switches,absent", [
+    ({"use_consistency": False}, "consistency"),
+    ({"use_bce": False}, "bce"),
+    ({"use_chamfer": False}, "chamfer"),
+    ({"batching": "temporal"}, None),
+    ({"batching": "random"}, None),
+    ({"pose_model": "lnet"}, None),
+    ({"drift": False}, None),
+], ids=["no-consistency", "no-bce", "no-chamfer", "temporal", "random", "lnet", "no-drift"])
+def test_ablation_switches_run(case, switches, absent):
+    result = optimiser(case, epochs=2, **switches).run()
+    assert len(result.history) == 2 and result.stopped is None
+    assert np.isfinite(result.poses).all() and result.poses.shape == case.warm.shape
+    assert not np.allclose(result.poses, case.warm)  # it moved
+    for row in result.history:
+        assert np.isfinite(row["loss"])
+        if absent is not None:
+            assert absent not in row
+    if switches == {"batching": "temporal"}:
+        assert ate_rmse(case.gt, result.poses) < 2 * ate_rmse(case.gt, case.warm)
+
+
+def test_unknown_choices_are_errors(case):
+    with pytest.raises(ValueError, match="batching"):
+        optimiser(case, batching="spatial")
+    with pytest.raises(ValueError, match="pose model"):
+        optimiser(case, pose_model="mlp")
+    with pytest.raises(ValueError, match="unknown optimiser options: bogus"):
+        OptimConfig.from_dict({"epochs": 2, "bogus": 1})
+
+
+def test_deterministic_under_a_seed(case, full_run):
+    result = optimiser(case, metric=Recorder(case.gt)).run()
+    np.testing.assert_array_equal(result.poses, full_run[0].poses)
+    assert strip_times(result.history) == strip_times(full_run[0].history)
+    other = optimiser(case, seed=1, epochs=1).run()
+    same = optimiser(case, seed=0, epochs=1).run()
+    assert np.abs(other.poses - same.poses).max() > 1e-6
+
+
+def test_resume_equals_uninterrupted(case, full_run, tmp_path):
+    full, _, _ = full_run
+    interrupted = Recorder(case.gt, interrupt_at=EPOCHS // 2)
+    with pytest.raises(KeyboardInterrupt):
+        optimiser(case, metric=interrupted).run(checkpoint_dir=tmp_path)
+    state = torch.load(tmp_path / CHECKPOINT, weights_only=False)
+    assert state["epoch"] == EPOCHS // 2 - 1 and len(state["history"]) == EPOCHS // 2
+    rec = Recorder(case.gt)
+    resumed = optimiser(case, metric=rec).run(checkpoint_dir=tmp_path, resume=True)
+    assert len(rec.poses) == EPOCHS - EPOCHS // 2  # only the remaining epochs ran
+    np.testing.assert_array_equal(resumed.poses, full.poses)
+    np.testing.assert_array_equal(rec.poses[-1], full_run[1].poses[-1])
+    assert resumed.best_epoch == full.best_epoch
+    assert strip_times(resumed.history) == strip_times(full.history)
+    # resuming a finished run returns its result without training
+    again = optimiser(case, metric=rec).run(checkpoint_dir=tmp_path, resume=True)
+    np.testing.assert_array_equal(again.poses, full.poses)
+    assert len(rec.poses) == EPOCHS - EPOCHS // 2
+
+
+def test_resume_extends_a_finished_shorter_run(case, tmp_path):
+    """A finished E/2-epoch run resumed with E epochs continues at epoch E/2 (more epochs later)."""
+    optimiser(case, epochs=EPOCHS // 2).run(checkpoint_dir=tmp_path)
+    rec = Recorder(case.gt)
+    result = optimiser(case, metric=rec).run(checkpoint_dir=tmp_path, resume=True)
+    assert len(rec.poses) == EPOCHS - EPOCHS // 2
+    assert [row["epoch"] for row in result.history] == list(range(EPOCHS))
+
+
+@pytest.mark.parametrize("nan_at_step", [0, 9])
+def test_non_finite_loss_stops_and_keeps_best(case, monkeypatch, nan_at_step):
+    calls = []
+    real = losses.occupancy_bce
+
+    def bce(field, occupied, free):
+        calls.append(1)
+        value = real(field, occupied, free)
+        return value * float("nan") if len(calls) == nan_at_step + 1 else value
+
+    monkeypatch.setattr(losses, "occupancy_bce", bce)
+    rec = Recorder(case.gt)
+    opt = optimiser(case, metric=rec)
+    result = opt.run()
+    epoch, step = divmod(nan_at_step, opt.steps_per_epoch)
+    assert result.stopped is not None and f"epoch {epoch} step {step}" in result.stopped
+    assert len(result.history) == epoch and np.isfinite(result.poses).all()
+    if epoch == 0:
+        assert result.best_epoch == -1
+        np.testing.assert_allclose(result.poses, case.warm, atol=1e-9)
+    else:
+        assert result.best_epoch == int(np.argmin([row["loss"] for row in result.history]))
+        np.testing.assert_array_equal(result.poses, rec.poses[result.best_epoch])
+
+
+# ---------------------------------------------------------------- batching and derived lengths
+def test_batching_groups():
+    t = temporal_groups(6, 2)
+    np.testing.assert_array_equal(t[0], [-1, 1])
+    np.testing.assert_array_equal(t[3], [2, 4])
+    np.testing.assert_array_equal(temporal_groups(6, 4)[5], [4, -1, 3, -1])
+    r = random_groups(50, 5, np.random.default_rng(0))
+    assert r.shape == (50, 5) and (r >= 0).all() and (r < 50).all()
+    assert not (r == np.arange(50)[:, None]).any()  # never the anchor itself
+    topo = np.arange(12).reshape(4, 3) % 4
+    assert make_groups("topology", topo, 0) is topo
+    np.testing.assert_array_equal(make_groups("random", topo, 3), make_groups("random", topo, 3))
+    with pytest.raises(ValueError):
+        make_groups("spatial", topo, 0)
+
+
+def test_derived_lengths_follow_the_data():
+    d = derive(OptimConfig(), {"spacing": 0.2, "voxel": 0.0, "range_median": 10.0})
+    assert d["unit"] == pytest.approx(0.4) and d["finest_cell"] == d["free_margin"] == d["unit"]
+    assert d["chamfer_truncate"] == pytest.approx(4.0) and d["step_translation"] == pytest.approx(0.04)
+    assert d["step_rotation"] == pytest.approx(0.004)
+    d = derive(OptimConfig(unit=1.0, step_rotation=0.5), {"spacing": 0.2, "voxel": 0.5})
+    assert d["unit"] == 1.0 and d["step_rotation"] == 0.5 and d["step_translation"] == pytest.approx(0.1)
+    assert derive(OptimConfig(), {"spacing": 0.1, "voxel": 0.3})["unit"] == pytest.approx(0.6)
+
+
+def test_3d_sequence_runs():
+    """A short 3D LiDAR sequence: 3D occupancy grid, all six pose dimensions free."""
+    lidar = LidarModel(beams=16, columns=360, max_range=40.0)
+    scans, gt, warm = simulate(SimSettings(frames=16, planar=False, extent=20.0, lidar=lidar), progress=False)
+    frames = frames_of(scans, planar=False)
+    topo = RadiusTopology().run(frames, warm)
+    shell = Case(scans, gt, warm, frames, topo, None)
+    opt = Optimiser(frames, warm, topo, shell.pairwise_from(gt), small_config(epochs=1), seed=0, device="cpu",
+                    progress=False)
+    assert opt.field.dim == 3 and not opt.planar
+    result = opt.run()
+    assert np.isfinite(result.poses).all() and result.stopped is None
+    assert np.abs(result.poses[:, 2, 3] - warm[:, 2, 3]).max() > 0  # z is free in 3D

@@ -1,0 +1,223 @@
+"""``dm2 refine`` end to end through the CLI on a simulated planar sequence: the run-folder contract, the
+preparation cache, ``--resume``, and bad inputs (exit code 2 with one line)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+import yaml
+from click.testing import CliRunner
+from optim_cases import one_thread, planar_case
+
+from dm2_backend import config
+from dm2_backend.cli.main import cli
+from dm2_backend.formats import read_trajectory
+from dm2_backend.formats.dm2_priors import read_priors
+from dm2_backend.geometry import se3
+from dm2_backend.simulate.sequence import write_sequence
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _single_thread():
+    yield from one_thread()
+
+
+SMALL = {
+    "seed": 3,
+    "frames": {"max_points": 256},
+    "optimiser": {"points_per_frame": 64, "bce_points_per_frame": 32, "batch_groups": 16,
+                  "grid_max_cells": 2**14},
+}
+STEPS = ("frames", "warm_start", "place_recognition", "registration")
+
+
+@pytest.fixture(scope="module")
+def seq(tmp_path_factory) -> Path:
+    """velodyne/, poses.txt (ground truth), warm_start.txt, and times.txt with full-precision stamps
+    (found next to the scan folder and next to the KITTI files), plus a small config.yaml."""
+    case = planar_case()
+    root = tmp_path_factory.mktemp("seq")
+    write_sequence(root, case.scans, case.gt, case.warm, 10.0)
+    n = len(case.scans)
+    stamps = 1317384506.123456789 + np.arange(n) * 0.1000003 + np.linspace(0, 1e-6, n)
+    (root / "times.txt").write_text("".join(f"{float(t)!r}\n" for t in stamps))
+    (root / "config.yaml").write_text(yaml.safe_dump(SMALL))
+    return root
+
+
+def refine(seq: Path, out: Path, *extra: str):
+    args = ["refine", "--scans", str(seq / "velodyne"), "--poses", str(seq / "warm_start.txt"), "--gt",
+            str(seq / "poses.txt"), "--out", str(out), "-c", str(seq / "config.yaml"), "-q", *extra]
+    return CliRunner().invoke(cli, args, obj={})
+
+
+def ok(result) -> None:
+    assert result.exit_code == 0, result.output + repr(result.exception)
+
+
+@pytest.fixture(scope="module")
+def run(seq, tmp_path_factory):
+    out = tmp_path_factory.mktemp("run") / "run"
+    result = refine(seq, out, "--epochs", "2", "--no-cache")
+    ok(result)
+    return out, result, json.loads((out / "report.json").read_text())
+
+
+def test_trajectories_with_full_precision_stamps(seq, run):
+    out, _, report = run
+    poses = np.load(out / "poses.npy")
+    n = len(planar_case().scans)
+    assert poses.shape == (n, 4, 4) and np.isfinite(poses).all() and se3.is_planar(poses)
+    stamps = [float(line.split()[0]) for line in (out / "poses_tum.txt").read_text().splitlines()
+              if line.strip() and not line.startswith("#")]
+    expected = [float(line) for line in (seq / "times.txt").read_text().split()]
+    assert stamps == expected  # exactly: no rounding of the scan timestamps
+    tum = read_trajectory(out / "poses_tum.txt", "tum")
+    np.testing.assert_allclose(tum.poses, poses, atol=1e-9)
+    kitti = read_trajectory(out / "poses_kitti.txt", "kitti")
+    np.testing.assert_allclose(kitti.poses, poses, atol=1e-12)
+    warm = read_trajectory(out / "warm_start_kitti.txt", "kitti")
+    np.testing.assert_allclose(warm.poses, read_trajectory(seq / "warm_start.txt", "kitti").poses, atol=1e-9)
+    assert {"poses_tum.txt", "poses_kitti.txt", "poses.npy", "warm_start_tum.txt"} <= set(report["files"])
+
+
+def test_config_yaml_is_the_effective_config(seq, run):
+    out = run[0]
+    written = yaml.safe_load((out / "config.yaml").read_text())
+    assert written == config.load(seq / "config.yaml", {"optimiser": {"epochs": 2}})
+    assert written["seed"] == 3 and written["optimiser"]["epochs"] == 2
+    assert written["optimiser"]["points_per_frame"] == 64 and written["registration"]["name"] == "icp"
+
+
+def test_report(run):
+    out, result, report = run
+    assert report["method"] == "dm2 refine" and report["frames"] == len(planar_case().scans)
+    assert report["planar"] is True and report["device"] == "cpu" and report["stopped"] is None
+    metrics, before = report["metrics"], report["warm_start_metrics"]
+    assert {"ape_trans_rmse_m", "ape_rot_rmse_deg", "rpe_trans_rmse_m", "paper_ate_trans"} <= set(metrics)
+    assert set(metrics) == set(before)
+    assert metrics["ape_trans_rmse_m"] < 0.8 * before["ape_trans_rmse_m"]
+    assert set(STEPS) | {"optimise", "total"} <= set(report["timings"])
+    assert report["timings"]["total"] >= report["timings"]["optimise"] > 0
+    assert report["peak_rss_mb"] > 50
+    assert report["prepare"]["cached"] == dict.fromkeys(STEPS, False)
+    assert 0 < report["prepare"]["pairs_valid"] <= report["prepare"]["pairs"]
+    assert [e["epoch"] for e in report["epochs"]] == [0, 1]
+    assert all(np.isfinite(e["ate"]) and np.isfinite(e["loss"]) for e in report["epochs"])
+    assert report["best_epoch"] in (0, 1) and report["derived"]["unit"] > 0
+    assert "ape_trans_rmse_m" in result.output and "wrote" in result.output
+
+
+def test_quiet_prints_no_progress_bars(run):
+    output = run[1].output
+    assert "\r" not in output and "it/s" not in output, output
+
+
+def test_map_and_plots(run):
+    out, _, report = run
+    cloud = o3d.io.read_point_cloud(str(out / "map.ply"))
+    pts = np.asarray(cloud.points)
+    assert len(pts) > 1000 and np.isfinite(pts).all()
+    poses = np.load(out / "poses.npy")
+    assert np.abs(pts[:, 2]).max() < 1e-6  # planar scans stay in the plane
+    assert np.linalg.norm(pts[:, :2].mean(0) - poses[:, :2, 3].mean(0)) < 10.0
+    for name in ("trajectory.png", "errors.png", "epochs.png"):
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
+
+
+def test_prior_files(seq, run):
+    out, _, report = run
+    init, groups, relative = read_priors(out / "prior")
+    warm = read_trajectory(seq / "warm_start.txt", "kitti").poses
+    np.testing.assert_allclose(init, warm, atol=1e-6)
+    assert int((groups >= 0).sum()) == report["prepare"]["pairs"]
+    assert relative.shape[:2] == groups.shape
+    assert (out / "prior" / "init_pose.npy").is_file()
+
+
+def test_cache_and_resume(seq, tmp_path):
+    cache = tmp_path / "cache"
+    first = tmp_path / "first"
+    ok(refine(seq, first, "--epochs", "1", "--cache-dir", str(cache)))
+    r1 = json.loads((first / "report.json").read_text())
+    assert r1["prepare"]["cached"] == dict.fromkeys(STEPS, False)
+    assert any(cache.iterdir())
+    second = tmp_path / "second"
+    ok(refine(seq, second, "--epochs", "1", "--cache-dir", str(cache)))
+    r2 = json.loads((second / "report.json").read_text())
+    assert r2["prepare"]["cached"] == dict.fromkeys(STEPS, True)
+    np.testing.assert_array_equal(np.load(second / "poses.npy"), np.load(first / "poses.npy"))
+    # --resume on the finished run: nothing left to train, same result and history
+    ok(refine(seq, first, "--epochs", "1", "--cache-dir", str(cache), "--resume"))
+    r3 = json.loads((first / "report.json").read_text())
+    np.testing.assert_array_equal(np.load(first / "poses.npy"), np.load(second / "poses.npy"))
+    assert [e["loss"] for e in r3["epochs"]] == [e["loss"] for e in r1["epochs"]]
+    assert r3["prepare"]["cached"] == dict.fromkeys(STEPS, True)
+
+
+# ---------------------------------------------------------------- bad inputs
+def one_error_line(result, *names: str) -> str:
+    assert result.exit_code == 2, result.output + repr(result.exception)
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("dm2: error:"), result.output
+    for name in names:
+        assert name in lines[0], lines[0]
+    return lines[0]
+
+
+def invoke(*args: str):
+    return CliRunner().invoke(cli, ["refine", "-q", "--no-cache", *args], obj={})
+
+
+def test_missing_scans_folder(seq, tmp_path):
+    missing = seq / "no_such_folder"
+    result = invoke("--scans", str(missing), "--poses", str(seq / "warm_start.txt"),
+                    "--out", str(tmp_path / "r"))
+    one_error_line(result, str(missing))
+
+
+def test_pose_count_does_not_match_scan_count(seq, tmp_path):
+    short = tmp_path / "short.txt"
+    short.write_text("".join((seq / "warm_start.txt").read_text().splitlines(keepends=True)[:-1]))
+    n = len(planar_case().scans)
+    result = invoke("--scans", str(seq / "velodyne"), "--poses", str(short), "--out", str(tmp_path / "r"))
+    one_error_line(result, f"{n} scans but {n - 1} poses")
+    result = invoke("--scans", str(seq / "velodyne"), "--poses", str(short),
+                    "--times", str(seq / "times.txt"), "--out", str(tmp_path / "r"))
+    one_error_line(result, "times.txt", f"{n} times for {n - 1} poses")
+
+
+def test_ground_truth_count_does_not_match(seq, tmp_path):
+    short = tmp_path / "gt.txt"
+    short.write_text("".join((seq / "poses.txt").read_text().splitlines(keepends=True)[:-1]))
+    result = invoke("--scans", str(seq / "velodyne"), "--poses", str(seq / "warm_start.txt"),
+                    "--gt", str(short), "--out", str(tmp_path / "r"))
+    one_error_line(result, str(short), "ground truth")
+
+
+@pytest.mark.parametrize("option,group", [("--warm-start", "dm2.warm_start"),
+                                          ("--place-recognition", "dm2.place_recognition"),
+                                          ("--registration", "dm2.registration")])
+def test_unknown_plugin(seq, tmp_path, option, group):
+    result = invoke("--scans", str(seq / "velodyne"), "--poses", str(seq / "warm_start.txt"), option, "nope",
+                    "--out", str(tmp_path / "r"))
+    one_error_line(result, group, "'nope'", "choices")
+
+
+@pytest.mark.parametrize("text,message", [
+    ("optimiser:\n  epochs: 2\n  bogus: 1\n", "unknown optimiser options: bogus"),
+    ("optimizer:\n  epochs: 2\n", "unknown config sections: optimizer"),
+    ("optimiser: {epochs: 2\n", "invalid YAML"),
+    ("- 1\n- 2\n", "must be a mapping"),
+])
+def test_bad_config(seq, tmp_path, text, message):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    result = invoke("--scans", str(seq / "velodyne"), "--poses", str(seq / "warm_start.txt"), "-c", str(path),
+                    "--out", str(tmp_path / "r"))
+    one_error_line(result, str(path), message)
+    assert not (tmp_path / "r").exists()  # nothing written before the config is known to be good
