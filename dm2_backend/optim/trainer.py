@@ -69,6 +69,8 @@ class Optimiser:
         self.metric = metric
         self.progress = progress
         self.device = resolve_device(device)
+        if cfg.threads > 0 and self.device.type == "cpu":
+            torch.set_num_threads(cfg.threads)
         self.derived = derive(cfg, frames.scale)
         self.planar = frames.planar
         self.n = len(frames)
