@@ -1,0 +1,102 @@
+"""Methods and running one dataset x method case in a fresh ``dm2`` subprocess (its own peak memory)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+
+@dataclass
+class Method:
+    name: str
+    command: list[str]  # dm2 sub-command and its positional arguments; [] = the warm start itself
+    config: dict | None = None  # YAML config overrides (the ablations)
+    description: str = ""
+
+
+METHODS: dict[str, Method] = {m.name: m for m in [
+    Method("warm start", [], description="the trajectory dm2 starts from (given, or the icp plugin)"),
+    Method("dm2 refine", ["refine"], description="default config"),
+    Method("no consistency", ["refine"], {"optimiser": {"use_consistency": False}},
+           "ablation: optimiser.use_consistency=false"),
+    Method("temporal batches", ["refine"], {"optimiser": {"batching": "temporal"}},
+           "ablation: optimiser.batching=temporal (DeepMapping) instead of topology"),
+    Method("L-Net poses", ["refine"], {"optimiser": {"pose_model": "lnet"}},
+           "ablation: optimiser.pose_model=lnet instead of direct pose parameters"),
+    Method("gtsam", ["baseline", "gtsam"], description="dm2 baseline gtsam (same preparation)"),
+    Method("g2o", ["baseline", "g2o"], description="dm2 baseline g2o (same preparation)"),
+    Method("multiway", ["baseline", "multiway"], description="dm2 baseline multiway (Open3D)"),
+]}
+
+#: substrings of a failed run's output meaning that the method cannot run on this installation
+UNAVAILABLE = ("needs g2opy", "install dm2[", "No such command", "No module named")
+
+
+def command_available(sub: str) -> bool:
+    """Whether ``dm2 <sub>`` exists in this checkout (``dm2 baseline`` may still be missing)."""
+    result = subprocess.run([sys.executable, "-m", "dm2_backend", sub, "--help"], capture_output=True)
+    return result.returncode == 0
+
+
+def run_process(cmd: list[str], log: Path, timeout: float) -> dict:
+    """Run ``cmd`` with its output in ``log``; wall time, exit code and the child's own peak RSS (wait4)."""
+    t0 = time.perf_counter()
+    with open(log, "w") as fh:
+        proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
+        timed_out = False
+        while True:
+            pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+            if pid:
+                break
+            if time.perf_counter() - t0 > timeout:
+                os.killpg(proc.pid, signal.SIGKILL)
+                pid, status, usage = os.wait4(proc.pid, 0)
+                timed_out = True
+                break
+            time.sleep(0.1)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    return {"returncode": proc.returncode, "timed_out": timed_out, "wall_s": time.perf_counter() - t0,
+            "peak_rss_mb": usage.ru_maxrss / 1024.0, "cpu_s": usage.ru_utime + usage.ru_stime}
+
+
+def run_case(method: Method, input_args: list[str], run_dir: Path, cache_dir: Path, epochs: int | None,
+             timeout: float) -> dict:
+    """One case: returns status, metrics and timings from its report.json, wall time and peak RSS."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    cmd = [sys.executable, "-m", "dm2_backend", *method.command, *input_args, "--out", str(run_dir / "run"),
+           "--cache-dir", str(cache_dir), "-q"]
+    if method.config:
+        cfg = run_dir / "config.yaml"
+        cfg.write_text(yaml.safe_dump(method.config))
+        cmd += ["--config", str(cfg)]
+    if epochs is not None and method.command[0] == "refine":
+        cmd += ["--epochs", str(epochs)]
+    proc = run_process(cmd, run_dir / "log.txt", timeout)
+    case = {"command": " ".join(cmd[2:]), "log": str(run_dir / "log.txt"), **proc}
+    output = (run_dir / "log.txt").read_text(errors="replace")
+    report_path = run_dir / "run" / "report.json"
+    if proc["timed_out"]:
+        case.update(status="timeout", reason=f"killed after {timeout:.0f} s")
+    elif proc["returncode"] != 0:
+        last = [ln for ln in output.strip().splitlines() if ln.strip()][-1:] or ["no output"]
+        unavailable = any(s in output for s in UNAVAILABLE)
+        case.update(status="not available" if unavailable else "failed", reason=last[0][-300:])
+    elif not report_path.is_file():
+        case.update(status="failed", reason="no report.json")
+    else:
+        report = json.loads(report_path.read_text())
+        case.update(status="ok", frames=report.get("frames"), metrics=report.get("metrics", {}),
+                    warm_start_metrics=report.get("warm_start_metrics", {}),
+                    timings=report.get("timings", {}),
+                    prepare_cached=report.get("prepare", {}).get("cached", {}),
+                    report_peak_rss_mb=report.get("peak_rss_mb"), best_epoch=report.get("best_epoch"),
+                    epochs_run=len(report.get("epochs", []) or []), device=report.get("device"))
+    return case
