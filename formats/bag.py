@@ -19,15 +19,6 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from dm2_backend.formats import bag_messages as bm
-from dm2_backend.formats.bag_tf import TfBuffer, TfError, parse_tf_id
-from dm2_backend.formats.registry import (
-    ReadOptions,
-    ScanSource,
-    TrajectoryFormat,
-    scan_source,
-    trajectory_format,
-)
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.rosbag1 import ReaderError as ReaderError1
 from rosbags.rosbag1 import Writer as Writer1
@@ -39,6 +30,15 @@ from rosbags.typesys import Stores, get_typestore
 
 from dm2_backend.atomic import atomic_path
 from dm2_backend.errors import InputError
+from dm2_backend.formats import bag_messages as bm
+from dm2_backend.formats.bag_tf import TfBuffer, TfError, parse_tf_id
+from dm2_backend.formats.registry import (
+    ReadOptions,
+    ScanSource,
+    TrajectoryFormat,
+    scan_source,
+    trajectory_format,
+)
 from dm2_backend.geometry import se3
 from dm2_backend.scans import Scan, ScanSequence
 from dm2_backend.trajectory import Trajectory

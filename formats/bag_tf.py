@@ -14,9 +14,9 @@ import re
 from dataclasses import dataclass, field
 
 import numpy as np
-from dm2_backend.formats.bag_messages import bad_quaternion, split_ns, stamp_ns
 from scipy.spatial.transform import Rotation, Slerp
 
+from dm2_backend.formats.bag_messages import bad_quaternion, split_ns, stamp_ns
 from dm2_backend.geometry import se3
 
 _ROS_NAME = re.compile(r"[\/|a-z|A-Z][\/|_|0-9|a-z|A-Z]+")  # evo's tf_id.ROS_NAME_REGEX

@@ -64,6 +64,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from dm2_backend.atomic import atomic_write
+from dm2_backend.errors import InputError
 from dm2_backend.formats.registry import (
     ReadOptions,
     ScanSource,
@@ -71,9 +74,6 @@ from dm2_backend.formats.registry import (
     scan_source,
     trajectory_format,
 )
-
-from dm2_backend.atomic import atomic_write
-from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
 from dm2_backend.scans import Scan, ScanSequence
 from dm2_backend.trajectory import Trajectory

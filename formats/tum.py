@@ -8,11 +8,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from dm2_backend.formats import _text
-from dm2_backend.formats.registry import ReadOptions, TrajectoryFormat, trajectory_format
 
 from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError
+from dm2_backend.formats import _text
+from dm2_backend.formats.registry import ReadOptions, TrajectoryFormat, trajectory_format
 from dm2_backend.geometry import se3
 from dm2_backend.trajectory import Trajectory
 

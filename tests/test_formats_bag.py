@@ -12,15 +12,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from dm2_backend.formats import (
-    ReadOptions,
-    detect_scan_source,
-    detect_trajectory_format,
-    open_scans,
-    read_trajectory,
-    write_trajectory,
-)
-from dm2_backend.formats.bag import describe
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag1 import Reader as Reader1
 from rosbags.rosbag1 import Writer as Writer1
@@ -30,6 +21,15 @@ from rosbags.typesys import Stores, get_typestore
 
 from dm2_backend.cli.main import cli
 from dm2_backend.errors import InputError
+from dm2_backend.formats import (
+    ReadOptions,
+    detect_scan_source,
+    detect_trajectory_format,
+    open_scans,
+    read_trajectory,
+    write_trajectory,
+)
+from dm2_backend.formats.bag import describe
 from dm2_backend.geometry import se3
 from dm2_backend.trajectory import Trajectory
 

@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from dm2_backend.formats import ReadOptions, carmen, detect_trajectory_format, open_scans, read_trajectory
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dm2_backend.cli.main import cli
 from dm2_backend.errors import InputError
+from dm2_backend.formats import ReadOptions, carmen, detect_trajectory_format, open_scans, read_trajectory
 from dm2_backend.geometry import se3
 from dm2_backend.trajectory import Trajectory
 

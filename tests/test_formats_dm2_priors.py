@@ -7,6 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from dm2_backend.cli.main import cli
+from dm2_backend.errors import InputError
 from dm2_backend.formats import detect_trajectory_format, read_trajectory
 from dm2_backend.formats.dm2_priors import (
     read_group_matrix,
@@ -18,12 +24,6 @@ from dm2_backend.formats.dm2_priors import (
     write_pairwise_pose,
     write_priors,
 )
-from hypothesis import given, settings
-from hypothesis import strategies as st
-from scipy.spatial.transform import Rotation
-
-from dm2_backend.cli.main import cli
-from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

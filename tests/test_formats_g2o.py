@@ -7,13 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from dm2_backend.formats import detect_trajectory_format, read_trajectory, write_trajectory
-from dm2_backend.formats.g2o import PoseGraph, read_g2o, write_g2o
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dm2_backend.cli.main import cli
 from dm2_backend.errors import InputError
+from dm2_backend.formats import detect_trajectory_format, read_trajectory, write_trajectory
+from dm2_backend.formats.g2o import PoseGraph, read_g2o, write_g2o
 from dm2_backend.geometry import se3
 from dm2_backend.trajectory import Trajectory
 

@@ -8,6 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from dm2_backend.cli.main import cli
+from dm2_backend.errors import InputError
 from dm2_backend.formats import ReadOptions, detect_trajectory_format, read_trajectory
 from dm2_backend.formats.kitti import (
     camera_to_lidar,
@@ -17,12 +23,6 @@ from dm2_backend.formats.kitti import (
     read_times,
     write_kitti,
 )
-from hypothesis import given, settings
-from hypothesis import strategies as st
-from scipy.spatial.transform import Rotation
-
-from dm2_backend.cli.main import cli
-from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

@@ -7,15 +7,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from dm2_backend.formats import ReadOptions, detect_trajectory_format, read_trajectory
-from dm2_backend.formats.euroc import read_euroc
-from dm2_backend.formats.g2o import read_g2o
-from dm2_backend.formats.tum import read_tum, write_tum
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dm2_backend.cli.main import cli
 from dm2_backend.errors import InputError
+from dm2_backend.formats import ReadOptions, detect_trajectory_format, read_trajectory
+from dm2_backend.formats.euroc import read_euroc
+from dm2_backend.formats.g2o import read_g2o
+from dm2_backend.formats.tum import read_tum, write_tum
 from dm2_backend.geometry import se3
 from dm2_backend.trajectory import Trajectory
 
