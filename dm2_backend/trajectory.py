@@ -81,7 +81,9 @@ def _line(first_line: int | None, i: int) -> int | None:
 
 
 def validate_poses(poses: np.ndarray, source: str | Path | None, first_line: int | None = None) -> None:
-    """Raise :class:`InputError` for non-finite values or rotations that are not rotations."""
+    """Raise :class:`InputError` for non-finite values or rotations that are not rotations (beyond
+    ``se3.ROTATION_TOL``). Rotations off by more than 1e-6 (evo's own SO(3) check) but within the tolerance
+    are snapped to SO(3) in place; finer print rounding stays exactly as read."""
     bad = ~np.isfinite(poses).all(axis=(1, 2))
     if bad.any():
         i = int(np.argmax(bad))
@@ -93,6 +95,9 @@ def validate_poses(poses: np.ndarray, source: str | Path | None, first_line: int
             source, f"pose {i} has a rotation that is not a rotation (error {err[i]:.2g})",
             line=_line(first_line, i),
         )
+    off = err > 1e-6
+    if off.any():
+        poses[off, :3, :3] = se3.project_to_so3(poses[off, :3, :3])
 
 
 def validate_timestamps(stamps: np.ndarray, source: str | Path | None, first_line: int | None = None) -> None:

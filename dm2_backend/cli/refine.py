@@ -99,8 +99,10 @@ def command(epochs, device, resume, **kw) -> None:
 def print_summary(report: dict, out: Path) -> None:
     before, after = report.get("warm_start_metrics", {}), report.get("metrics", {})
     for key in after:
-        if key in before:
+        if key in before and key != "error":
             click.echo(f"{key:<28} warm start {before[key]:10.4f}  ->  {report['method']} {after[key]:10.4f}")
+    if "error" in after:
+        click.echo(f"evaluation failed: {after['error']}", err=True)
     t = report["timings"]
     mem = report["peak_rss_mb"]
     click.echo(f"{report['frames']} frames in {t['total']:.1f} s, peak memory {mem:.0f} MiB")

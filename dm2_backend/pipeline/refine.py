@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -11,6 +12,7 @@ import numpy as np
 from evo.core.geometry import umeyama_alignment
 
 from dm2_backend import __version__, config
+from dm2_backend.errors import InputError
 from dm2_backend.evaluation.ape_rpe import evaluate_poses
 from dm2_backend.evaluation.paper_ate import paper_ate
 from dm2_backend.evaluation.relations import relations_error
@@ -21,6 +23,8 @@ from dm2_backend.pipeline import outputs
 from dm2_backend.pipeline.inputs import RunInputs
 from dm2_backend.prepare.pipeline import Prepared, prepare
 from dm2_backend.trajectory import Trajectory
+
+log = logging.getLogger(__name__)
 
 
 def ate_rmse(gt: np.ndarray, est: np.ndarray) -> float:
@@ -41,7 +45,16 @@ def live_metric(inputs: RunInputs, timestamps: np.ndarray | None) -> Callable[[n
 
 
 def metrics_of(traj: Trajectory, inputs: RunInputs) -> dict[str, float]:
-    """Accuracy of ``traj`` against the ground truth / relations given to the run (empty without)."""
+    """Accuracy of ``traj`` against the ground truth / relations given to the run (empty without). An
+    evaluation that fails is recorded as ``{"error": ...}`` so the run's outputs are still written."""
+    try:
+        return _metrics(traj, inputs)
+    except InputError as exc:
+        log.warning("evaluation failed: %s", exc.message)
+        return {"error": exc.message}
+
+
+def _metrics(traj: Trajectory, inputs: RunInputs) -> dict[str, float]:
     est = EstimateReport(label="", path="")
     if inputs.gt is not None:
         gt = replace(inputs.gt, timestamps=None)
