@@ -85,10 +85,10 @@ def _detect(path: Path, table: dict, kind: str) -> str:
     sniffed = [f.name for f in candidates if f.sniff is not None and _safe_sniff(f.sniff, path)]
     if len(sniffed) == 1:
         return sniffed[0]
-    choices = ", ".join(sniffed or [f.name for f in candidates])
-    if sniffed or len(by_suffix) > 1:
-        raise InputError(path, f"ambiguous {kind} format; say which with --format ({choices})")
-    raise InputError(path, f"unknown {kind} format; say which with --format ({', '.join(table)})")
+    if len(sniffed) > 1:
+        raise InputError(path, f"ambiguous {kind} format; say which with --format ({', '.join(sniffed)})")
+    choices = ", ".join(f.name for f in candidates)
+    raise InputError(path, f"unknown {kind} format; say which with --format ({choices})")
 
 
 def _safe_sniff(sniff: Callable[[Path], bool], path: Path) -> bool:

@@ -281,3 +281,18 @@ scan_source(ScanSource(
     sniff=sniff,
     describe=describe,
 ))
+
+
+def open_file(path: Path, options: ReadOptions) -> ScanSequence:
+    """A single scan file as a one-scan sequence (for ``dm2 info`` on one file)."""
+    scan = read_scan_file(path)
+    return ScanSequence(loader=lambda i: scan, count=1, source=str(path),
+                        planar=bool(len(scan.points)) and bool(np.abs(scan.points[:, 2]).max() < 1e-9))
+
+
+scan_source(ScanSource(
+    name="scan",
+    description="a single scan file (KITTI .bin, .pcd, .ply, .npy/.npz)",
+    open=open_file,
+    suffixes=SCAN_SUFFIXES,
+))

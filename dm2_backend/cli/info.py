@@ -62,6 +62,21 @@ def scan_rows(seq: ScanSequence, sample: int = 5) -> list[tuple[str, str]]:
     return rows
 
 
+def relation_rows(path: Path) -> list[tuple[str, str]]:
+    """A Freiburg relations file: ``t1 t2 x y z roll pitch yaw`` per line."""
+    from dm2_backend.evaluation.relations import load_relations
+
+    rel = load_relations(path)
+    dist = np.linalg.norm(rel[:, 2:5], axis=1)
+    return [
+        ("path", str(path)),
+        ("format", "relations — Freiburg benchmark relations (t1 t2 x y z roll pitch yaw)"),
+        ("relations", str(len(rel))),
+        ("time span", f"{float(rel[:, :2].min())!r} .. {float(rel[:, :2].max())!r}"),
+        ("relation length", f"{dist.min():.3f} .. {dist.max():.3f} m (median {np.median(dist):.3f})"),
+    ]
+
+
 def _try(detect, path: Path) -> str | None:
     try:
         return detect(path)
@@ -73,6 +88,8 @@ def describe(path: Path, fmt: str | None, options: ReadOptions) -> list[tuple[st
     """Rows of facts about ``path``; raises :class:`InputError` when nothing can read it."""
     if not path.exists():
         raise InputError(path, "no such file or folder")
+    if fmt == "relations" or (fmt is None and path.name.lower().endswith(".relations")):
+        return relation_rows(path)
     traj_fmt = fmt if fmt in TRAJECTORY_FORMATS else (None if fmt else _try(detect_trajectory_format, path))
     scan_fmt = fmt if fmt in SCAN_SOURCES else (None if fmt else _try(detect_scan_source, path))
     if traj_fmt is None and scan_fmt is None:
