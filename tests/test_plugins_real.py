@@ -19,7 +19,7 @@ from dm2_backend.trajectory import Trajectory
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 ACES = DATA / "carmen" / "aces.clf.bz2"
-WINDOW = np.arange(4200, 4800)  # 600 of the 7374 scans
+WINDOW = np.arange(4200, 4600)  # 400 of the 7374 scans
 
 
 @pytest.fixture(scope="module")
@@ -39,10 +39,10 @@ def test_aces_icp_warm_start_beats_odometry(aces):
     icp = relations_error(Trajectory(poses, seq.timestamps, planar=True), relations)
     odo = relations_error(odometry, relations)
     assert icp.used == odo.used > 50
-    # measured: odometry 0.051 m / 1.56 deg, icp 0.038 m / 0.33 deg (relations inside the window)
+    # measured: odometry 0.053 m / 1.69 deg, icp 0.039 m / 0.31 deg (the 62 relations inside the window)
     assert icp.stats["trans_mean"] < 0.9 * odo.stats["trans_mean"]
     assert icp.stats["rot_mean"] < 0.5 * odo.stats["rot_mean"]
-    # scan matching alone (constant-velocity prediction) is about as good
+    # scan matching alone (constant-velocity prediction; measured 0.047 m / 0.36 deg) is about as good
     alone = IcpWarmStart(prior="velocity", progress=False).run(frames, None)
     alone = relations_error(Trajectory(alone, seq.timestamps, planar=True), relations)
     assert alone.stats["trans_mean"] < 0.06 and alone.stats["rot_mean"] < 0.5

@@ -1,0 +1,138 @@
+"""ICP for the preparation plugins: open3d (point-to-plane, point-to-point, generalized) for 3D clouds,
+and a 2D point-to-line Gauss-Newton ICP on x, y, yaw for planar laser scans, whose z-less normals leave
+open3d's point-to-plane system singular."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import open3d as o3d
+
+from dm2_backend.geometry import se3
+from dm2_backend.plugins.common import Cloud, Match, planar_pose, project_planar
+
+reg = o3d.pipelines.registration
+
+
+def register(
+    source: Cloud,
+    target: Cloud,
+    init: np.ndarray,
+    distances: Sequence[float],
+    method: str = "point-to-plane",
+    iterations: int = 30,
+    prior_weight: float = 0.0,
+) -> Match:
+    """Coarse-to-fine ICP of ``source`` onto ``target`` from ``init``, one pass per correspondence
+    distance; fitness and rmse are those of the last (finest) distance. ``prior_weight`` (planar
+    point-to-line only) keeps unconstrained directions, e.g. along a corridor, at ``init``."""
+    if source.planar:
+        if method == "point-to-point":
+            return _icp_o3d_planar(source, target, init, distances, iterations)
+        return icp_2d(source.xy, target, init, distances, iterations, prior_weight=prior_weight)
+    T = np.asarray(init, dtype=np.float64)
+    source.ensure(method, "source")
+    target.ensure(method, "target")
+    if method == "gicp":
+        estimation = reg.TransformationEstimationForGeneralizedICP()
+    elif method == "point-to-point":
+        estimation = reg.TransformationEstimationPointToPoint()
+    else:
+        estimation = reg.TransformationEstimationPointToPlane()
+    criteria = reg.ICPConvergenceCriteria(1e-6, 1e-6, iterations)
+    fn = reg.registration_generalized_icp if method == "gicp" else reg.registration_icp
+    result = None
+    for d in distances:
+        result = fn(source.pcd, target.pcd, float(d), T, estimation, criteria)
+        if len(result.correspondence_set) < 6:
+            break
+        T = np.asarray(result.transformation)
+    if result is None or len(result.correspondence_set) < 6:
+        return Match(T, 0.0, float("inf"))
+    return Match(T.copy(), float(result.fitness), float(result.inlier_rmse))
+
+
+def _icp_o3d_planar(source: Cloud, target: Cloud, init, distances, iterations) -> Match:
+    """open3d point-to-point ICP on z = 0 points (well posed), projected to x, y, yaw."""
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source.points))
+    tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target.points))
+    T = project_planar(init)
+    result = None
+    criteria = reg.ICPConvergenceCriteria(1e-6, 1e-6, iterations)
+    for d in distances:
+        p2p = reg.TransformationEstimationPointToPoint()
+        result = reg.registration_icp(src, tgt, float(d), T, p2p, criteria)
+        T = project_planar(np.asarray(result.transformation))
+    if result is None or len(result.correspondence_set) < 3:
+        return Match(T, 0.0, float("inf"))
+    return Match(T, float(result.fitness), float(result.inlier_rmse))
+
+
+_EPS3 = 1e-6 * np.eye(3)
+
+
+def _solve3(A: np.ndarray, b: np.ndarray) -> tuple[float, float, float]:
+    """Solve a symmetric positive-definite 3x3 system by Cramer's rule (np.linalg.solve's overhead
+    dominates at this size, once per ICP iteration)."""
+    (a, b_, c), (_, e, f), (_, _, i) = A.tolist()
+    x, y, z = b.tolist()
+    co0, co1, co2 = e * i - f * f, c * f - b_ * i, b_ * f - c * e
+    det = a * co0 + b_ * co1 + c * co2
+    return (
+        (x * co0 + y * co1 + z * co2) / det,
+        (x * co1 + y * (a * i - c * c) + z * (b_ * c - a * f)) / det,
+        (x * co2 + y * (b_ * c - a * f) + z * (a * e - b_ * b_)) / det,
+    )
+
+
+def icp_2d(
+    source_xy: np.ndarray,
+    target: Cloud,
+    init: np.ndarray,
+    distances: Sequence[float],
+    iterations: int = 30,
+    tol: float = 1e-3,
+    prior_weight: float = 0.0,
+) -> Match:
+    """2D point-to-line ICP (Gauss-Newton on x, y, yaw) of points onto a planar :class:`Cloud`.
+
+    With ``prior_weight`` w > 0 the cost adds ``w * M * |t - t_init|^2`` (M correspondences, t the
+    translation): negligible where the scan constrains the pose, decisive along directions it does
+    not (a featureless corridor)."""
+    x, y, yaw = se3.to_xy_yaw(init)
+    x0, y0 = x, y
+    fitness, rmse = 0.0, float("inf")
+    for pass_, d in enumerate(distances):
+        # stop when an update moves points by less than tol * d (10x looser before the last pass)
+        stop = tol * d * (1.0 if pass_ == len(distances) - 1 else 10.0)
+        for _ in range(iterations):
+            c, s = np.cos(yaw), np.sin(yaw)
+            p = source_xy @ np.array([[c, s], [-s, c]]) + (x, y)
+            dist, idx = target.tree.query(p, distance_upper_bound=d)
+            ok = np.isfinite(dist)
+            if ok.sum() < 3:
+                return Match(planar_pose(x, y, yaw), 0.0, float("inf"))
+            p, q, n = p[ok], target.xy[idx[ok]], target.normals[idx[ok]]
+            centre = p.sum(axis=0) / len(p)
+            pc = p - centre  # linearise the rotation about the centroid (well conditioned far from 0)
+            r = ((p - q) * n).sum(axis=1)
+            J = np.empty((len(p), 3))  # d r / d (tx, ty, theta)
+            J[:, :2] = n
+            J[:, 2] = n[:, 1] * pc[:, 0] - n[:, 0] * pc[:, 1]
+            H, g = J.T @ J + _EPS3 * len(J), J.T @ r
+            if prior_weight > 0:  # on translation only: scans rarely leave the yaw unconstrained
+                Jp = np.array([[1.0, 0.0, centre[1] - y], [0.0, 1.0, x - centre[0]]])
+                rp = np.array([x - x0, y - y0])
+                w = prior_weight * len(J)
+                H, g = H + w * Jp.T @ Jp, g + w * Jp.T @ rp
+            dx, dy, dth = _solve3(H, -g)
+            # update p' = R(dth) (p - centre) + centre + (dx, dy)
+            cd, sd = np.cos(dth), np.sin(dth)
+            ox, oy = x - centre[0], y - centre[1]
+            x, y = cd * ox - sd * oy + centre[0] + dx, sd * ox + cd * oy + centre[1] + dy
+            yaw += dth
+            if np.hypot(dx, dy) + abs(dth) * np.abs(pc).max() < stop:
+                break
+        fitness, rmse = ok.mean(), float(np.sqrt(np.mean(dist[ok] ** 2)))
+    return Match(planar_pose(x, y, se3.wrap_angle(yaw)), float(fitness), rmse)

@@ -1,0 +1,60 @@
+"""Pairwise registration ``small-gicp``: the ``icp`` registration's pairs, initial guesses and gates with
+small_gicp's registration (Koide 2024); optional dependency (``pip install dm2[gicp]``)."""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from dm2_backend.errors import InputError
+from dm2_backend.plugins.common import Cloud, Match, lengths, project_planar
+from dm2_backend.plugins.gates import coverage
+from dm2_backend.plugins.registration_icp import IcpRegistration
+from dm2_backend.prepare.types import Frames
+
+TYPES = ("GICP", "VGICP", "ICP", "PLANE_ICP")
+
+
+@dataclass
+class SmallGicpRegistration(IcpRegistration):
+    """Options as ``icp``; ``method`` is a small_gicp registration type (GICP, VGICP, ICP, PLANE_ICP)."""
+
+    name: ClassVar[str] = "small-gicp"
+
+    method: str = "GICP"
+
+    def _check(self, frames: Frames) -> None:
+        try:
+            import small_gicp
+        except ImportError:
+            raise InputError(None, "registration 'small-gicp' needs small_gicp: install dm2[gicp]") from None
+        if self.method not in TYPES:
+            raise InputError(None, f"small-gicp: unknown method {self.method!r}; choices: {', '.join(TYPES)}")
+        self._sg = small_gicp
+
+    def _prepare(self, frames: Frames, used: list[int], fine: float, pool: ThreadPoolExecutor) -> None:
+        scale = lengths(frames)
+        self._resolution = 0.5 * max(scale["voxel"], scale["spacing"])
+        built = pool.map(lambda f: Cloud(frames.points[f], frames.planar, fine).ensure("point-to-point"), used)
+        self._clouds = dict(zip(used, built, strict=True))  # KD-trees for the gates
+
+    def _register_pair(self, frames: Frames, a: int, b: int, init: np.ndarray, fine: float) -> Match:
+        T = init
+        for d in (4.0 * fine, fine):
+            result = self._sg.align(
+                np.asarray(frames.points[a], dtype=np.float64),
+                np.asarray(frames.points[b], dtype=np.float64),
+                init_T_target_source=T,
+                registration_type=self.method,
+                downsampling_resolution=self._resolution,
+                voxel_resolution=d,
+                max_correspondence_distance=d,
+                num_threads=1,
+            )
+            T = np.asarray(result.T_target_source, dtype=np.float64)
+            if frames.planar:
+                T = project_planar(T)
+        return Match(T, *coverage(self._clouds[b], self._clouds[a], T, fine))

@@ -1,0 +1,49 @@
+"""Place recognition ``radius``: the frames nearest to each warm-start position within a radius, filled
+up with temporal neighbours (as the official DeepMapping2 custom-data recipe does)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from dm2_backend.errors import InputError
+from dm2_backend.plugins.common import assemble, lengths, radius_neighbours
+from dm2_backend.prepare.types import Frames, Topology
+
+
+def default_radius(frames: Frames) -> float:
+    """Half the median range: frames this close share most of their view."""
+    return 0.5 * lengths(frames)["range_median"]
+
+
+@dataclass
+class RadiusTopology:
+    """Options; ``radius`` None means half the median range of the scans."""
+
+    name: ClassVar[str] = "radius"
+
+    radius: float | None = None
+    k: int = 8
+    #: fill groups up to k with temporal neighbours i-1, i+1, i-2, ...
+    temporal_fill: bool = True
+
+    def run(self, frames: Frames, poses: np.ndarray) -> Topology:
+        check_k(self.k)
+        check_poses(frames, poses)
+        radius = self.radius or default_radius(frames)
+        near = radius_neighbours(poses[:, :3, 3], radius, self.k)
+        topo = assemble([[(j, "radius") for j in row] for row in near], self.k, self.temporal_fill)
+        topo.log.append({"plugin": self.name, "radius": radius, "k": self.k})
+        return topo
+
+
+def check_k(k: int) -> None:
+    if k < 1:
+        raise InputError(None, f"place recognition: k must be at least 1, got {k}")
+
+
+def check_poses(frames: Frames, poses: np.ndarray) -> None:
+    if poses.shape != (len(frames), 4, 4):
+        raise InputError(None, f"place recognition: {poses.shape[0]} poses for {len(frames)} frames")
