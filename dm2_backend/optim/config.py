@@ -33,6 +33,9 @@ class OptimConfig:
     use_bce: bool = True
     use_chamfer: bool = True
     use_consistency: bool = True
+    #: robust kernel on each (anchor, neighbour) consistency distance d: "cauchy" uses c*log(1 + d/c) with c = unit,
+    #: so a wrong pairwise registration pulls with a bounded force; "none" is the paper's plain mean
+    consistency_kernel: str = "cauchy"
     lr_pose: float = 1.0
     lr_field: float = 1e-2
     lr_network: float = 1e-3

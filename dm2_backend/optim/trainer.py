@@ -147,9 +147,13 @@ class Optimiser:
             via = T[nb] @ se3_torch.inverse(rel)  # (B,k,4,4)
             a1 = se3_torch.transform(Tf[a], local[a])  # (B,M,3)
             a2 = se3_torch.transform(via.float(), local[a].unsqueeze(1))  # (B,k,M,3)
-            d = (a2 - a1.unsqueeze(1)).norm(dim=-1).mean(-1)  # (B,k)
+            d = (a2 - a1.unsqueeze(1)).norm(dim=-1).mean(-1) / unit  # (B,k), in units
+            if cfg.consistency_kernel == "cauchy":
+                d = torch.log1p(d)
+            elif cfg.consistency_kernel != "none":
+                raise ValueError(f"unknown consistency_kernel {cfg.consistency_kernel!r} (cauchy or none)")
             valid = self.valid[torch.from_numpy(anchors).to(self.device)]
-            out["consistency"] = (d * valid).sum() / valid.sum().clamp_min(1) / unit
+            out["consistency"] = (d * valid).sum() / valid.sum().clamp_min(1)
             total = total + cfg.beta * out["consistency"]
         out["loss"] = total
         return out
