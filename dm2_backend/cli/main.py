@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import sys
 import traceback
 
@@ -10,9 +11,24 @@ import click
 from dm2_backend import __version__
 from dm2_backend.errors import InputError
 
+#: sub-command name -> module in dm2_backend.cli, imported only when the command is used (start-up stays fast)
+COMMANDS = {
+    "info": "info", "convert": "convert", "refine": "refine", "baseline": "baseline", "demo": "demo",
+    "eval": "eval", "compare": "compare", "plugins": "plugins", "simulate": "simulate",
+}
+
 
 class Dm2Group(click.Group):
-    """Turns :class:`InputError` (and OS errors on user files) into one line and exit code 2."""
+    """Loads sub-commands lazily; turns :class:`InputError` (and OS errors on user files) into one line and
+    exit code 2."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return list(COMMANDS)
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name not in COMMANDS:
+            return None
+        return importlib.import_module(f"dm2_backend.cli.{COMMANDS[name]}").command
 
     def invoke(self, ctx: click.Context):
         try:
@@ -36,16 +52,6 @@ def cli(ctx: click.Context, debug: bool) -> None:
     """dm2: refine any SLAM trajectory with DeepMapping2."""
     ctx.ensure_object(dict)
     ctx.obj["debug"] = debug
-
-
-def _register() -> None:
-    from dm2_backend.cli import baseline, compare, convert, demo, eval, info, plugins, refine, simulate
-
-    for module in (info, convert, refine, baseline, demo, eval, compare, plugins, simulate):
-        cli.add_command(module.command)
-
-
-_register()
 
 
 def main() -> None:
