@@ -33,7 +33,7 @@ def command(out: Path | None, frames: int, epochs: int | None, seed: int, quiet:
                          ReadOptions(times=sample / "times.txt"), sample / "poses.txt", "kitti")
     overrides: dict = {"seed": seed}
     if epochs is not None:
-        overrides["optimiser"] = {"epochs": epochs}
+        overrides["optimiser"] = {"epochs": epochs, "max_steps": 0}  # explicit epochs: no step cap
     cfg = config.load(None, overrides)
     click.echo(f"refining: dm2 refine --scans {sample / 'velodyne'} --poses {sample / 'warm_start.txt'} "
                f"--gt {sample / 'poses.txt'} --out {root / 'run'}")

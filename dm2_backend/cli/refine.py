@@ -88,7 +88,7 @@ def command(epochs, device, resume, **kw) -> None:
 
     overrides: dict = {}
     if epochs is not None:
-        overrides["optimiser"] = {"epochs": epochs}
+        overrides["optimiser"] = {"epochs": epochs, "max_steps": 0}  # explicit epochs: no step cap
     if device is not None:
         overrides["device"] = device
     inputs, cfg, cache = prepare_run(kw, overrides)

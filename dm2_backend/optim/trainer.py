@@ -99,7 +99,11 @@ class Optimiser:
             groups.append({"params": self.model.network_parameters(), "lr": cfg.lr_network})
         self.optim = torch.optim.Adam(groups)
         self.steps_per_epoch = math.ceil(self.n / cfg.batch_groups)
-        total = max(1, cfg.epochs * self.steps_per_epoch)
+        self.epochs = cfg.epochs
+        if cfg.max_steps > 0:  # long sequences: fewer passes, the same step budget
+            self.epochs = max(1, min(cfg.epochs, cfg.max_steps // self.steps_per_epoch))
+        self.derived["epochs"] = self.epochs
+        total = max(1, self.epochs * self.steps_per_epoch)
         self.sched = torch.optim.lr_scheduler.LambdaLR(
             self.optim,
             lambda s: cfg.lr_final + (1 - cfg.lr_final) * 0.5 * (1 + math.cos(math.pi * min(s, total) / total)),
@@ -218,7 +222,7 @@ class Optimiser:
             self.sched.load_state_dict(state["sched"])
             best, history, start = state["best"], state["history"], state["epoch"] + 1
         stopped = None
-        bar = tqdm(range(start, self.cfg.epochs), desc="refine", disable=not self.progress, unit="epoch")
+        bar = tqdm(range(start, self.epochs), desc="refine", disable=not self.progress, unit="epoch")
         for epoch in bar:
             t0 = time.perf_counter()
             rng = np.random.default_rng([self.seed, epoch])
