@@ -56,6 +56,14 @@ def project_planar(T: np.ndarray) -> np.ndarray:
     return planar_pose(x, y, yaw)
 
 
+def orthonormal(T: np.ndarray) -> np.ndarray:
+    """``T`` with its rotation projected onto SO(3): chaining thousands of ICP results (and velocities
+    computed from them) otherwise lets rounding grow until the poses are no longer rigid."""
+    out = np.array(T, dtype=np.float64)
+    out[:3, :3] = se3.project_to_so3(out[:3, :3])
+    return out
+
+
 def rotation_angle(R: np.ndarray) -> np.ndarray:
     """Rotation angle (radians) from the trace; cheap for single matrices in loops."""
     return np.arccos(np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0))

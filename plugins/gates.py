@@ -40,7 +40,8 @@ def free_space(source: Cloud, target: Cloud, T: np.ndarray, margin: float, bins:
     ``margin`` in front of the target's returns along the same and the neighbouring bearings (and
     elevations): space the target sensor saw through. Near 0 for a true alignment; a false loop shows
     walls where the other scan saw free space. The neighbours' minimum keeps grazing walls, whose range
-    changes fast with the bearing, from counting. Directions without a target return are not counted."""
+    changes fast with the bearing, from counting. Directions without a target return are not counted.
+    Both clouds are scans in their sensor frames (the sensor at the origin), as :class:`Frames` holds them."""
     p = se3.transform_points(T, source.points)
     tgt = target.points
     r_p, r_t = np.linalg.norm(p, axis=1), np.linalg.norm(tgt, axis=1)

@@ -18,7 +18,15 @@ from tqdm import tqdm
 
 from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
-from dm2_backend.plugins.common import Cloud, fine_distance, lengths, project_planar, resolve_method, rotation_angle
+from dm2_backend.plugins.common import (
+    Cloud,
+    fine_distance,
+    lengths,
+    orthonormal,
+    project_planar,
+    resolve_method,
+    rotation_angle,
+)
 from dm2_backend.plugins.icp import register
 from dm2_backend.prepare.types import Frames
 from dm2_backend.trajectory import Trajectory
@@ -82,8 +90,8 @@ class IcpWarmStart:
                 still = register(source, target, poses[i - 1], distances, method, self.iterations, self.prior_weight)
                 if still.fitness > match.fitness + 0.1:
                     match = still
-            if match.fitness >= self.min_fitness:
-                poses[i] = project_planar(match.T) if frames.planar else match.T
+            if match.fitness >= self.min_fitness and np.isfinite(match.T).all():
+                poses[i] = project_planar(match.T) if frames.planar else orthonormal(match.T)
             else:
                 poses[i] = predicted
                 self.rejected.append(i)

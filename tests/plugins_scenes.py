@@ -116,13 +116,15 @@ ROOM_3D = [
 ]
 
 
-def room_3d(count: int = 30, seed: int = 0) -> tuple[Frames, np.ndarray]:
-    """16-beam LiDAR frames along a loop in the 3D box room (floor and ceiling included)."""
+def room_3d(count: int = 30, seed: int = 0, laps: int = 1) -> tuple[Frames, np.ndarray]:
+    """16-beam LiDAR frames along ``laps`` loops (``count`` frames each, later laps 0.3 m further out) in
+    the 3D box room (floor and ceiling included)."""
     mesh = box_mesh(ROOM_3D, 0.0, 3.0)
     mesh += box_mesh([(-0.2, -0.2, 16.2, 10.2)], -0.1, 0.0)  # floor
     mesh += box_mesh([(-0.2, -0.2, 16.2, 10.2)], 3.0, 3.1)  # ceiling
-    a = np.linspace(0, 2 * np.pi, count, endpoint=False)
-    xy = np.column_stack([8 + 4.5 * np.cos(a), 5 + 2.5 * np.sin(a)])
+    a = np.linspace(0, 2 * np.pi * laps, count * laps, endpoint=False)
+    grow = 0.3 * (a // (2 * np.pi))
+    xy = np.column_stack([8 + (4.5 + grow) * np.cos(a), 5 + (2.5 + grow) * np.sin(a)])
     truth = se3.from_xy_yaw(np.column_stack([xy, a + np.pi / 2]))
     truth[:, 2, 3] = 1.2
     model = LidarModel(beams=16, fov_up_deg=15, fov_down_deg=-15, columns=360, max_range=20, range_noise=0.01)

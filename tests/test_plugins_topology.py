@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from plugins_scenes import floor_2d
+from plugins_scenes import floor_2d, room_3d
 
 from dm2_backend.errors import InputError
 from dm2_backend.formats.registry import ReadOptions, write_trajectory
@@ -131,6 +131,23 @@ def test_descriptor_finds_revisit_and_rejects_corridor(floor, drifted):
     # radius-only topology on the drifted estimate misses the closure
     plain = RadiusTopology().run(frames, drifted)
     assert not any(e["j"] in plain.groups[e["i"]] for e in closing)
+
+
+def test_descriptor_3d_symmetric_room():
+    # two laps of a point-symmetric path in a box room: frames half a lap apart see a near copy of the room
+    # rotated by 180 degrees; only the few boxes and pillars tell them apart
+    frames, truth = room_3d(count=30, laps=2)
+    drifted = drifting_odometry(truth, 4, 0.01, 0.05, 0.03)
+    topo = DescriptorTopology(progress=False).run(frames, drifted)
+    check_groups(topo, len(frames), 8)
+    dist = {(e["i"], e["j"]): np.linalg.norm(truth[e["i"], :3, 3] - truth[e["j"], :3, 3]) for e in topo.log[1:]}
+    accepted = [e for e in topo.log[1:] if e["accepted"]]
+    assert len(accepted) >= 10 and all(dist[(e["i"], e["j"])] < 0.5 for e in accepted)
+    look_alikes = [e for e in topo.log[1:] if dist[(e["i"], e["j"])] > 3.0]
+    assert len(look_alikes) >= 10 and all("free space" in e["reason"] for e in look_alikes)
+    for e in accepted:
+        err = se3.relative(se3.relative(truth[e["i"]], truth[e["j"]]), np.array(e["relative"]))
+        assert np.linalg.norm(err[:3, 3]) < 0.05 and np.degrees(se3.rotation_angle(err[:3, :3])) < 1.0
 
 
 def test_poses_and_gps_topology(tmp_path, floor, drifted):

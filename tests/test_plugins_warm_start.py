@@ -70,6 +70,15 @@ def test_icp_3d_room():
     assert et.max() < 0.05 and er.max() < 0.5
 
 
+def test_icp_3d_constant_velocity_stays_rigid():
+    # chained ICP results and velocities used to lose rigidity after some 40 frames and then diverge
+    frames, truth = room_3d(count=50)
+    poses = IcpWarmStart(prior="velocity", progress=False).run(frames, None)
+    assert se3.rotation_error(poses[:, :3, :3]).max() < 1e-9
+    et, er = step_errors(poses, truth)
+    assert et.max() < 0.05 and er.max() < 0.5
+
+
 def test_icp_options_checked(floor):
     frames, truth = floor
     with pytest.raises(InputError, match="prior"):
