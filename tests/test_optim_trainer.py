@@ -77,7 +77,8 @@ def test_refine_lowers_ate_with_icp_pairwise(case, full_run):
     np.testing.assert_allclose(result.poses[0], case.warm[0], atol=1e-9)  # the gauge: frame 0 stays put
     assert (folder / CHECKPOINT).is_file()
     assert set(result.derived) == {"unit", "finest_cell", "free_margin", "chamfer_truncate",
-                                   "step_translation", "step_rotation"}
+                                   "step_translation", "step_rotation", "epochs"}
+    assert result.derived["epochs"] == EPOCHS
 
 
 def test_refine_lowers_ate_with_ground_truth_pairwise(case):
