@@ -12,6 +12,7 @@ from click.testing import CliRunner
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from PIL import Image
+from shared_helpers import DATA, need
 
 from dm2_backend.cli.main import cli
 from dm2_backend.errors import InputError
@@ -25,15 +26,8 @@ from dm2_backend.formats import (
 from dm2_backend.formats.depth import back_project, read_depth_image, read_depth_list
 from dm2_backend.geometry import se3
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 KITCHEN = DATA / "depth3d" / "redkitchen_000-499"
 K585 = (585.0, 585.0, 320.0, 240.0)
-
-
-def need(path: Path) -> Path:
-    if not path.exists():
-        pytest.skip(f"{path} absent")
-    return path
 
 
 def save_png(path: Path, depth: np.ndarray) -> None:

@@ -6,12 +6,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
+from shared_helpers import DATA, assert_one_line_error, run
 
-from dm2_backend.cli.main import cli
 from dm2_backend.errors import InputError
 from dm2_backend.formats import detect_trajectory_format, read_trajectory
 from dm2_backend.formats.dm2_priors import (
@@ -25,18 +24,6 @@ from dm2_backend.formats.dm2_priors import (
     write_priors,
 )
 from dm2_backend.geometry import se3
-
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-
-
-def run(*args: str):
-    return CliRunner().invoke(cli, list(args), obj={})
-
-
-def assert_one_line_error(result, name: str) -> None:
-    assert result.exit_code == 2, result.output
-    err = result.stderr.strip()
-    assert "\n" not in err and name in err, err
 
 
 def official_euler_to_matrix(e: np.ndarray) -> np.ndarray:

@@ -6,36 +6,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from shared_helpers import DATA, assert_one_line_error, need, run
 
-from dm2_backend.cli.main import cli
 from dm2_backend.errors import InputError
 from dm2_backend.formats import detect_trajectory_format, read_trajectory, write_trajectory
 from dm2_backend.formats.g2o import PoseGraph, read_g2o, write_g2o
 from dm2_backend.geometry import se3
 from dm2_backend.trajectory import Trajectory
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 GRAPHS = DATA / "posegraphs"
 NAMES = ["MIT", "intel", "kitti_00", "parking-garage", "sphere2500", "tinyGrid3D"]
-
-
-def need(path: Path) -> Path:
-    if not path.exists():
-        pytest.skip(f"{path} absent")
-    return path
-
-
-def run(*args: str):
-    return CliRunner().invoke(cli, list(args), obj={})
-
-
-def assert_one_line_error(result, name: str) -> None:
-    assert result.exit_code == 2, result.output
-    err = result.stderr.strip()
-    assert "\n" not in err and name in err, err
 
 
 def _pose2_to_4x4(M2: np.ndarray) -> np.ndarray:

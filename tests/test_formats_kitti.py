@@ -3,16 +3,14 @@
 from __future__ import annotations
 
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
+from shared_helpers import DATA, assert_one_line_error, need, run
 
-from dm2_backend.cli.main import cli
 from dm2_backend.errors import InputError
 from dm2_backend.formats import ReadOptions, detect_trajectory_format, read_trajectory
 from dm2_backend.formats.kitti import (
@@ -25,25 +23,8 @@ from dm2_backend.formats.kitti import (
 )
 from dm2_backend.geometry import se3
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 TRAJ = DATA / "trajectories"
 KITTI00 = DATA / "lidar3d" / "kitti00"
-
-
-def need(path: Path) -> Path:
-    if not path.exists():
-        pytest.skip(f"{path} absent")
-    return path
-
-
-def run(*args: str):
-    return CliRunner().invoke(cli, list(args), obj={})
-
-
-def assert_one_line_error(result, name: str) -> None:
-    assert result.exit_code == 2, result.output
-    err = result.stderr.strip()
-    assert "\n" not in err and name in err, err
 
 
 @pytest.mark.parametrize("name", ["KITTI_00_gt.txt", "KITTI_00_ORB.txt"])

@@ -12,6 +12,7 @@ import pytest
 from click.testing import CliRunner
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from shared_helpers import DATA, need
 
 from dm2_backend.cli.main import cli
 from dm2_backend.errors import InputError
@@ -26,14 +27,7 @@ from dm2_backend.formats.scan_folder import (
     write_pcd,
 )
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 LIDAR = DATA / "lidar3d"
-
-
-def need(path: Path) -> Path:
-    if not path.exists():
-        pytest.skip(f"{path} absent")
-    return path
 
 
 def o3d_points(path: Path) -> np.ndarray:

@@ -2,15 +2,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
-from click.testing import CliRunner
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from shared_helpers import DATA, assert_one_line_error, need, run
 
-from dm2_backend.cli.main import cli
 from dm2_backend.errors import InputError
 from dm2_backend.formats import ReadOptions, detect_trajectory_format, read_trajectory
 from dm2_backend.formats.euroc import read_euroc
@@ -19,26 +16,9 @@ from dm2_backend.formats.tum import read_tum, write_tum
 from dm2_backend.geometry import se3
 from dm2_backend.trajectory import Trajectory
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 TRAJ = DATA / "trajectories"
 TUM_FILES = ["fr2_desk_ORB.txt", "freiburg1_xyz-ORB_kf_mono.txt", "freiburg1_xyz-groundtruth.txt",
              "freiburg1_xyz-rgbdslam.txt"]
-
-
-def need(path: Path) -> Path:
-    if not path.exists():
-        pytest.skip(f"{path} absent")
-    return path
-
-
-def run(*args: str):
-    return CliRunner().invoke(cli, list(args), obj={})
-
-
-def assert_one_line_error(result, name: str) -> None:
-    assert result.exit_code == 2, result.output
-    err = result.stderr.strip()
-    assert "\n" not in err and name in err, err
 
 
 @pytest.mark.parametrize("name", TUM_FILES)
