@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dm2_backend import __version__
 from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError
 from dm2_backend.plugins.registry import load as load_plugin
@@ -39,7 +40,8 @@ def default_cache_dir() -> Path:
 
 
 def _key(*parts) -> str:
-    blob = json.dumps(parts, sort_keys=True, default=str).encode()
+    """Cache key of a step; includes the dm2 version so an upgrade never reuses results of older code."""
+    blob = json.dumps([__version__, *parts], sort_keys=True, default=str).encode()
     return hashlib.sha1(blob).hexdigest()[:16]
 
 
