@@ -175,8 +175,6 @@ def _read(path: Path, options: ReadOptions) -> Trajectory:
 
 
 def _write(traj: Trajectory, path: Path, options: ReadOptions) -> None:
-    if len(traj) == 0:
-        raise InputError(path, "no poses to write")
     write_init_pose(traj.poses, path)
 
 

@@ -68,10 +68,6 @@ def read_euroc(path: str | Path, options: ReadOptions | None = None) -> Trajecto
     return _text.validate(Trajectory(poses=poses, timestamps=stamps, meta=meta), path, lines)
 
 
-def _read(path: Path, options: ReadOptions) -> Trajectory:
-    return read_euroc(path, options)
-
-
 def sniff(path: Path) -> bool:
     """First data line (after an optional header) has 17 or 8 numeric comma-separated fields."""
     with open(path, encoding="utf-8") as fh:
@@ -86,7 +82,7 @@ FORMAT = trajectory_format(
     TrajectoryFormat(
         name="euroc",
         description="EuRoC ground-truth CSV: ns timestamps, position, w-first quaternion (read only)",
-        read=_read,
+        read=read_euroc,
         write=None,
         suffixes=(".csv",),
         sniff=sniff,

@@ -269,8 +269,6 @@ def _read(path: Path, options: ReadOptions) -> Trajectory:
 
 
 def _write(traj: Trajectory, path: Path, options: ReadOptions) -> None:
-    if len(traj) == 0:
-        raise InputError(path, "no poses to write")
     write_g2o(PoseGraph.from_trajectory(traj), path)
 
 

@@ -111,16 +111,6 @@ def write_kitti(traj: Trajectory, path: str | Path, options: ReadOptions | None 
             fh.writelines(_text.fmt(t) + "\n" for t in traj.timestamps)
 
 
-def _read(path: Path, options: ReadOptions) -> Trajectory:
-    return read_kitti(path, options)
-
-
-def _write(traj: Trajectory, path: Path, options: ReadOptions) -> None:
-    if len(traj) == 0:
-        raise InputError(path, "no poses to write")
-    write_kitti(traj, path, options)
-
-
 def sniff(path: Path) -> bool:
     """12 numeric columns holding rotations."""
     rows = _text.sniff_rows(path, 12)
@@ -131,8 +121,8 @@ FORMAT = trajectory_format(
     TrajectoryFormat(
         name="kitti",
         description="KITTI odometry poses: 12 numbers a line (row-major 3x4), camera frame",
-        read=_read,
-        write=_write,
+        read=read_kitti,
+        write=write_kitti,
         suffixes=(".txt", ".kitti"),
         sniff=sniff,
     )

@@ -131,6 +131,8 @@ def write_trajectory(
     if spec.write is None:
         writable = ", ".join(sorted(n for n, f in TRAJECTORY_FORMATS.items() if f.write))
         raise InputError(path, f"format {fmt!r} cannot be written; writable: {writable}")
+    if len(traj) == 0:
+        raise InputError(path, "no poses to write")
     spec.write(traj, path, options or ReadOptions())
 
 

@@ -10,7 +10,6 @@ from pathlib import Path
 import numpy as np
 
 from dm2_backend.atomic import atomic_write
-from dm2_backend.errors import InputError
 from dm2_backend.formats import _text
 from dm2_backend.formats.registry import ReadOptions, TrajectoryFormat, trajectory_format
 from dm2_backend.geometry import se3
@@ -45,16 +44,6 @@ def write_tum(traj: Trajectory, path: str | Path, options: ReadOptions | None = 
             fh.write(f"{_text.fmt(t)} {_text.fmt_row(p)} {_text.fmt_row(r)}\n")
 
 
-def _read(path: Path, options: ReadOptions) -> Trajectory:
-    return read_tum(path, options)
-
-
-def _write(traj: Trajectory, path: Path, options: ReadOptions) -> None:
-    if len(traj) == 0:
-        raise InputError(path, "no poses to write")
-    write_tum(traj, path, options)
-
-
 def sniff(path: Path) -> bool:
     """8 numeric columns whose last four are unit quaternions."""
     rows = _text.sniff_rows(path, 8)
@@ -67,8 +56,8 @@ FORMAT = trajectory_format(
     TrajectoryFormat(
         name="tum",
         description="TUM RGB-D text: timestamp tx ty tz qx qy qz qw",
-        read=_read,
-        write=_write,
+        read=read_tum,
+        write=write_tum,
         suffixes=(".txt", ".tum"),
         sniff=sniff,
     )
