@@ -33,6 +33,9 @@ class Topology:
     edges: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))
     edge_kind: list[str] = field(default_factory=list)
     log: list[dict] = field(default_factory=list)
+    #: loop-closed poses (N,4,4) when the place recognition corrected the warm start; registration starts
+    #: from their relative poses, and the optimiser and baselines from them
+    poses: np.ndarray | None = None
 
     @property
     def k(self) -> int:

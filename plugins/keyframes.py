@@ -1,0 +1,65 @@
+"""Keyframes along a trajectory and the local submaps around them, as bird's-eye 2D point sets.
+
+A keyframe is placed every ``spacing`` metres of travel (or ``angle`` of turn); its submap gathers the
+scans within ``half_length`` metres of path on either side, moved into the keyframe's frame with the
+(locally accurate) input poses, so matching uses a few metres of structure instead of one scan.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dm2_backend.geometry import se3
+from dm2_backend.prepare.types import Frames
+
+
+def path_length(poses: np.ndarray) -> np.ndarray:
+    """Distance travelled (m) up to each pose."""
+    steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    return np.concatenate([[0.0], np.cumsum(steps)])
+
+
+def select(poses: np.ndarray, spacing: float, angle: float) -> np.ndarray:
+    """Indices of keyframes: the first pose, then each pose ``spacing`` m or ``angle`` rad from the last."""
+    yaw = se3.to_xy_yaw(poses)[:, 2]
+    path = path_length(poses)
+    keep = [0]
+    for i in range(1, len(poses)):
+        turn = abs(np.angle(np.exp(1j * (yaw[i] - yaw[keep[-1]]))))
+        if path[i] - path[keep[-1]] >= spacing or turn >= angle:
+            keep.append(i)
+    return np.asarray(keep, dtype=np.int64)
+
+
+def bird_eye(points: np.ndarray, planar: bool) -> np.ndarray:
+    """(M, 2) x, y of a scan; 3D scans drop their lowest fifth in height (the ground)."""
+    if planar or len(points) == 0:
+        return points[:, :2].astype(np.float64)
+    z = points[:, 2]
+    return points[z > np.percentile(z, 20), :2].astype(np.float64)
+
+
+def thin(xy: np.ndarray, cell: float, limit: int, rng: np.random.Generator) -> np.ndarray:
+    """One point per ``cell`` grid cell, then at most ``limit`` points (random subset)."""
+    if len(xy) == 0:
+        return xy
+    _, first = np.unique(np.floor(xy / cell).astype(np.int64), axis=0, return_index=True)
+    xy = xy[np.sort(first)]
+    if len(xy) > limit:
+        xy = xy[np.sort(rng.choice(len(xy), limit, replace=False))]
+    return xy
+
+
+def submap(frames: Frames, poses: np.ndarray, path: np.ndarray, key: int, half_length: float,
+           cell: float) -> np.ndarray:
+    """Bird's-eye points of the scans within ``half_length`` of path around frame ``key``, in its frame."""
+    lo, hi = np.searchsorted(path, [path[key] - half_length, path[key] + half_length], side="left")
+    inv = se3.inverse(poses[key])
+    parts = []
+    for f in range(lo, min(hi + 1, len(poses))):
+        rel = inv @ poses[f]
+        xy = bird_eye(frames.points[f], frames.planar)
+        parts.append(xy @ rel[:2, :2].T + rel[:2, 3])
+    xy = np.concatenate(parts) if parts else np.zeros((0, 2))
+    _, first = np.unique(np.floor(xy / cell).astype(np.int64), axis=0, return_index=True)
+    return xy[np.sort(first)]

@@ -1,0 +1,290 @@
+"""Place recognition ``loops``: loop closure that survives large drift, for ground robots and vehicles
+(planar laser scans, or 3D scans seen from above).
+
+1. Keyframes every ``keyframe_distance`` of travel, each with a submap of the scans around it.
+2. Keyframes are visited in order on an iSAM2 pose graph (odometry = the warm start). Candidates are the
+   earlier keyframes within reach of the current estimate; the search window (translation and yaw)
+   grows with the distance travelled since the last accepted closure, so a loop that drifted many
+   metres is still searched.
+3. Verification is global inside that window: correlative scan matching with branch and bound
+   (``correlative.py``), rejected when a clearly different alignment scores nearly as well (corridors);
+   then a fine correlative pass and ICP on the submaps, gated on overlap, translation constraint and
+   (planar) free space of the two keyframe scans.
+4. A verified closure is trusted only once a second one agrees with it around a cycle through the
+   odometry; trusted closures correct the graph at once. A final robust batch solve drops closures the
+   rest of the graph disagrees with.
+5. The loop-closed keyframe poses correct every frame (interpolated between keyframes); the topology is
+   built on the corrected poses: loop partners (far along the path, near in space) first, then radius
+   and temporal neighbours. ``Topology.poses`` carries the corrected poses.
+
+Every verification, accepted or not, is logged with its scores and reason.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+from scipy.spatial import cKDTree
+from tqdm import tqdm
+
+from dm2_backend.geometry import se3
+from dm2_backend.plugins import correlative as cm
+from dm2_backend.plugins import keyframes as kf
+from dm2_backend.plugins.common import Cloud, Match, assemble, fine_distance, lengths, planar_pose, radius_neighbours
+from dm2_backend.plugins.gates import constraint, coverage, free_space
+from dm2_backend.plugins.icp import register
+from dm2_backend.plugins.loop_graph import Closure, KeyframeGraph, between, cycle_error
+from dm2_backend.plugins.topology_radius import check_k, check_poses
+from dm2_backend.prepare.types import Frames, Topology
+
+
+@dataclass
+class LoopsTopology:
+    """Options; None means derived from the data (``Frames.scale``)."""
+
+    name: ClassVar[str] = "loops"
+
+    k: int = 8
+    #: radius neighbours on the corrected poses (m); default half the median range
+    radius: float | None = None
+    #: at most this many loop partners per frame (default k // 2), placed first in the group
+    max_loops: int | None = None
+    #: keyframe spacing (m; default half the median range) and turn (degrees)
+    keyframe_distance: float | None = None
+    keyframe_angle: float = 30.0
+    #: path length on either side of a keyframe that its submap covers (m; default the 90th-percentile range)
+    submap_half_length: float | None = None
+    #: matching grid cell (m; default 2 point spacings)
+    resolution: float | None = None
+    #: search window: translation (m) and yaw (degrees) at a fresh closure, growing by ``drift`` m and
+    #: ``yaw_drift`` degrees per metre travelled since the last accepted closure, capped
+    window: float | None = None
+    drift: float = 0.1
+    yaw_window: float = 10.0
+    yaw_drift: float = 0.5
+    max_window: float | None = None
+    #: candidates verified per keyframe (the nearest keyframe of each earlier visit)
+    candidates: int = 3
+    #: a candidate must lie this far back along the path (m; default 4 submap half lengths)
+    min_path_gap: float | None = None
+    #: acceptance: correlation score, ambiguity (runner-up / best), overlap, translation constraint,
+    #: free space (planar keyframe scans)
+    min_score: float = 0.5
+    max_ambiguity: float = 0.9
+    min_fitness: float = 0.5
+    min_constraint: float = 0.1
+    max_free_space: float = 0.1
+    #: cycle check between two closures: translation (m; default 4 cells) + this fraction of their span
+    cycle_tolerance: float | None = None
+    cycle_drift: float = 0.05
+    #: closures within this many keyframes of each other are checked against each other
+    consistency_window: int = 20
+    #: final batch solve: closures with a whitened residual above this are dropped
+    gate: float = 10.0
+    temporal_fill: bool = True
+    seed: int = 0
+    progress: bool = True
+
+    def run(self, frames: Frames, poses: np.ndarray) -> Topology:
+        check_k(self.k)
+        check_poses(frames, poses)
+        self._setup(frames)
+        log: list[dict] = [{"plugin": self.name, **self._lengths}]
+        corrected = self._close_loops(frames, poses, log)
+        return self._topology(frames, corrected, log)
+
+    # ------------------------------------------------------------------ set-up
+    def _setup(self, frames: Frames) -> None:
+        s = lengths(frames)
+        res = self.resolution or 2.0 * max(s["spacing"], s["voxel"], 1e-3)
+        half = self.submap_half_length or s["range_p90"]
+        self._lengths = {
+            "radius": self.radius or 0.5 * s["range_median"],
+            "keyframe_distance": self.keyframe_distance or 0.5 * s["range_median"],
+            "submap_half_length": half,
+            "resolution": res,
+            "window": self.window or 0.5 * s["range_median"],
+            "max_window": self.max_window or 4.0 * s["range_p90"],
+            "min_path_gap": self.min_path_gap or 4.0 * half,
+            "cycle_tolerance": self.cycle_tolerance or 4.0 * res,
+            "fine": fine_distance(s),
+            "reach": s["range_p90"],
+        }
+        self._rng = np.random.default_rng(self.seed)
+        self._grids: dict[tuple[int, float], cm.LikelihoodGrid] = {}
+
+    # ------------------------------------------------------------------ loop closing
+    def _close_loops(self, frames: Frames, poses: np.ndarray, log: list) -> np.ndarray:
+        L = self._lengths
+        keys = kf.select(poses, L["keyframe_distance"], np.radians(self.keyframe_angle))
+        path = kf.path_length(poses)
+        self._maps = [kf.submap(frames, poses, path, int(f), L["submap_half_length"], L["resolution"] / 2)
+                      for f in keys]
+        self._keys, self._frames = keys, frames
+        odo = se3.to_xy_yaw(poses[keys])
+        kpath = path[keys]
+        steps = np.maximum(np.diff(kpath), 1e-3)
+        odo_sigma = np.stack([0.01 * steps + 0.25 * L["resolution"]] * 2
+                             + [0.002 * steps + 0.25 * L["resolution"] / L["reach"]], axis=1)
+        graph = KeyframeGraph(odo, odo_sigma, np.array([L["resolution"]] * 2 + [L["resolution"] / L["reach"]]))
+        pending: list[Closure] = []
+        last = 0.0
+        bar = tqdm(range(len(keys)), desc="loop closure", disable=not self.progress, leave=False)
+        for b in bar:
+            graph.extend(b)
+            travelled = kpath[b] - last
+            window = min(L["max_window"], L["window"] + self.drift * travelled)
+            yaw_window = np.radians(min(180.0, self.yaw_window + self.yaw_drift * travelled))
+            for a in self._candidates(graph.estimate[: b + 1], kpath, b, window):
+                entry = self._verify(a, b, graph.estimate, window, yaw_window)
+                log.append(entry)
+                if not entry["verified"]:
+                    continue
+                new = Closure(a, b, np.array(entry["z"]))
+                trusted = self._consistent(new, pending + graph.closures, odo, kpath)
+                entry["accepted"] = bool(trusted)
+                if trusted:
+                    promote = [c for c in pending if c in trusted]
+                    pending = [c for c in pending if c not in trusted]
+                    graph.close(promote + [new])
+                    last = kpath[b]
+                else:
+                    pending.append(new)
+                pending = [c for c in pending if b - c.b <= self.consistency_window]
+            bar.set_postfix(closures=len(graph.closures))
+        key_poses, kept, dropped = graph.solve_batch(self.gate)
+        log[0].update(keyframes=len(keys), closures=len(kept), dropped=len(dropped))
+        for c in dropped:
+            log.append({"i": int(keys[c.a]), "j": int(keys[c.b]), "accepted": False, "verified": True,
+                        "reason": "dropped by the final robust solve"})
+        self.closures = [(int(keys[c.a]), int(keys[c.b])) for c in kept]
+        return correct(poses, keys, odo, key_poses, path)
+
+    def _candidates(self, estimate: np.ndarray, kpath: np.ndarray, b: int, window: float) -> list[int]:
+        """Earlier keyframes that may overlap keyframe b: one (the nearest) per earlier visit."""
+        L = self._lengths
+        far = np.flatnonzero(kpath[b] - kpath[: b + 1] > L["min_path_gap"])
+        if len(far) == 0:
+            return []
+        d = np.linalg.norm(estimate[far, :2] - estimate[b, :2], axis=1)
+        near = far[d < window + L["reach"]]
+        d = d[d < window + L["reach"]]
+        visits: dict[int, tuple[float, int]] = {}
+        run = np.concatenate([[0], np.cumsum(np.diff(near) > 1)]) if len(near) else []
+        for r, a, da in zip(run, near, d):
+            if r not in visits or da < visits[r][0]:
+                visits[r] = (da, int(a))
+        return [a for _, a in sorted(visits.values())[: self.candidates]]
+
+    def _grid(self, a: int, res: float) -> cm.LikelihoodGrid:
+        if (a, res) not in self._grids:
+            self._grids[(a, res)] = cm.LikelihoodGrid(self._maps[a], res)
+        return self._grids[(a, res)]
+
+    def _verify(self, a: int, b: int, estimate: np.ndarray, window: float, yaw_window: float) -> dict:
+        """Global correlative search for keyframe b's submap in keyframe a's, then ICP and the gates."""
+        L = self._lengths
+        res = L["resolution"]
+        coarse_res = res * 2.0 ** max(0, int(np.ceil(np.log2(window / (32 * res)))))
+        init = between(estimate[a], estimate[b])
+        src = self._maps[b]
+        coarse = cm.match(kf.thin(src, coarse_res, 400, self._rng), self._grid(a, coarse_res), tuple(init),
+                          window, yaw_window, ratio=self.max_ambiguity)
+        entry = {"i": int(self._keys[a]), "j": int(self._keys[b]), "window": round(window, 2),
+                 "yaw_window_deg": round(float(np.degrees(yaw_window)), 1), "score": round(coarse.score, 4),
+                 "ambiguity": round(coarse.runner_up / max(coarse.score, 1e-9), 4), "verified": False,
+                 "accepted": False}
+        reasons = []
+        if coarse.score < self.min_score:
+            reasons.append(f"score {coarse.score:.2f} < {self.min_score:.2f}")
+        if coarse.runner_up > self.max_ambiguity * coarse.score:
+            reasons.append(f"ambiguous: a different alignment scores {entry['ambiguity']:.2f} of the best")
+        if reasons:
+            entry["reason"] = "; ".join(reasons)
+            return entry
+        step = 2 * coarse_res
+        fine = cm.match(kf.thin(src, res, 800, self._rng), self._grid(a, res), (coarse.x, coarse.y, coarse.yaw),
+                        step, step / L["reach"] * 2, ratio=1.0)
+        m = self._icp(a, b, planar_pose(fine.x, fine.y, fine.yaw))
+        z = se3.to_xy_yaw(m.T[None])[0]
+        entry.update(z=[float(v) for v in z], fitness=round(m.fitness, 4), rmse=round(m.rmse, 5),
+                     offset=round(float(np.linalg.norm(z[:2] - init[:2])), 3))
+        reasons += self._gates(a, b, m, entry)
+        entry["verified"] = not reasons
+        entry["reason"] = "; ".join(reasons) or "verified"
+        return entry
+
+    def _icp(self, a: int, b: int, init: np.ndarray) -> Match:
+        res = self._lengths["resolution"]
+        cloud = lambda xy: Cloud(np.column_stack([xy, np.zeros(len(xy))]), True, 2.0 * res)  # noqa: E731
+        self._clouds = (cloud(self._maps[b]), cloud(self._maps[a]))
+        return register(self._clouds[0], self._clouds[1], init, (2.0 * res, res), "point-to-plane")
+
+    def _gates(self, a: int, b: int, m: Match, entry: dict) -> list[str]:
+        src, tgt = self._clouds
+        res = self._lengths["resolution"]
+        overlap = min(m.fitness, coverage(tgt, src, se3.inverse(m.T), res)[0])
+        c = constraint(src, tgt, m.T, res)
+        entry.update(overlap=round(overlap, 4), constraint=round(c, 4))
+        reasons = []
+        if overlap < self.min_fitness:
+            reasons.append(f"overlap {overlap:.2f} < {self.min_fitness:.2f}")
+        if c < self.min_constraint:
+            reasons.append(f"constraint {c:.3f} < {self.min_constraint:.3f} (degenerate: a corridor?)")
+        if self._frames.planar:
+            fa, fb = int(self._keys[a]), int(self._keys[b])
+            sa = Cloud(self._frames.points[fa], True, 2.0 * res)
+            sb = Cloud(self._frames.points[fb], True, 2.0 * res)
+            margin = 4.0 * self._lengths["fine"]
+            free = max(free_space(sb, sa, m.T, margin), free_space(sa, sb, se3.inverse(m.T), margin))
+            entry["free_space"] = round(free, 4)
+            if free > self.max_free_space:
+                reasons.append(f"free space {free:.2f} > {self.max_free_space:.2f} (walls where the other saw none)")
+        return reasons
+
+    def _consistent(self, new: Closure, others: list[Closure], odo: np.ndarray, kpath: np.ndarray) -> list[Closure]:
+        """The closures (``new`` excluded) that agree with ``new`` around a cycle; empty if none."""
+        L = self._lengths
+        agree = []
+        for c in others:
+            if abs(c.b - new.b) > self.consistency_window:
+                continue
+            span = abs(kpath[c.a] - kpath[new.a]) + abs(kpath[c.b] - kpath[new.b])
+            et, er = cycle_error(odo, new, c)
+            if et <= L["cycle_tolerance"] + self.cycle_drift * span and er <= np.radians(2.0) + 1e-3 * span:
+                agree.append(c)
+        return agree
+
+    # ------------------------------------------------------------------ topology
+    def _topology(self, frames: Frames, corrected: np.ndarray, log: list) -> Topology:
+        L = self._lengths
+        pos = corrected[:, :3, 3]
+        path = kf.path_length(corrected)
+        limit = self.max_loops if self.max_loops is not None else self.k // 2
+        tree = cKDTree(pos)
+        rows = []
+        near = radius_neighbours(pos, L["radius"], self.k)
+        for i, nr in enumerate(near):
+            cand = tree.query_ball_point(pos[i], L["radius"])
+            loops = [j for j in cand if abs(path[j] - path[i]) > L["min_path_gap"]]
+            loops.sort(key=lambda j: np.linalg.norm(pos[j] - pos[i]))
+            rows.append([(j, "loop") for j in loops[:limit]] + [(j, "radius") for j in nr])
+        topo = assemble(rows, self.k, self.temporal_fill, log)
+        topo.poses = corrected
+        return topo
+
+
+def correct(poses: np.ndarray, keys: np.ndarray, odo: np.ndarray, key_poses: np.ndarray,
+            path: np.ndarray) -> np.ndarray:
+    """Apply the keyframes' planar corrections to every frame, interpolated along the path between the
+    two keyframes around it (yaw unwrapped)."""
+    corr = se3.to_xy_yaw(se3.from_xy_yaw(key_poses) @ se3.inverse(se3.from_xy_yaw(odo)))
+    corr[:, 2] = np.unwrap(corr[:, 2])
+    kpath = path[keys]
+    if len(keys) == 1:
+        c = np.repeat(corr, len(poses), axis=0)
+    else:
+        c = np.stack([np.interp(path, kpath, corr[:, d]) for d in range(3)], axis=1)
+    return se3.from_xy_yaw(c) @ poses

@@ -1,0 +1,116 @@
+"""Loop closure under large drift: correlative matching (global search, ambiguity), the cycle check,
+and the ``loops`` topology on a drifted 2D floor."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from plugins_scenes import floor_2d
+
+from dm2_backend.geometry import se3
+from dm2_backend.plugins import correlative as cm
+from dm2_backend.plugins.loop_graph import Closure, between, cycle_error
+from dm2_backend.plugins.registry import load
+from dm2_backend.plugins.topology_loops import correct
+from dm2_backend.simulate.path import drifting_odometry
+
+
+def wall(a, b, spacing=0.05):
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    n = int(np.linalg.norm(b - a) / spacing) + 1
+    return a + np.linspace(0, 1, n)[:, None] * (b - a)
+
+
+def room() -> np.ndarray:
+    """An irregular room outline with a pillar: no symmetry, so one alignment is right."""
+    walls = [((0, 0), (7, 0)), ((7, 0), (7, 3)), ((7, 3), (5, 5)), ((5, 5), (0, 5)), ((0, 5), (0, 0)),
+             ((2, 2), (2.6, 2)), ((2.6, 2), (2.6, 2.4)), ((4.5, 1), (4.5, 1.8))]
+    return np.concatenate([wall(a, b) for a, b in walls]) - np.array([3.0, 2.0])
+
+
+def moved(xy: np.ndarray, x: float, y: float, yaw: float) -> np.ndarray:
+    """Points seen from a sensor at (x, y, yaw) in the target's frame: the inverse motion."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, -s], [s, c]])
+    return (xy - [x, y]) @ R
+
+
+def test_correlative_finds_the_pose_far_from_the_guess():
+    target = room()
+    rng = np.random.default_rng(0)
+    truth = (1.3, -0.8, np.radians(25.0))
+    source = moved(target, *truth) + rng.normal(0, 0.01, target.shape)
+    grid = cm.LikelihoodGrid(target, 0.1)
+    got = cm.match(source, grid, (0.0, 0.0, 0.0), window_t=3.0, window_yaw=np.radians(40))
+    assert abs(got.x - truth[0]) < 0.1 and abs(got.y - truth[1]) < 0.1
+    assert abs(np.degrees(got.yaw - truth[2])) < 1.5
+    assert got.score > 0.8 and got.runner_up < 0.9 * got.score
+    # outside the window the pose cannot be found: the best in the window scores much lower
+    narrow = cm.match(source, grid, (0.0, 0.0, 0.0), window_t=0.5, window_yaw=np.radians(5))
+    assert narrow.score < 0.5 * got.score
+
+
+def test_correlative_flags_a_corridor_as_ambiguous():
+    corridor = np.concatenate([wall((-10, -1), (10, -1)), wall((-10, 1), (10, 1))])
+    source = moved(corridor, 0.0, 0.0, 0.0)[np.abs(corridor[:, 0]) < 4]
+    got = cm.match(source, cm.LikelihoodGrid(corridor, 0.1), (0.0, 0.0, 0.0), 3.0, np.radians(10))
+    assert got.score > 0.9
+    assert got.runner_up >= 0.9 * got.score  # sliding along the corridor scores the same
+    assert got.runner_up_pose is not None and abs(got.runner_up_pose[0] - got.x) > 0.4
+
+
+def test_cycle_error_is_zero_for_agreeing_closures_only():
+    odo = np.array([[0, 0, 0], [1, 0, 0.1], [10, 5, 1.0], [11, 5.2, 1.1]], float)
+    true = se3.to_xy_yaw(se3.from_xy_yaw(odo))
+    # the loop: keyframes 2, 3 really lie here relative to 0, 1 (one rigid correction of both)
+    true[2:] = se3.to_xy_yaw(se3.from_xy_yaw(np.array([[0.5, -0.3, 0.05]])) @ se3.from_xy_yaw(odo[2:]))
+    c1 = Closure(0, 2, between(true[0], true[2]))
+    c2 = Closure(1, 3, between(true[1], true[3]))
+    et, er = cycle_error(odo, c1, c2)
+    assert et < 1e-9 and er < 1e-9
+    wrong = Closure(1, 3, c2.z + [1.0, 0.0, 0.0])
+    assert cycle_error(odo, c1, wrong)[0] > 0.5
+
+
+def test_correct_moves_keyframes_exactly_and_interpolates_between():
+    poses = se3.from_xy_yaw(np.column_stack([np.arange(5.0), np.zeros(5), np.zeros(5)]))
+    odo = se3.to_xy_yaw(poses[[0, 4]])
+    fixed = odo + [[0, 0, 0], [0, 1.0, 0]]
+    path = np.arange(5.0)
+    out = correct(poses, np.array([0, 4]), odo, fixed, path)
+    np.testing.assert_allclose(out[4, :2, 3], [4, 1], atol=1e-9)
+    np.testing.assert_allclose(out[2, :2, 3], [2, 0.5], atol=1e-9)
+    np.testing.assert_allclose(out[0], poses[0], atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def floor():
+    return floor_2d()
+
+
+def test_loops_closes_a_large_drift_loop(floor):
+    frames, truth = floor
+    # locally accurate (as scan matching is), globally drifting: about 20 degrees of yaw over the path
+    drifted = drifting_odometry(truth, 1, 0.001, 0.01, 0.0015)
+    topo = load("dm2.place_recognition", "loops")(progress=False).run(frames, drifted)
+    assert topo.poses is not None and topo.poses.shape == truth.shape
+    summary = topo.log[0]
+    assert summary["closures"] >= 1
+    # every accepted closure is a true revisit: its measured pose agrees with the truth
+    accepted = [e for e in topo.log[1:] if e.get("accepted")]
+    assert accepted
+    for e in accepted:
+        i, j = e["i"], e["j"]
+        truth_z = se3.to_xy_yaw(se3.relative(truth[i][None], truth[j][None]))[0]
+        assert np.hypot(*(truth_z[:2] - e["z"][:2])) < 0.15
+    for e in topo.log[1:]:
+        assert "reason" in e and "score" in e or "dropped" in e["reason"]
+
+    def ate(P):
+        return float(np.sqrt(np.mean(np.sum((P[:, :2, 3] - truth[:, :2, 3]) ** 2, axis=1))))
+
+    assert ate(drifted) > 1.0
+    assert ate(topo.poses) < 0.25 * ate(drifted)
+    # the groups contain loop partners across the closed loop
+    kinds = set(topo.edge_kind)
+    assert "loop" in kinds
