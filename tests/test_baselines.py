@@ -13,7 +13,7 @@ import pytest
 from click.testing import CliRunner
 
 from dm2_backend.baselines import gtsam_backend
-from dm2_backend.baselines.graph import build_graph, registration_information
+from dm2_backend.baselines.graph import InformationModel, build_graph, registration_information
 from dm2_backend.baselines.multiway import multiway
 from dm2_backend.baselines.options import SolverOptions
 from dm2_backend.cli.main import cli
@@ -140,7 +140,8 @@ def test_build_graph_from_registrations():
     valid[1, 1] = False  # (1, 2) failed: odometry falls back to the warm start
     fitness, rmse = np.full((4, 2), 0.5), np.full((4, 2), 0.02)
     rmse[2, 0] = 0.01  # (2, 0) beats (0, 2)
-    graph = build_graph(frames, warm, Topology(groups), Pairwise(rel, valid, fitness, rmse))
+    model = InformationModel(fallback_weight=0.1, odometry="registration")
+    graph = build_graph(frames, warm, Topology(groups), Pairwise(rel, valid, fitness, rmse), model)
     assert graph.planar and graph.information.shape == (4, 3, 3)
     assert graph.edges.tolist() == [[0, 1], [1, 2], [2, 3], [0, 2]]
     np.testing.assert_allclose(graph.relative[0], se3.relative(gt[0], gt[1]), atol=1e-12)
@@ -170,7 +171,7 @@ def test_build_graph_3d_solves_and_round_trips(tmp_path):
     for i, k in zip(*np.nonzero(groups >= 0), strict=True):
         rel[i, k] = se3.relative(gt[i], gt[groups[i, k]])
     pair = Pairwise(rel, groups >= 0, np.full((n, 2), 0.6), np.full((n, 2), 0.05))
-    graph = build_graph(frames, warm, Topology(groups), pair)
+    graph = build_graph(frames, warm, Topology(groups), pair, InformationModel(odometry="registration"))
     assert not graph.planar and graph.information.shape[1:] == (6, 6)
     assert graph.meta["odometry_from_warm_start"] == 0 and graph.meta["loop_edges"] == n
     solved = gtsam_backend.optimize(graph)
@@ -203,7 +204,7 @@ def run_baseline(seq: Path, out: Path, method: str, *extra: str):
 
 
 def test_cli_gtsam_lowers_ate(sequence, tmp_path):
-    report = run_baseline(sequence, tmp_path / "gtsam", "gtsam")
+    report = run_baseline(sequence, tmp_path / "gtsam", "gtsam", "--robust", "none")
     ate, warm_ate = report["metrics"]["ape_trans_rmse_m"], report["warm_start_metrics"]["ape_trans_rmse_m"]
     assert ate < 0.2 * warm_ate, (ate, warm_ate)
     b = report["baseline"]
@@ -218,10 +219,13 @@ def test_cli_gtsam_lowers_ate(sequence, tmp_path):
     assert fg.error(initial) == pytest.approx(b["initial_error"], rel=1e-9)
     final, _ = gtsam_direct(path, False, SolverOptions())
     assert final == pytest.approx(b["final_error"], rel=1e-6)
-    # robust kernel through the CLI (preparation comes from the cache)
+    # robust kernels through the CLI (preparation comes from the cache); Cauchy by default on scans
     robust = run_baseline(sequence, tmp_path / "huber", "gtsam", "--robust", "huber", "--max-iterations", "50")
     assert robust["baseline"]["robust"] == "huber" and robust["prepare"]["cached"]["registration"]
     assert robust["metrics"]["ape_trans_rmse_m"] < 0.2 * warm_ate
+    default = run_baseline(sequence, tmp_path / "default", "gtsam")
+    assert default["baseline"]["robust"] == "cauchy"
+    assert default["metrics"]["ape_trans_rmse_m"] < 0.2 * warm_ate
 
 
 def test_cli_multiway_and_icp(sequence, tmp_path):

@@ -2,13 +2,16 @@
 
 Edges (``(i, j)``, i < j, the pose of frame j in frame i):
 
-* odometry ``(i, i+1)`` for every consecutive pair: the pairwise registration when ``(i, i+1)`` is a valid
-  topology pair, else the warm-start relative pose ``inv(T_i) @ T_{i+1}`` (keeps the graph connected);
+* odometry ``(i, i+1)`` for every consecutive pair: by default the front end's relative pose
+  ``inv(T_i) @ T_{i+1}`` of the initial trajectory (scan-to-map odometry is locally more accurate than
+  scan-to-scan registration: on ACES 0.043 m against 0.048 m mean relations error, gtsam with Cauchy);
+  with ``odometry="registration"`` the pairwise registration when ``(i, i+1)`` is a valid topology pair,
+  else the front end's;
 * loop: every other valid pairwise registration, once per unordered pair.
 
 Information model (documented in :func:`registration_information`): a registration with inlier rmse ``r``,
 overlap ``fitness`` of the neighbour's ``M`` points and lever arm ``L`` (rms range of the neighbour's points)
-gets isotropic ``sigma_t = max(r, floor) / sqrt(fitness * M)`` and ``sigma_r = sigma_t / L``. Warm-start
+gets isotropic ``sigma_t = max(r, floor) / sqrt(fitness * M)`` and ``sigma_r = sigma_t / L``. Front-end
 odometry edges get the median registration information times ``fallback_weight``.
 
 Information matrices are tangent-space (GTSAM semantics, as ``gtsam.readG2o`` reads them) in g2o order:
@@ -21,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dm2_backend.errors import InputError
 from dm2_backend.formats.g2o import PoseGraph
 from dm2_backend.geometry import se3
 from dm2_backend.prepare.types import Frames, Pairwise, Topology
@@ -32,8 +36,10 @@ MODEL_TEXT = "sigma_t = max(rmse, floor) / sqrt(fitness * points), sigma_r = sig
 class InformationModel:
     #: lower bound on the inlier rmse (m); default 0.1 * max(voxel, point spacing)
     rmse_floor: float | None = None
-    #: warm-start odometry edges: median registration information times this
-    fallback_weight: float = 0.1
+    #: front-end odometry edges: median registration information times this
+    fallback_weight: float = 1.0
+    #: "front-end" (relative poses of the initial trajectory) or "registration" (see the module docstring)
+    odometry: str = "front-end"
 
 
 @dataclass
@@ -94,6 +100,8 @@ def build_graph(frames: Frames, warm: np.ndarray, topology: Topology, pairwise: 
                 model: InformationModel | None = None) -> PoseGraph:
     """The pose graph of module docstring; node ids 0..N-1, initial poses = warm start."""
     model = model or InformationModel()
+    if model.odometry not in ("front-end", "registration"):
+        raise InputError(None, f"graph odometry must be front-end or registration, got {model.odometry!r}")
     planar = frames.planar
     n = len(warm)
     poses = se3.from_xy_yaw(se3.to_xy_yaw(warm)) if planar else np.asarray(warm, dtype=np.float64)
@@ -109,7 +117,7 @@ def build_graph(frames: Frames, warm: np.ndarray, topology: Topology, pairwise: 
     edges, relative, information = [], [], []
     warm_odometry = 0
     for i in range(n - 1):
-        e = pairs.get((i, i + 1))
+        e = pairs.get((i, i + 1)) if model.odometry == "registration" else None
         edges.append((i, i + 1))
         if e is not None:
             relative.append(e.relative)

@@ -24,12 +24,17 @@ With --graph FILE.g2o (gtsam, g2o) an existing pose graph is optimised instead o
 @run_options(scans_required=False)
 @click.option("--graph", "graph_path", type=path_type, default=None,
               help="Optimise this g2o pose graph (no scans needed).")
-@click.option("--robust", type=click.Choice(list(KERNELS)), default=None, help="Robust kernel on every edge.")
+@click.option("--robust", type=click.Choice([*KERNELS, "none"]), default=None,
+              help="Robust kernel on every edge [default: cauchy for graphs built from scans (registrations "
+                   "have outliers), none for --graph].")
 @click.option("--robust-k", type=float, default=None, help="Kernel threshold (whitened residual).")
 @click.option("--max-iterations", type=int, default=100, show_default=True)
 @click.option("--relative-tol", type=float, default=1e-5, show_default=True,
               help="Stop when the error decreases by less than this fraction.")
 def command(method, graph_path, robust, robust_k, max_iterations, relative_tol, **kw) -> None:
+    if robust is None:
+        robust = "none" if graph_path is not None else "cauchy"
+    robust = None if robust == "none" else robust
     options = SolverOptions(max_iterations=max_iterations, relative_error_tol=relative_tol, robust=robust,
                             robust_k=robust_k)
     options.check()
