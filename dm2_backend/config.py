@@ -15,6 +15,8 @@ from dm2_backend.optim.config import OptimConfig
 DEFAULTS: dict = {
     "seed": 0,
     "device": "auto",
+    #: processes optimising together (torch.distributed; ``dm2 refine --nproc``); torchrun sets its own
+    "nproc": 1,
     "frames": {"max_points": 1024, "voxel": None},
     "warm_start": {"name": "poses", "options": {}},
     "place_recognition": {"name": "radius", "options": {}},
@@ -56,6 +58,9 @@ def load(path: str | Path | None, overrides: dict | None = None) -> dict:
             raise InputError(path, f"unknown config sections: {', '.join(sorted(unknown))}")
         cfg = merge(cfg, user)
     cfg = merge(cfg, overrides or {})
+    nproc = cfg.get("nproc")
+    if isinstance(nproc, bool) or not isinstance(nproc, int) or nproc < 1:
+        raise InputError(path, f"nproc must be a whole number of processes (1 or more), not {nproc!r}")
     try:
         OptimConfig.from_dict(cfg["optimiser"])
     except (TypeError, ValueError) as exc:

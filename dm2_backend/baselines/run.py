@@ -50,11 +50,11 @@ def baseline(method: str, inputs: RunInputs, cfg: dict, out: Path, cache_dir: Pa
         final = prep.warm_start
         extra["baseline"] = {"solver": f"warm start ({cfg['warm_start']['name']})"}
     elif method == "multiway":
-        result = multiway(prep.frames, prep.warm_start, prep.topology, prep.pairwise, options)
+        result = multiway(prep.frames, prep.initial, prep.topology, prep.pairwise, options)
         final = result.poses
         extra["baseline"] = result.summary()
     else:
-        graph = build_graph(prep.frames, prep.warm_start, prep.topology, prep.pairwise)
+        graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise)
         write_g2o(graph, out / "graph.g2o")
         result = solve(method, graph, options)
         final = result.poses

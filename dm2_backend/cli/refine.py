@@ -82,7 +82,10 @@ def prepare_run(kw: dict, overrides: dict):
 @click.option("--epochs", type=int, default=None, help="Optimisation epochs.")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None, help="Torch device.")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run in --out from its checkpoint.")
-def command(epochs, device, resume, **kw) -> None:
+@click.option("--nproc", type=click.IntRange(min=1), default=None,
+              help="Optimise in N processes (torch.distributed: gloo on CPU, NCCL with one GPU each) "
+                   "[default: config nproc, 1]. Under torchrun its processes are the ranks.")
+def command(epochs, device, resume, nproc, **kw) -> None:
     """Refine the poses of a scan sequence with DeepMapping2 and write a run folder."""
     from dm2_backend.pipeline.refine import refine
 
@@ -91,9 +94,12 @@ def command(epochs, device, resume, **kw) -> None:
         overrides["optimiser"] = {"epochs": epochs, "max_steps": 0}  # explicit epochs: no step cap
     if device is not None:
         overrides["device"] = device
+    if nproc is not None:
+        overrides["nproc"] = nproc
     inputs, cfg, cache = prepare_run(kw, overrides)
     report = refine(inputs, cfg, kw["out"], cache, resume=resume, progress=not kw["quiet"])
-    print_summary(report, kw["out"])
+    if report is not None:  # None: a torchrun rank other than 0
+        print_summary(report, kw["out"])
 
 
 def print_summary(report: dict, out: Path) -> None:

@@ -15,7 +15,7 @@ from tqdm import tqdm
 
 from dm2_backend.atomic import atomic_write
 from dm2_backend.geometry import se3_torch
-from dm2_backend.optim import losses
+from dm2_backend.optim import distributed, losses
 from dm2_backend.optim.batching import make_groups
 from dm2_backend.optim.config import OptimConfig, derive
 from dm2_backend.optim.occupancy import GridOccupancy
@@ -63,8 +63,13 @@ class Optimiser:
         device: str = "auto",
         metric: Callable[[np.ndarray], float] | None = None,
         progress: bool = True,
+        samples: np.ndarray | None = None,
+        dist: distributed.Dist | None = None,
     ) -> None:
+        """``samples``: the points of :func:`sample_points` computed ahead (a memory-mapped array shared by the
+        ranks); ``dist``: this process's rank when several optimise together (see ``distributed``)."""
         self.cfg = cfg
+        self.dist = dist or distributed.Dist()
         self.seed = seed
         self.metric = metric
         self.progress = progress
@@ -75,7 +80,7 @@ class Optimiser:
         self.planar = frames.planar
         self.n = len(frames)
         torch.manual_seed(seed)
-        pts = sample_points(frames, cfg.points_per_frame, seed)
+        pts = sample_points(frames, cfg.points_per_frame, seed) if samples is None else samples
         self.points = torch.from_numpy(pts).to(self.device)
         self.topo_groups = topology.groups
         self.groups = make_groups(cfg.batching, topology.groups, seed)
@@ -210,50 +215,65 @@ class Optimiser:
             torch.save(state, fh)
 
     def run(self, checkpoint_dir: Path | None = None, resume: bool = False) -> OptimResult:
+        """Train; with several ranks only rank 0 reads and writes the checkpoint, shows progress and
+        evaluates ``metric``, and every rank resumes from rank 0's checkpoint."""
+        dist, lead = self.dist, self.dist.rank == 0
         history: list[dict] = []
         best = {"loss": math.inf, "epoch": -1, "poses": self.poses()}
         start = 0
         ckpt = checkpoint_dir / CHECKPOINT if checkpoint_dir else None
-        if resume and ckpt is not None and ckpt.exists():
-            state = torch.load(ckpt, map_location=self.device, weights_only=False)
+        state = None
+        if resume and lead and ckpt is not None and ckpt.exists():
+            state = torch.load(ckpt, map_location="cpu" if dist.enabled else self.device, weights_only=False)
+        if resume and dist.enabled:
+            state = distributed.broadcast(state)
+        if state is not None:
             self.model.load_state_dict(state["model"])
             self.field.load_state_dict(state["field"])
             self.optim.load_state_dict(state["optim"])
             self.sched.load_state_dict(state["sched"])
             best, history, start = state["best"], state["history"], state["epoch"] + 1
+        ddp = distributed.data_parallel(self) if dist.enabled else None
         stopped = None
-        bar = tqdm(range(start, self.epochs), desc="refine", disable=not self.progress, unit="epoch")
+        bar = tqdm(range(start, self.epochs), desc="refine", disable=not (self.progress and lead), unit="epoch")
         for epoch in bar:
             t0 = time.perf_counter()
             rng = np.random.default_rng([self.seed, epoch])
-            gen = torch.Generator(device="cpu").manual_seed(int(rng.integers(2**31)))
-            order = rng.permutation(self.n)
+            gen = torch.Generator(device="cpu").manual_seed(distributed.generator_seed(int(rng.integers(2**31)), dist))
+            order = rng.permutation(self.n)  # the same on every rank
             sums: dict[str, float] = {}
             for s in range(self.steps_per_epoch):
                 anchors = order[s * self.cfg.batch_groups : (s + 1) * self.cfg.batch_groups]
                 if len(anchors) == 0:
                     continue
-                parts = self._step_loss(anchors, gen)
-                if not torch.isfinite(parts["loss"]):
+                if ddp is None:
+                    parts = values = self._step_loss(anchors, gen)
+                    loss = parts["loss"]
+                else:  # this rank's share; DDP averages the gradients, so weight by the share times the ranks
+                    mine, weight = distributed.shard(anchors, dist)
+                    parts = ddp(mine, gen)
+                    values = distributed.reduce_parts(parts, weight)
+                    loss = parts["loss"] * (weight * dist.world)
+                if not torch.isfinite(values["loss"]):  # the reduced loss: every rank stops together
                     stopped = f"non-finite loss at epoch {epoch} step {s}; kept the best epoch"
                     break
                 self.optim.zero_grad(set_to_none=True)
-                parts["loss"].backward()
+                loss.backward()
                 self.optim.step()
                 self.sched.step()
-                for key, val in parts.items():
+                for key, val in values.items():
                     sums[key] = sums.get(key, 0.0) + float(val.detach())
             if stopped:
                 break
             row = {k: v / self.steps_per_epoch for k, v in sums.items()}
             row.update(epoch=epoch, seconds=time.perf_counter() - t0)
             poses = self.poses()
-            if self.metric is not None:
+            if self.metric is not None and lead:
                 row["ate"] = float(self.metric(poses))
             history.append(row)
             if row["loss"] < best["loss"]:
                 best = {"loss": row["loss"], "epoch": epoch, "poses": poses}
             bar.set_postfix({k: f"{row[k]:.4g}" for k in ("loss", "ate") if k in row})
-            if ckpt is not None:
+            if ckpt is not None and lead:
                 self._save(ckpt, self._state(epoch, best, history))
         return OptimResult(best["poses"], best["epoch"], history, self.derived, stopped)

@@ -4,12 +4,10 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from evo.core.geometry import umeyama_alignment
 
 from dm2_backend import __version__, config
 from dm2_backend.errors import InputError
@@ -18,30 +16,13 @@ from dm2_backend.evaluation.paper_ate import paper_ate
 from dm2_backend.evaluation.relations import relations_error
 from dm2_backend.evaluation.report import EstimateReport, run_metrics
 from dm2_backend.optim.config import OptimConfig
-from dm2_backend.optim.trainer import Optimiser
-from dm2_backend.pipeline import outputs
+from dm2_backend.pipeline import outputs, parallel
 from dm2_backend.pipeline.inputs import RunInputs
-from dm2_backend.prepare.pipeline import Prepared, prepare
+from dm2_backend.pipeline.live import ate_rmse, live_metric  # noqa: F401 (ate_rmse: also imported from here)
+from dm2_backend.prepare.pipeline import Prepared
 from dm2_backend.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
-
-
-def ate_rmse(gt: np.ndarray, est: np.ndarray) -> float:
-    """Translation ATE RMSE (m) after rigid (SE(3)) alignment of positions."""
-    R, t, _ = umeyama_alignment(est[:, :3, 3].T, gt[:, :3, 3].T, with_scale=False)
-    d = est[:, :3, 3] @ R.T + t - gt[:, :3, 3]
-    return float(np.sqrt((d * d).sum(1).mean()))
-
-
-def live_metric(inputs: RunInputs, timestamps: np.ndarray | None) -> Callable[[np.ndarray], float] | None:
-    """Per-epoch accuracy for the progress bar: ATE against --gt, else the relations metric."""
-    if inputs.gt is not None:
-        return lambda poses: ate_rmse(inputs.gt.poses, poses)
-    if inputs.relations is not None and timestamps is not None:
-        rel = inputs.relations
-        return lambda poses: relations_error(Trajectory(poses, timestamps, planar=True), rel).stats["trans_mean"]
-    return None
 
 
 def metrics_of(traj: Trajectory, inputs: RunInputs) -> dict[str, float]:
@@ -102,6 +83,8 @@ def write_common(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final:
         "planar": prep.frames.planar,
         "metrics": metrics_of(final_traj, inputs),
         "warm_start_metrics": metrics_of(warm_traj, inputs),
+        **({"loop_closed_metrics": metrics_of(trajectory_of(prep.topology.poses, inputs), inputs)}
+           if prep.topology.poses is not None else {}),
         "timings": timings,
         "peak_rss_mb": outputs.peak_rss_mb(),
         "prepare": {
@@ -121,20 +104,38 @@ def write_common(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final:
 
 
 def refine(inputs: RunInputs, cfg: dict, out: Path, cache_dir: Path | None, resume: bool = False,
-           progress: bool = True) -> dict:
-    """Run the whole pipeline; returns the report (also written to ``out/report.json``)."""
+           progress: bool = True) -> dict | None:
+    """Run the whole pipeline; returns the report (also written to ``out/report.json``). With
+    ``cfg["nproc"] > 1`` the optimisation runs in that many spawned processes; started by torchrun, this
+    process is one rank, and ranks other than 0 return None (they write nothing)."""
     t_start = time.perf_counter()
-    out.mkdir(parents=True, exist_ok=True)
-    prep = prepare(inputs.scans, inputs.given, cfg, cache_dir, progress)
     ocfg = OptimConfig.from_dict(cfg["optimiser"])
     stamps = output_timestamps(inputs)
-    opt = Optimiser(prep.frames, prep.warm_start, prep.topology, prep.pairwise, ocfg, seed=cfg["seed"],
-                    device=cfg["device"], metric=live_metric(inputs, stamps), progress=progress)
-    t_opt = time.perf_counter()
-    result = opt.run(checkpoint_dir=out, resume=resume)
-    timings = dict(prep.timings)
-    timings["optimise"] = time.perf_counter() - t_opt
-    timings["total"] = time.perf_counter() - t_start
-    extra = {"best_epoch": result.best_epoch, "stopped": result.stopped, "derived": result.derived,
-             "device": str(opt.device)}
-    return write_common(out, cfg, inputs, prep, result.poses, "dm2 refine", timings, extra, result.history)
+    with parallel.session(int(cfg.get("nproc", 1)), cache_dir, cfg["device"]) as sess:
+        lead = sess.dist.rank == 0
+        if lead:
+            out.mkdir(parents=True, exist_ok=True)
+        prep, samples = parallel.prepare_once(inputs, cfg, ocfg, sess, progress)
+        metric = live_metric(inputs, stamps) if lead else None
+        extra = {}
+        if sess.mode == "single":
+            opt = parallel.build(prep, ocfg, cfg, metric, progress)
+            t_opt = time.perf_counter()
+            result, device = opt.run(checkpoint_dir=out, resume=resume), str(opt.device)
+        elif sess.mode == "spawn":  # timed with starting the processes and building their optimisers
+            t_opt = time.perf_counter()
+            job = parallel.Job(sess.cache, prep.keys, samples, ocfg, cfg, out, resume, progress, metric,
+                               sess.dist.world, sess.scratch)
+            done = parallel.spawn(job)
+            result, device, extra["rank_peak_rss_mb"] = done["result"], done["device"], done["rank_peak_rss_mb"]
+        else:
+            t_opt = time.perf_counter()
+            result, device = parallel.optimise_rank(prep, samples, ocfg, cfg, sess, out, resume, progress, metric)
+        if not lead:
+            return None
+        timings = dict(prep.timings)
+        timings["optimise"] = time.perf_counter() - t_opt
+        timings["total"] = time.perf_counter() - t_start
+        extra.update(best_epoch=result.best_epoch, stopped=result.stopped, derived=result.derived, device=device,
+                     processes=sess.dist.world)
+        return write_common(out, cfg, inputs, prep, result.poses, "dm2 refine", timings, extra, result.history)

@@ -1,7 +1,10 @@
 """Run the preparation steps (frames -> warm start -> topology -> pairwise), each cached on disk.
 
 Each step's cache key hashes its inputs' keys and its own plugin name and options, so a second run on the
-same data (``dm2 refine`` again, or ``dm2 baseline``) loads the results instead of recomputing them.
+same data (``dm2 refine`` again, or ``dm2 baseline``) loads the results instead of recomputing them. Entries
+are folders of ``.npy`` arrays (:mod:`dm2_backend.prepare.store`); the frames' points and the pairwise
+relatives are memory-mapped, also right after a step computed them, so the processes of a distributed run
+share their pages.
 """
 
 from __future__ import annotations
@@ -16,10 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from dm2_backend import __version__
-from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError
 from dm2_backend.plugins.registry import load as load_plugin
-from dm2_backend.prepare.frames import load_frames
+from dm2_backend.prepare import store
 from dm2_backend.prepare.types import Frames, Pairwise, Topology
 from dm2_backend.scans import ScanSequence
 from dm2_backend.trajectory import Trajectory
@@ -33,6 +35,14 @@ class Prepared:
     pairwise: Pairwise
     timings: dict[str, float] = field(default_factory=dict)
     cached: dict[str, bool] = field(default_factory=dict)
+    #: step -> name of its cache entry (see :func:`load_prepared`)
+    keys: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def initial(self) -> np.ndarray:
+        """Where the optimiser and the baselines start: the loop-closed poses of the place recognition when
+        it made them, else the warm start."""
+        return self.topology.poses if self.topology.poses is not None else self.warm_start
 
 
 def default_cache_dir() -> Path:
@@ -63,20 +73,32 @@ def _plugin(group: str, section: dict, progress: bool = True):
 
 
 class _Cache:
+    """Cache entries (``store`` folders) under ``root``; with no root nothing is cached."""
+
     def __init__(self, root: Path | None) -> None:
         self.root = root
 
-    def get(self, name: str) -> dict | None:
-        if self.root is None or not (self.root / name).exists():
-            return None
-        with np.load(self.root / name, allow_pickle=False) as data:
-            return {k: data[k] for k in data.files}
+    def get(self, name: str) -> tuple[dict[str, np.ndarray], dict] | None:
+        return store.get(self.root, name)
 
-    def put(self, name: str, **arrays) -> None:
+    def put(self, name: str, arrays: dict, meta: dict | None = None) -> tuple[dict[str, np.ndarray], dict] | None:
+        """Store the entry and return it as read back (memory-mapped), or None without a cache."""
         if self.root is None:
-            return
-        with atomic_write(self.root / name, "wb") as fh:
-            np.savez(fh, **arrays)
+            return None
+        store.put(self.root, name, arrays, meta)
+        return self.get(name)
+
+
+def load_prepared(cache_dir: Path, keys: dict[str, str]) -> Prepared:
+    """The results of a finished :func:`prepare` from the cache, by the entry names in ``Prepared.keys``
+    (how the processes of a distributed run load what the first one prepared)."""
+    hits = {step: store.get(cache_dir, name) for step, name in keys.items()}
+    missing = [keys[step] for step, hit in hits.items() if hit is None]
+    if missing:
+        raise FileNotFoundError(f"preparation cache {cache_dir} lacks {', '.join(missing)}")
+    frames = store.frames_from(*hits["frames"])
+    return Prepared(frames, hits["warm_start"][0]["poses"], store.topology_from(hits["place_recognition"]),
+                    store.pairwise_from(hits["registration"]), cached=dict.fromkeys(keys, True), keys=dict(keys))
 
 
 def prepare(
@@ -90,64 +112,65 @@ def prepare(
     cache = _Cache(cache_dir)
     timings: dict[str, float] = {}
     cached: dict[str, bool] = {}
+    keys: dict[str, str] = {}
     fcfg = cfg["frames"]
     k_frames = _key(_source_key(scans), fcfg, cfg["seed"], scans.planar)
+    keys["frames"] = name = f"frames-{k_frames}"
     t = time.perf_counter()
-    hit = cache.get(f"frames-{k_frames}.npz")
-    if hit is not None:
-        counts = hit["counts"]
-        points = np.split(hit["points"], np.cumsum(counts)[:-1])
-        scale = json.loads(str(hit["scale"]))
-        stamps = hit["timestamps"] if hit["timestamps"].size else None
-        frames = Frames(points=list(points), timestamps=stamps, planar=bool(hit["planar"]), scale=scale)
-    else:
+    hit = cache.get(name)
+    cached["frames"] = hit is not None
+    if hit is None:
+        from dm2_backend.prepare.frames import load_frames  # open3d: not imported by ranks that only read
+
         frames = load_frames(scans, fcfg["max_points"], fcfg.get("voxel"), cfg["seed"], progress)
-        cache.put(
-            f"frames-{k_frames}.npz", points=np.concatenate(frames.points),
-            counts=np.array([len(p) for p in frames.points]), scale=json.dumps(frames.scale),
-            timestamps=frames.timestamps if frames.timestamps is not None else np.zeros(0),
-            planar=frames.planar,
-        )
-    timings["frames"], cached["frames"] = time.perf_counter() - t, hit is not None
+        if cache.root is not None:
+            store.put_frames(cache.root, name, frames)
+            hit = cache.get(name)  # from here on the frames are memory-mapped; the copy in memory is dropped
+    if hit is not None:
+        frames = store.frames_from(*hit)
+    timings["frames"] = time.perf_counter() - t
 
     ws = cfg["warm_start"]
     given_hash = hashlib.sha1(given.poses.tobytes()).hexdigest() if given is not None else ""
     k_ws = _key(k_frames, ws, given_hash)
+    keys["warm_start"] = name = f"warm-{k_ws}"
     t = time.perf_counter()
-    hit = cache.get(f"warm-{k_ws}.npz")
+    hit = cache.get(name)
+    cached["warm_start"] = hit is not None
     if hit is not None:
-        warm = hit["poses"]
+        warm = hit[0]["poses"]
     else:
         warm = _plugin("dm2.warm_start", ws, progress).run(frames, given)
-        cache.put(f"warm-{k_ws}.npz", poses=warm)
-    timings["warm_start"], cached["warm_start"] = time.perf_counter() - t, hit is not None
+        cache.put(name, {"poses": warm})
+    timings["warm_start"] = time.perf_counter() - t
 
     pr = cfg["place_recognition"]
     k_pr = _key(k_ws, pr)
+    keys["place_recognition"] = name = f"topology-{k_pr}"
     t = time.perf_counter()
-    hit = cache.get(f"topology-{k_pr}.npz")
-    if hit is not None:
-        topo = Topology(hit["groups"], hit["edges"], json.loads(str(hit["edge_kind"])), json.loads(str(hit["log"])))
-    else:
+    hit = cache.get(name)
+    cached["place_recognition"] = hit is not None
+    if hit is None:
         topo = _plugin("dm2.place_recognition", pr, progress).run(frames, warm)
-        cache.put(
-            f"topology-{k_pr}.npz", groups=topo.groups, edges=topo.edges,
-            edge_kind=json.dumps(topo.edge_kind), log=json.dumps(topo.log, default=float),
-        )
-    timings["place_recognition"], cached["place_recognition"] = time.perf_counter() - t, hit is not None
+        arrays = {"groups": topo.groups, "edges": topo.edges}
+        if topo.poses is not None:
+            arrays["poses"] = topo.poses
+        hit = cache.put(name, arrays, {"edge_kind": topo.edge_kind, "log": topo.log})
+    topo = store.topology_from(hit) if hit is not None else topo
+    timings["place_recognition"] = time.perf_counter() - t
 
     reg = cfg["registration"]
-    k_reg = _key(k_pr, reg)
+    keys["registration"] = name = f"pairwise-{_key(k_pr, reg)}"
     t = time.perf_counter()
-    hit = cache.get(f"pairwise-{k_reg}.npz")
-    if hit is not None:
-        reasons = {tuple(map(int, k.split(","))): v for k, v in json.loads(str(hit["reason"])).items()}
-        pair = Pairwise(hit["relative"], hit["valid"], hit["fitness"], hit["rmse"], reasons)
-    else:
-        pair = _plugin("dm2.registration", reg, progress).run(frames, warm, topo)
-        cache.put(
-            f"pairwise-{k_reg}.npz", relative=pair.relative, valid=pair.valid, fitness=pair.fitness,
-            rmse=pair.rmse, reason=json.dumps({f"{i},{j}": r for (i, j), r in pair.reason.items()}),
+    hit = cache.get(name)
+    cached["registration"] = hit is not None
+    if hit is None:
+        start = topo.poses if topo.poses is not None else warm
+        pair = _plugin("dm2.registration", reg, progress).run(frames, start, topo)
+        hit = cache.put(
+            name, {"relative": pair.relative, "valid": pair.valid, "fitness": pair.fitness, "rmse": pair.rmse},
+            {"reason": {f"{i},{j}": r for (i, j), r in pair.reason.items()}},
         )
-    timings["registration"], cached["registration"] = time.perf_counter() - t, hit is not None
-    return Prepared(frames, warm, topo, pair, timings, cached)
+    pair = store.pairwise_from(hit) if hit is not None else pair
+    timings["registration"] = time.perf_counter() - t
+    return Prepared(frames, warm, topo, pair, timings, cached, keys)

@@ -1,0 +1,97 @@
+"""The preparation cache on disk: each entry a folder of ``.npy`` arrays plus ``meta.json``, written atomically.
+
+The large arrays (the frames' points, the points sampled for the optimiser, the pairwise relatives) are opened
+memory-mapped, so several processes on one machine share the same pages and a sequence larger than RAM is
+paged in as the groups in flight need it. The frames' points are mapped read-only (a write raises); the
+other two copy-on-write, so a tensor made from them without a copy stays writable (a written page becomes
+private). The small per-frame arrays are read into memory.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from dm2_backend.atomic import atomic_path
+from dm2_backend.prepare.types import Frames, Pairwise, Topology
+
+#: arrays opened memory-mapped, with their numpy mmap mode; the others are read into memory
+MAPPED = {"points": "r", "samples": "c", "relative": "c"}
+
+
+def put(root: Path, name: str, arrays: dict[str, np.ndarray | list[np.ndarray]], meta: dict | None = None) -> None:
+    """Write the entry ``root/name`` (a folder); it appears complete or not at all. A list of arrays is
+    written concatenated along the first axis, one piece at a time (no concatenated copy in memory)."""
+    if (root / name).is_dir():  # another process (a rank of the same run) wrote it meanwhile
+        return
+    with atomic_path(root / name) as tmp:
+        tmp.mkdir()
+        for key, value in arrays.items():
+            if isinstance(value, list):
+                _save_pieces(tmp / f"{key}.npy", value)
+            else:
+                np.save(tmp / f"{key}.npy", np.ascontiguousarray(value), allow_pickle=False)
+        (tmp / "meta.json").write_text(json.dumps(meta or {}, default=float))
+
+
+def _save_pieces(path: Path, pieces: list[np.ndarray]) -> None:
+    rows = sum(len(p) for p in pieces)
+    if rows == 0:
+        np.save(path, np.concatenate(pieces) if pieces else np.zeros((0, 3), np.float32), allow_pickle=False)
+        return
+    out = np.lib.format.open_memmap(path, mode="w+", dtype=pieces[0].dtype, shape=(rows, *pieces[0].shape[1:]))
+    start = 0
+    for p in pieces:
+        out[start : start + len(p)] = p
+        start += len(p)
+    out.flush()
+    del out
+
+
+def _load(path: Path) -> np.ndarray:
+    if path.stem in MAPPED:
+        try:
+            return np.asarray(np.load(path, mmap_mode=MAPPED[path.stem], allow_pickle=False))  # a plain view
+        except ValueError:  # an empty array cannot be mapped
+            pass
+    return np.load(path, allow_pickle=False)
+
+
+def get(root: Path | None, name: str) -> tuple[dict[str, np.ndarray], dict] | None:
+    """The arrays and metadata of entry ``name``, or None when it is not in the cache."""
+    folder = root / name if root is not None else None
+    if folder is None or not (folder / "meta.json").is_file():
+        return None
+    arrays = {p.stem: _load(p) for p in folder.glob("*.npy")}
+    return arrays, json.loads((folder / "meta.json").read_text())
+
+
+def put_frames(root: Path, name: str, frames: Frames) -> None:
+    """Frames as one (sum M_i, 3) float32 array of all points and the (N + 1,) offsets of each frame."""
+    offsets = np.zeros(len(frames) + 1, dtype=np.int64)
+    offsets[1:] = np.cumsum([len(p) for p in frames.points])
+    arrays = {"points": [np.asarray(p, dtype=np.float32) for p in frames.points], "offsets": offsets}
+    if frames.timestamps is not None:
+        arrays["timestamps"] = frames.timestamps
+    put(root, name, arrays, {"planar": bool(frames.planar), "scale": frames.scale})
+
+
+def frames_from(arrays: dict[str, np.ndarray], meta: dict) -> Frames:
+    """Frames whose points are views of the (memory-mapped) concatenated array: no copy."""
+    pts, offsets = arrays["points"], arrays["offsets"]
+    points = [pts[offsets[i] : offsets[i + 1]] for i in range(len(offsets) - 1)]
+    return Frames(points=points, timestamps=arrays.get("timestamps"), planar=bool(meta["planar"]),
+                  scale=dict(meta["scale"]))
+
+
+def topology_from(hit: tuple[dict, dict]) -> Topology:
+    arrays, meta = hit
+    return Topology(arrays["groups"], arrays["edges"], meta["edge_kind"], meta["log"], poses=arrays.get("poses"))
+
+
+def pairwise_from(hit: tuple[dict, dict]) -> Pairwise:
+    arrays, meta = hit
+    reasons = {tuple(map(int, k.split(","))): v for k, v in meta["reason"].items()}
+    return Pairwise(arrays["relative"], arrays["valid"], arrays["fitness"], arrays["rmse"], reasons)
