@@ -52,13 +52,17 @@ class LikelihoodGrid:
         return np.floor((xy - self.origin) / self.res).astype(np.int64)
 
 
-def _scores(grid: np.ndarray, cells: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """Mean grid value of ``cells`` (A, M, 2) shifted by each of ``offsets`` (O, 2): (A, O)."""
-    hi = np.array(grid.shape) - 1
+def _bounds(flat: np.ndarray, cells: np.ndarray, offsets: np.ndarray, count: int) -> np.ndarray:
+    """Sum of ``flat`` (a raveled, zero-padded grid plus one trailing zero) at ``cells`` (A, M) flat indices
+    shifted by each of ``offsets`` (O,) flat offsets, over ``count`` points: (A, O). Cells of -1 (points
+    that never reach the target) read the trailing zero whatever the offset. Chunked over A."""
     out = np.empty((cells.shape[0], len(offsets)), dtype=np.float32)
-    for a in range(cells.shape[0]):
-        c = np.clip(cells[a][None, :, :] + offsets[:, None, :], 0, hi)  # (O, M, 2)
-        out[a] = grid[c[..., 0], c[..., 1]].mean(axis=1)
+    chunk = max(1, 2**22 // max(1, cells.shape[1] * len(offsets)))
+    last = len(flat) - 1
+    for a in range(0, cells.shape[0], chunk):
+        c = cells[a : a + chunk, None, :]
+        idx = np.where(c >= 0, c + offsets[None, :, None], last)
+        out[a : a + chunk] = flat[idx].sum(axis=-1) / count
     return out
 
 
@@ -86,25 +90,44 @@ def match(
     c, s = np.cos(yaws), np.sin(yaws)
     rotated = np.stack([c[:, None] * source_xy[:, 0] - s[:, None] * source_xy[:, 1],
                         s[:, None] * source_xy[:, 0] + c[:, None] * source_xy[:, 1]], axis=-1)
-    cells = target.cells(rotated + np.array(init[:2]))  # (A, M, 2)
     w = int(np.ceil(window_t / res))
     nb = int(np.ceil((2 * w + 1) / block))
+    # zero-pad so that every shift of a point near the grid stays inside it; points farther out than the
+    # largest shift never reach the target and only count in the mean
+    reach_cells = w + block
+    pad = 2 * reach_cells
+    grid = np.pad(target.grid, pad)
+    upper = maximum_filter(grid, size=block, origin=-(block // 2), mode="constant")
+    width = grid.shape[1]
+    cells = target.cells(rotated + np.array(init[:2])) + pad  # (A, M, 2)
+    inside = ((cells >= reach_cells) & (cells < np.array(grid.shape) - reach_cells)).all(axis=-1)
+    cells = np.where(inside[..., None], cells, 0)
+    flat_cells = cells[..., 0] * width + cells[..., 1]
+    count = source_xy.shape[0]
+    zero = np.zeros(1, dtype=np.float32)
+    grid_flat = np.concatenate([grid.ravel(), zero])
+    upper_flat = np.concatenate([upper.ravel(), zero])
+    flat_cells = np.where(inside, flat_cells, -1)
     corner = np.stack(np.meshgrid(np.arange(nb), np.arange(nb), indexing="ij"), -1).reshape(-1, 2) * block - w
-    upper = maximum_filter(target.grid, size=block, origin=-(block // 2), mode="constant")
-    bounds = _scores(upper, cells, corner)  # (A, B)
     fine = np.stack(np.meshgrid(np.arange(block), np.arange(block), indexing="ij"), -1).reshape(-1, 2)
+    bounds = _bounds(upper_flat, flat_cells, corner[:, 0] * width + corner[:, 1], count)
     order = np.argsort(bounds, axis=None)[::-1]
     best, opened = -1.0, []
-    for flat in order:
-        a, b = divmod(int(flat), bounds.shape[1])
-        if bounds[a, b] < ratio * best:
+    for start in range(0, len(order), 32):  # open blocks 32 at a time, best bound first
+        batch = order[start : start + 32]
+        batch = batch[bounds.flat[batch] >= ratio * best] if best > 0 else batch
+        if len(batch) == 0:
             break
-        offs = corner[b] + fine
-        offs = offs[(np.abs(offs) <= w).all(axis=1)]
-        sc = _scores(target.grid, cells[a : a + 1], offs)[0]
-        k = int(np.argmax(sc))
-        opened.append((float(sc[k]), a, offs[k]))
-        best = max(best, float(sc[k]))
+        angle, blk = np.divmod(batch, bounds.shape[1])
+        offs = corner[blk][:, None, :] + fine[None]  # (K, block^2, 2)
+        c = flat_cells[angle][:, None, :]  # (K, 1, M)
+        idx = np.where(c >= 0, c + (offs[..., 0] * width + offs[..., 1])[..., None], len(grid_flat) - 1)
+        sc = grid_flat[idx].sum(axis=-1) / count
+        sc[(np.abs(offs) > w).any(axis=-1)] = -1.0
+        k = np.argmax(sc, axis=1)
+        for i in range(len(batch)):
+            opened.append((float(sc[i, k[i]]), int(angle[i]), offs[i, k[i]]))
+        best = max(best, float(sc[np.arange(len(batch)), k].max()))
     score, a, off = max(opened, key=lambda t: t[0])
     pose = (init[0] + off[0] * res, init[1] + off[1] * res, float(yaws[a]))
     dt, dy = distinct_t or 5 * res, distinct_yaw or 5 * step

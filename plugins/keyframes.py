@@ -39,12 +39,19 @@ def bird_eye(points: np.ndarray, planar: bool) -> np.ndarray:
     return points[z > np.percentile(z, 20), :2].astype(np.float64)
 
 
+def first_per_cell(xy: np.ndarray, cell: float) -> np.ndarray:
+    """Indices (sorted) of the first point in each ``cell`` x ``cell`` grid cell."""
+    ij = np.floor(xy / cell).astype(np.int64)
+    ij -= ij.min(axis=0)
+    _, first = np.unique(ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1], return_index=True)
+    return np.sort(first)
+
+
 def thin(xy: np.ndarray, cell: float, limit: int, rng: np.random.Generator) -> np.ndarray:
     """One point per ``cell`` grid cell, then at most ``limit`` points (random subset)."""
     if len(xy) == 0:
         return xy
-    _, first = np.unique(np.floor(xy / cell).astype(np.int64), axis=0, return_index=True)
-    xy = xy[np.sort(first)]
+    xy = xy[first_per_cell(xy, cell)]
     if len(xy) > limit:
         xy = xy[np.sort(rng.choice(len(xy), limit, replace=False))]
     return xy
@@ -61,5 +68,4 @@ def submap(frames: Frames, poses: np.ndarray, path: np.ndarray, key: int, half_l
         xy = bird_eye(frames.points[f], frames.planar)
         parts.append(xy @ rel[:2, :2].T + rel[:2, 3])
     xy = np.concatenate(parts) if parts else np.zeros((0, 2))
-    _, first = np.unique(np.floor(xy / cell).astype(np.int64), axis=0, return_index=True)
-    return xy[np.sort(first)]
+    return xy[first_per_cell(xy, cell)] if len(xy) else xy
