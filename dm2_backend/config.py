@@ -19,7 +19,8 @@ DEFAULTS: dict = {
     "nproc": 1,
     "frames": {"max_points": 1024, "voxel": None},
     "warm_start": {"name": "poses", "options": {}},
-    "place_recognition": {"name": "radius", "options": {}},
+    #: "auto": loops for planar scans, radius otherwise (prepare/pipeline.py resolve_auto)
+    "place_recognition": {"name": "auto", "options": {}},
     "registration": {"name": "icp", "options": {}},
     "optimiser": asdict(OptimConfig()),
 }

@@ -76,7 +76,7 @@ class Optimiser:
         self.device = resolve_device(device)
         if cfg.threads > 0 and self.device.type == "cpu":
             torch.set_num_threads(cfg.threads)
-        self.derived = derive(cfg, frames.scale)
+        self.derived = derive(cfg, frames.scale, loop_closed=topology.poses is not None)
         self.planar = frames.planar
         self.n = len(frames)
         torch.manual_seed(seed)
@@ -88,7 +88,7 @@ class Optimiser:
         self.valid = torch.from_numpy(pairwise.valid & (topology.groups >= 0)).to(self.device)
         self.model = PoseModel(
             warm_start, frames.planar, self.derived["step_translation"], self.derived["step_rotation"],
-            kind=cfg.pose_model, drift=cfg.drift, points=self.points,
+            kind=cfg.pose_model, drift=self.derived["drift"], points=self.points,
             length_scale=frames.scale.get("range_median", 1.0), drift_factor=cfg.drift_factor,
         ).to(self.device)
         lo, hi = self._map_box(warm_start, pts)
@@ -98,7 +98,7 @@ class Optimiser:
         ).to(self.device)
         groups = [
             {"params": self.field.parameters(), "lr": cfg.lr_field},
-            {"params": self.model.pose_parameters(), "lr": cfg.lr_pose},
+            {"params": self.model.pose_parameters(), "lr": self.derived["lr_pose"]},
         ]
         if self.model.network_parameters():
             groups.append({"params": self.model.network_parameters(), "lr": cfg.lr_network})

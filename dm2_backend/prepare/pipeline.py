@@ -45,6 +45,15 @@ class Prepared:
         return self.topology.poses if self.topology.poses is not None else self.warm_start
 
 
+def resolve_auto(section: dict, planar: bool) -> dict:
+    """Place recognition ``auto``: ``loops`` (loop closure under large drift) for planar laser scans,
+    ``radius`` otherwise (the loops plugin matches bird's-eye views, which suits ground robots but not a
+    hand-held depth camera)."""
+    if section.get("name") != "auto":
+        return section
+    return {"name": "loops" if planar else "radius", "options": dict(section.get("options") or {})}
+
+
 def default_cache_dir() -> Path:
     return Path(os.environ.get("DM2_CACHE_DIR", Path.home() / ".cache" / "dm2"))
 
@@ -144,7 +153,7 @@ def prepare(
         cache.put(name, {"poses": warm})
     timings["warm_start"] = time.perf_counter() - t
 
-    pr = cfg["place_recognition"]
+    pr = cfg["place_recognition"] = resolve_auto(cfg["place_recognition"], frames.planar)
     k_pr = _key(k_ws, pr)
     keys["place_recognition"] = name = f"topology-{k_pr}"
     t = time.perf_counter()
