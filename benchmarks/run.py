@@ -1,6 +1,6 @@
 """Run the dm2 benchmarks: dataset x method cases, each in a fresh subprocess.
 
-    python benchmarks/run.py [--quick] [--only NAME ...] [--out benchmarks/results] [--epochs N]
+    python benchmarks/run.py [--quick | --set quick|freiburg|full] [--only NAME ...] [--out benchmarks/results] [--epochs N]
 
 Writes ``<out>/YYYY-MM-DD-<set>.json`` (every number and setting), ``<out>/latest-<set>.md`` (the table the
 README includes) and ``<out>/scaling-<set>.png`` (time and memory against frames). Run folders and logs
@@ -47,6 +47,11 @@ SETS: dict[str, dict] = {
         },
         "epochs": 3,
         "timeout": 600,
+    },
+    "freiburg": {
+        "cases": {"aces": ["dm2 refine", *BASELINES], "intel": ["dm2 refine", *BASELINES]},
+        "epochs": None,
+        "timeout": 3600,
     },
     "full": {
         "cases": {name: ALL[1:] for name in DATASETS},
@@ -124,6 +129,8 @@ def render(path: Path) -> int:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="The ~10-minute set (few epochs).")
+    ap.add_argument("--set", dest="set_name", choices=list(SETS), default=None,
+                    help="A named set (quick, freiburg: ACES + Intel against the baselines, full).")
     ap.add_argument("--only", nargs="+", default=[], metavar="NAME",
                     help="Only these datasets / methods / dataset:method (shell patterns).")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
@@ -137,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.render is not None:
         return render(args.render)
 
-    set_name = "quick" if args.quick else "full"
+    set_name = args.set_name or ("quick" if args.quick else "full")
     spec = SETS[set_name]
     epochs = args.epochs if args.epochs is not None else spec["epochs"]
     timeout = args.timeout or spec["timeout"]
