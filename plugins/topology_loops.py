@@ -130,6 +130,7 @@ class LoopsTopology:
                              + [0.002 * steps + 0.25 * L["resolution"] / L["reach"]], axis=1)
         graph = KeyframeGraph(odo, odo_sigma, np.array([L["resolution"]] * 2 + [L["resolution"] / L["reach"]]))
         pending: list[Closure] = []
+        entries: dict[int, dict] = {}  # id(closure) -> its log entry
         last = 0.0
         bar = tqdm(range(len(keys)), desc="loop closure", disable=not self.progress, leave=False)
         for b in bar:
@@ -143,11 +144,14 @@ class LoopsTopology:
                 if not entry["verified"]:
                     continue
                 new = Closure(a, b, np.array(entry["z"]))
+                entries[id(new)] = entry
                 trusted = self._consistent(new, pending + graph.closures, odo, kpath)
                 entry["accepted"] = bool(trusted)
                 if trusted:
-                    promote = [c for c in pending if c in trusted]
-                    pending = [c for c in pending if c not in trusted]
+                    promote = [c for c in pending if any(c is t for t in trusted)]
+                    pending = [c for c in pending if not any(c is t for t in trusted)]
+                    for c in promote:
+                        entries[id(c)].update(accepted=True, reason="verified; confirmed by a later closure")
                     graph.close(promote + [new])
                     last = kpath[b]
                 else:
@@ -157,8 +161,7 @@ class LoopsTopology:
         key_poses, kept, dropped = graph.solve_batch(self.gate)
         log[0].update(keyframes=len(keys), closures=len(kept), dropped=len(dropped))
         for c in dropped:
-            log.append({"i": int(keys[c.a]), "j": int(keys[c.b]), "accepted": False, "verified": True,
-                        "reason": "dropped by the final robust solve"})
+            entries[id(c)].update(accepted=False, reason="dropped by the final robust solve")
         self.closures = [(int(keys[c.a]), int(keys[c.b])) for c in kept]
         return correct(poses, keys, odo, key_poses, path)
 

@@ -133,6 +133,22 @@ def test_map_and_plots(run):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
 
 
+def test_topology_files(run):
+    out, _, report = run
+    assert {"topology.json", "topology.png"} <= set(report["files"])
+    doc = json.loads((out / "topology.json").read_text())
+    assert doc["plugin"] == "loops" and doc["summary"]["keyframes"] > 0  # auto = loops for planar scans
+    counts, cands = doc["counts"], doc["candidates"]
+    assert counts["candidates"] == len(cands) > 0 and counts["accepted"] > 0  # two laps: the loop is closed
+    assert counts["accepted"] == sum(c["status"] == "accepted" for c in cands)
+    assert sum(counts[k] for k in ("accepted", "dropped", "verified_not_accepted", "rejected")) == len(cands)
+    for c in cands:
+        assert 0 <= c["i"] < c["j"] < report["frames"] and "reason" in c
+        assert c["status"] == "rejected" or len(c["z"]) == 3
+    assert doc["edges"].get("loop", 0) > 0 and sum(doc["edges"].values()) == report["prepare"]["topology_edges"]
+    assert (out / "topology.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 def test_prior_files(seq, run):
     out, _, report = run
     init, groups, relative = read_priors(out / "prior")

@@ -2,7 +2,8 @@
 
 - trajectories overlaid, top view and side view;
 - per-frame translation and rotation APE coloured along the estimate (heat map);
-- error versus epoch from a refine run's ``report.json`` ``epochs`` list.
+- error versus epoch from a refine run's ``report.json`` ``epochs`` list;
+- the place recognition's closures and loop edges over the trajectory (``topology.png``).
 The "top" view uses the two axes along which the ground truth extends most, the "side" view the longest
 axis against the shortest (so camera-frame KITTI, y down, is drawn from above as well).
 """
@@ -13,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 
 from dm2_backend.atomic import atomic_write
@@ -109,4 +111,50 @@ def plot_error_vs_epoch(path: str | Path, epochs: list) -> Path | None:
     ax.set_title("error vs epoch")
     ax.grid(True, alpha=0.3)
     ax.legend(loc="best")
+    return _save(fig, path)
+
+
+#: how each closure status is drawn on the topology plot: colour, line width, line style, opacity, label
+CLOSURE_STYLE = {
+    "rejected": ("0.55", 0.5, "solid", 0.25, "rejected candidates"),
+    "verified": ("tab:red", 1.0, "dashed", 0.8, "verified, not accepted"),
+    "dropped": ("tab:red", 1.2, "solid", 0.9, "dropped by the final solve"),
+    "accepted": ("tab:green", 1.4, "solid", 0.9, "accepted closures"),
+}
+
+
+def _segments(pos: np.ndarray, pairs: np.ndarray, limit: int) -> np.ndarray:
+    """(M,2,2) line segments between the frames of each pair, evenly subsampled to at most ``limit``."""
+    pairs = np.asarray(pairs, dtype=int).reshape(-1, 2)
+    if len(pairs) > limit:
+        pairs = pairs[np.linspace(0, len(pairs) - 1, limit).astype(int)]
+    return np.stack([pos[pairs[:, 0]], pos[pairs[:, 1]]], axis=1)
+
+
+def plot_topology(path: str | Path, positions: np.ndarray, closures: dict[str, np.ndarray],
+                  loop_edges: np.ndarray, title: str = "topology", limit: int = 3000) -> Path:
+    """Top view of the trajectory with the topology's loop edges (light) and the loop-closure candidates
+    (``status -> (M,2)`` frame pairs) drawn as lines between the two frames' positions."""
+    positions = np.asarray(positions)
+    top = (0, 1) if np.ptp(positions[:, 2]) < 1e-6 else view_axes(positions)[0]  # planar: x right, y up
+    pos = positions[:, list(top)]
+    fig = Figure(figsize=(9, 8))
+    ax = fig.add_subplot(1, 1, 1)
+    ax.plot(pos[:, 0], pos[:, 1], color="tab:blue", lw=0.8, label="trajectory")
+    if len(loop_edges):
+        drawn = f", {limit} drawn" if len(loop_edges) > limit else ""
+        ax.add_collection(LineCollection(_segments(pos, loop_edges, limit), colors="tab:purple", linewidths=0.4,
+                                         alpha=0.25, label=f"loop edges ({len(loop_edges)}{drawn})"))
+    for status, (colour, width, style, alpha, label) in CLOSURE_STYLE.items():
+        pairs = np.asarray(closures.get(status, np.zeros((0, 2))), dtype=int).reshape(-1, 2)
+        if len(pairs):
+            shown = f", {limit} drawn" if len(pairs) > limit else ""
+            seg = _segments(pos, pairs, limit)
+            ax.add_collection(LineCollection(seg, colors=colour, linewidths=width, linestyles=style, alpha=alpha,
+                                             label=f"{label} ({len(pairs)}{shown})"))
+            if status != "rejected":  # closures along a corridor lie on the trajectory: mark their ends
+                ax.scatter(seg[:, :, 0].ravel(), seg[:, :, 1].ravel(), s=8, color=colour, alpha=alpha, zorder=3)
+    ax.plot(pos[0, 0], pos[0, 1], "k^", ms=6, label="start")
+    _setup(ax, top, title)
+    ax.legend(loc="best", fontsize=8)
     return _save(fig, path)

@@ -12,7 +12,7 @@ import open3d as o3d
 
 from dm2_backend.atomic import atomic_path, atomic_write
 from dm2_backend.errors import InputError
-from dm2_backend.evaluation import plots
+from dm2_backend.evaluation import plots, topology_log
 from dm2_backend.formats import TRAJECTORY_FORMATS, ReadOptions, write_trajectory
 from dm2_backend.formats.dm2_priors import write_priors
 from dm2_backend.prepare.types import Frames, Pairwise, Topology
@@ -79,6 +79,20 @@ def write_plots(out: Path, estimates: dict[str, np.ndarray], gt: Trajectory | No
         plots.plot_error_map(out / "errors.png", last, estimates[last][:, :3, 3], per_frame, gt_pos)
     if epochs:
         plots.plot_error_vs_epoch(out / "epochs.png", epochs)
+
+
+def write_topology(out: Path, topology: Topology, poses: np.ndarray) -> list[str]:
+    """``topology.json`` (the place recognition's log: summary, counts, reasons, every candidate) and
+    ``topology.png`` (closures and loop edges over the top view of ``poses``). Returns the files written."""
+    doc = topology_log.document(topology)
+    write_report(out / "topology.json", doc)
+    edges, kinds = np.asarray(topology.edges, dtype=int).reshape(-1, 2), list(topology.edge_kind)
+    loops = edges[np.array([k == "loop" for k in kinds], bool)] if len(kinds) == len(edges) else edges[:0]
+    c = doc["counts"]
+    title = (f"place recognition {doc['plugin'] or ''}: {c['accepted']} accepted, {c['dropped']} dropped, "
+             f"{c['candidates']} candidates")
+    plots.plot_topology(out / "topology.png", poses[:, :3, 3], topology_log.pairs_by_status(doc), loops, title)
+    return ["topology.json", "topology.png"]
 
 
 def write_report(path: Path, report: dict) -> None:

@@ -76,6 +76,7 @@ def write_common(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final:
     if inputs.gt is not None:
         per_frame = {"translation error": (paper_ate(inputs.gt.poses, final).trans_errors, "m")}
     outputs.write_plots(out, {"warm start": prep.warm_start, method: final}, inputs.gt, per_frame, epochs)
+    files += outputs.write_topology(out, prep.topology, final)
     report = {
         "method": method,
         "dm2_version": __version__,
