@@ -1,6 +1,6 @@
 """Run the dm2 benchmarks: dataset x method cases, each in a fresh subprocess.
 
-    python benchmarks/run.py [--quick | --set quick|freiburg|full] [--only NAME ...] [--out benchmarks/results] [--epochs N]
+    python benchmarks/run.py [--quick | --set quick|freiburg|full] [--only NAME ...] [--out DIR] [--epochs N]
 
 Writes ``<out>/YYYY-MM-DD-<set>.json`` (every number and setting), ``<out>/latest-<set>.md`` (the table the
 README includes) and ``<out>/scaling-<set>.png`` (time and memory against frames). Run folders and logs

@@ -17,6 +17,7 @@ from dm2_backend.baselines.graph import InformationModel, build_graph, registrat
 from dm2_backend.baselines.multiway import multiway
 from dm2_backend.baselines.options import SolverOptions
 from dm2_backend.cli.main import cli
+from dm2_backend.errors import InputError
 from dm2_backend.formats.g2o import PoseGraph, read_g2o, write_g2o
 from dm2_backend.geometry import se3
 from dm2_backend.prepare.types import Frames, Pairwise, Topology
@@ -317,3 +318,12 @@ def test_g2o_missing_is_an_input_error(tmp_path, monkeypatch):
     result = CliRunner().invoke(cli, args, obj={})
     assert result.exit_code == 2 and "dm2[g2o]" in result.output
     assert len(result.output.strip().splitlines()) == 1
+
+
+def test_multiway_refuses_graphs_too_large_for_its_dense_solver():
+    from dm2_backend.baselines.multiway import check_size, dense_bytes
+
+    assert dense_bytes(7374) > 14 * 2**30  # ACES: the size that was killed for memory
+    check_size(100, available=2**30)  # 0.003 GiB of 1: fine
+    with pytest.raises(InputError, match="7374 frames"):
+        check_size(7374, available=24 * 2**30)
