@@ -77,9 +77,11 @@ def test_refine_lowers_ate_with_icp_pairwise(case, full_run):
     np.testing.assert_allclose(result.poses[0], case.warm[0], atol=1e-9)  # the gauge: frame 0 stays put
     assert (folder / CHECKPOINT).is_file()
     assert set(result.derived) == {"unit", "finest_cell", "free_margin", "chamfer_truncate",
-                                   "step_translation", "step_rotation", "epochs", "drift", "lr_pose"}
+                                   "step_translation", "step_rotation", "epochs", "drift", "lr_pose",
+                                   "start_disagreement", "locally_accurate_start"}
     assert result.derived["epochs"] == EPOCHS
-    # a drifting warm start (no loop-closed poses in the topology): drift terms and full pose steps
+    # a drifting warm start (not loop-closed, registrations disagree with it): drift terms, full pose steps
+    assert result.derived["start_disagreement"] > result.derived["unit"]
     assert result.derived["drift"] is True and result.derived["lr_pose"] == 1.0
 
 
@@ -210,10 +212,10 @@ def test_derived_lengths_follow_the_data():
 
 def test_pose_regime_follows_loop_closed_start():
     scale = {"spacing": 0.1, "voxel": 0.0}
-    drifting, closed = derive(OptimConfig(), scale), derive(OptimConfig(), scale, loop_closed=True)
+    drifting, closed = derive(OptimConfig(), scale), derive(OptimConfig(), scale, accurate=True)
     assert (drifting["drift"], drifting["lr_pose"]) == (True, 1.0)
     assert (closed["drift"], closed["lr_pose"]) == (False, 0.05)
-    forced = derive(OptimConfig(drift=True, lr_pose=0.3), scale, loop_closed=True)
+    forced = derive(OptimConfig(drift=True, lr_pose=0.3), scale, accurate=True)
     assert (forced["drift"], forced["lr_pose"]) == (True, 0.3)
 
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
+import numpy as np
+
 
 @dataclass
 class OptimConfig:
@@ -24,8 +26,8 @@ class OptimConfig:
     #: "direct" per-frame corrections or "lnet" (PointNet, the paper's L-Net)
     pose_model: str = "direct"
     #: drift parameters: corrections that carry over to all later frames (see pose_model.py); None: on for a
-    #: drifting warm start, off when the place recognition already closed the loops (``Topology.poses``):
-    #: there noisy drift steps bend a good trajectory (ACES from 0.0365 m: 0.215 with, 0.0705 without)
+    #: drifting start, off for a locally accurate one (see :func:`derive`): there noisy drift steps bend a
+    #: good trajectory (ACES from 0.0365 m: 0.215 with, 0.0705 without)
     drift: bool | None = None
     #: step of each drift parameter relative to the direct ones (None: 1/sqrt(frames))
     drift_factor: float | None = None
@@ -43,9 +45,14 @@ class OptimConfig:
     #: so a wrong pairwise registration pulls with a bounded force; "none" is the paper's plain mean
     consistency_kernel: str = "cauchy"
     #: Adam learning rate of the pose parameters (scales ``step_translation``/``step_rotation``); None: 1.0 from a
-    #: drifting warm start, 0.05 from loop-closed poses, whose remaining errors are a few cells (ACES
+    #: drifting start, 0.05 from a locally accurate one, whose remaining errors are a few cells (ACES
     #: from 0.0365 m after 2 epochs: lr 1.0 0.0705 (1 epoch), 0.2 0.0376, 0.05 0.0359)
     lr_pose: float | None = None
+    #: the start counts as locally accurate when it is loop-closed (``Topology.poses``) or when the median
+    #: disagreement between its relative poses and the pairwise registrations is below this many units, i.e.
+    #: half a point spacing (measured: RedKitchen icp warm start 0.13; simulated random-walk odometry 0.34
+    #: to 2.75)
+    accurate_below: float = 0.25
     lr_field: float = 1e-2
     lr_network: float = 1e-3
     #: final learning rate as a fraction of the initial one (cosine schedule)
@@ -71,9 +78,9 @@ class OptimConfig:
         return cls(**(values or {}))
 
 
-def derive(cfg: OptimConfig, scale: dict[str, float], loop_closed: bool = False) -> dict:
+def derive(cfg: OptimConfig, scale: dict[str, float], accurate: bool = False) -> dict:
     """Fill the None lengths from the data's scale (Frames.scale), and the pose regime (``drift``,
-    ``lr_pose``) from whether the initial poses are loop-closed."""
+    ``lr_pose``) from whether the initial poses are locally accurate."""
     spacing = max(scale.get("spacing", 0.0), scale.get("voxel", 0.0), 1e-3)
     unit = cfg.unit or 2.0 * spacing
     step_t = cfg.step_translation or unit / 10.0
@@ -84,6 +91,18 @@ def derive(cfg: OptimConfig, scale: dict[str, float], loop_closed: bool = False)
         "chamfer_truncate": cfg.chamfer_truncate or 10.0 * unit,
         "step_translation": step_t,
         "step_rotation": cfg.step_rotation or step_t / max(scale.get("range_median", 1.0), 1e-3),
-        "drift": cfg.drift if cfg.drift is not None else not loop_closed,
-        "lr_pose": cfg.lr_pose if cfg.lr_pose is not None else (0.05 if loop_closed else 1.0),
+        "drift": cfg.drift if cfg.drift is not None else not accurate,
+        "lr_pose": cfg.lr_pose if cfg.lr_pose is not None else (0.05 if accurate else 1.0),
     }
+
+
+def disagreement(poses: np.ndarray, groups: np.ndarray, relative: np.ndarray, valid: np.ndarray,
+                 lever: float) -> float:
+    """Median over the valid pairs of how far the initial poses' relative pose is from the pairwise
+    registration: translation plus rotation times ``lever`` (m)."""
+    rows, cols = np.nonzero(valid & (groups >= 0))
+    if len(rows) == 0:
+        return float("inf")
+    T = np.linalg.inv(relative[rows, cols]) @ np.linalg.inv(poses[rows]) @ poses[groups[rows, cols]]
+    angle = np.arccos(np.clip((np.trace(T[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1.0, 1.0))
+    return float(np.median(np.linalg.norm(T[:, :3, 3], axis=1) + angle * lever))
