@@ -53,6 +53,11 @@ SETS: dict[str, dict] = {
         "epochs": None,
         "timeout": 3600,
     },
+    "freiburg-ablations": {
+        "cases": {"aces": ["L-Net poses", "no consistency"]},
+        "epochs": None,
+        "timeout": 3600,
+    },
     "full": {
         "cases": {name: ALL[1:] for name in DATASETS},
         "epochs": None,
