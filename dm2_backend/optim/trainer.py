@@ -79,7 +79,7 @@ class Optimiser:
         spread = disagreement(warm_start, topology.groups, pairwise.relative, pairwise.valid,
                               frames.scale.get("range_median", 1.0))
         unit = derive(cfg, frames.scale)["unit"]
-        accurate = topology.poses is not None or spread < cfg.accurate_below * unit
+        accurate = spread < cfg.accurate_below * unit
         self.derived = derive(cfg, frames.scale, accurate=accurate)
         self.derived.update(start_disagreement=spread, locally_accurate_start=bool(accurate))
         self.planar = frames.planar

@@ -45,13 +45,13 @@ class Prepared:
         return self.topology.poses if self.topology.poses is not None else self.warm_start
 
 
-def resolve_auto(section: dict, planar: bool) -> dict:
-    """Place recognition ``auto``: ``loops`` (loop closure under large drift) for planar laser scans,
-    ``radius`` otherwise (the loops plugin matches bird's-eye views, which suits ground robots but not a
-    hand-held depth camera)."""
+def resolve_auto(section: dict, camera: bool) -> dict:
+    """Place recognition ``auto``: ``loops`` (loop closure under large drift, matching bird's-eye views, as
+    suits laser scanners on ground robots and vehicles), ``radius`` for depth-camera sequences (a hand-held
+    camera's frame has no vertical axis to look down)."""
     if section.get("name") != "auto":
         return section
-    return {"name": "loops" if planar else "radius", "options": dict(section.get("options") or {})}
+    return {"name": "radius" if camera else "loops", "options": dict(section.get("options") or {})}
 
 
 def default_cache_dir() -> Path:
@@ -153,7 +153,7 @@ def prepare(
         cache.put(name, {"poses": warm})
     timings["warm_start"] = time.perf_counter() - t
 
-    pr = cfg["place_recognition"] = resolve_auto(cfg["place_recognition"], frames.planar)
+    pr = cfg["place_recognition"] = resolve_auto(cfg["place_recognition"], "intrinsics" in scans.meta)
     k_pr = _key(k_ws, pr)
     keys["place_recognition"] = name = f"topology-{k_pr}"
     t = time.perf_counter()
