@@ -58,6 +58,11 @@ SETS: dict[str, dict] = {
         "epochs": None,
         "timeout": 3600,
     },
+    "scale": {
+        "cases": {"sim-3d-500": ["dm2 refine"], "sim-3d-2000": ["dm2 refine"], "sim-3d-5000": ["dm2 refine"]},
+        "epochs": None,
+        "timeout": 3600,
+    },
     "full": {
         "cases": {name: ALL[1:] for name in DATASETS},
         "epochs": None,

@@ -193,6 +193,9 @@ class LoopsTopology:
         coarse_res = res * 2.0 ** max(0, int(np.ceil(np.log2(window / (32 * res)))))
         init = between(estimate[a], estimate[b])
         src = self._maps[b]
+        if min(len(src), len(self._maps[a])) < 10:
+            return {"i": int(self._keys[a]), "j": int(self._keys[b]), "score": 0.0, "verified": False,
+                    "accepted": False, "reason": "fewer than 10 points in a submap"}
         coarse = cm.match(kf.thin(src, coarse_res, 400, self._rng), self._grid(a, coarse_res), tuple(init),
                           window, yaw_window, ratio=self.max_ambiguity)
         entry = {"i": int(self._keys[a]), "j": int(self._keys[b]), "window": round(window, 2),
