@@ -32,6 +32,7 @@ from dm2_backend.errors import InputError
 from dm2_backend.evaluation.relations import MAX_DT, load_relations
 from dm2_backend.formats import read_trajectory
 from dm2_backend.geometry import se3
+from dm2_backend.plugins.common import path_length
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_GAP = 10.0
@@ -51,12 +52,6 @@ def load_run(folder: Path, stamps: Path | None = None) -> tuple[np.ndarray, np.n
         if traj.timestamps is not None and len(traj.timestamps) == len(poses):
             return poses, np.asarray(traj.timestamps, dtype=np.float64), doc
     raise InputError(folder, "no poses with timestamps (poses_tum.txt, poses_carmen.*, or --stamps)")
-
-
-def path_length(poses: np.ndarray) -> np.ndarray:
-    """Distance travelled along the positions up to each frame (m)."""
-    steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
-    return np.concatenate([[0.0], np.cumsum(steps)])
 
 
 def frames_at(stamps: np.ndarray, t: np.ndarray, max_dt: float) -> tuple[np.ndarray, np.ndarray]:

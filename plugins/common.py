@@ -159,6 +159,12 @@ def normals_2d(xy: np.ndarray, tree: cKDTree, k: int = 7) -> np.ndarray:
 EDGE_PRIORITY = ("loop", "external", "radius", "temporal")
 
 
+def path_length(poses: np.ndarray) -> np.ndarray:
+    """Distance travelled (m) up to each pose (N,4,4)."""
+    steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    return np.concatenate([[0.0], np.cumsum(steps)])
+
+
 def temporal_order(i: int, n: int):
     """Frame indices i-1, i+1, i-2, i+2, ... inside [0, n) (the official DM2 fill order)."""
     for step in range(1, n):

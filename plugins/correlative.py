@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import distance_transform_edt, maximum_filter
 
+from dm2_backend.geometry import se3
+
 
 @dataclass
 class Correlation:
@@ -77,9 +79,11 @@ def match(
     ratio: float = 0.9,
     distinct_t: float | None = None,
     distinct_yaw: float | None = None,
+    floor: float = 0.0,
 ) -> Correlation:
     """Best pose (x, y, yaw) of the source points in the target's frame within ``window_t`` (m) and
-    ``window_yaw`` (rad) of ``init``, and the runner-up score of a distinct alignment."""
+    ``window_yaw`` (rad) of ``init``, and the runner-up score of a distinct alignment. Blocks that cannot
+    reach ``floor`` are not opened (a score of 0 comes back when none can)."""
     res = target.res
     reach = max(float(np.percentile(np.hypot(source_xy[:, 0], source_xy[:, 1]), 90)), res)
     step = res / reach  # a rotation step moves the far points by about one cell
@@ -115,7 +119,7 @@ def match(
     best, opened = -1.0, []
     for start in range(0, len(order), 32):  # open blocks 32 at a time, best bound first
         batch = order[start : start + 32]
-        batch = batch[bounds.flat[batch] >= ratio * best] if best > 0 else batch
+        batch = batch[bounds.flat[batch] >= max(ratio * best, floor)]
         if len(batch) == 0:
             break
         angle, blk = np.divmod(batch, bounds.shape[1])
@@ -125,17 +129,25 @@ def match(
         sc = grid_flat[idx].sum(axis=-1) / count
         sc[(np.abs(offs) > w).any(axis=-1)] = -1.0
         k = np.argmax(sc, axis=1)
-        for i in range(len(batch)):
-            opened.append((float(sc[i, k[i]]), int(angle[i]), offs[i, k[i]]))
+        opened.append((sc, angle, offs))
         best = max(best, float(sc[np.arange(len(batch)), k].max()))
-    score, a, off = max(opened, key=lambda t: t[0])
+    if not opened:
+        return Correlation(*init, score=0.0, runner_up=0.0)
+    scores = np.concatenate([o[0] for o in opened])  # (K, block^2): every cell of every opened block
+    angles = np.concatenate([o[1] for o in opened])
+    offsets = np.concatenate([o[2] for o in opened])
+    blk, cell = np.unravel_index(int(np.argmax(scores)), scores.shape)
+    score, a, off = float(scores[blk, cell]), int(angles[blk]), offsets[blk, cell]
     pose = (init[0] + off[0] * res, init[1] + off[1] * res, float(yaws[a]))
     dt, dy = distinct_t or 5 * res, distinct_yaw or 5 * step
+    far = (np.hypot(*(offsets - off).transpose(2, 0, 1)) * res > dt) | (
+        np.abs(se3.wrap_angle(yaws[angles] - yaws[a]))[:, None] > dy)
     runner, runner_pose = 0.0, None
-    for sc, a2, off2 in opened:
-        far_t = np.hypot(*(off2 - off)) * res > dt
-        far_r = abs(np.angle(np.exp(1j * (yaws[a2] - yaws[a])))) > dy
-        if (far_t or far_r) and sc > runner:
-            runner = sc
-            runner_pose = (init[0] + off2[0] * res, init[1] + off2[1] * res, float(yaws[a2]))
+    if far.any():
+        masked = np.where(far, scores, -1.0)
+        rb, rc = np.unravel_index(int(np.argmax(masked)), masked.shape)
+        if masked[rb, rc] > 0:
+            runner = float(masked[rb, rc])
+            o2 = offsets[rb, rc]
+            runner_pose = (init[0] + o2[0] * res, init[1] + o2[1] * res, float(yaws[angles[rb]]))
     return Correlation(*pose, score=score, runner_up=runner, runner_up_pose=runner_pose)

@@ -10,13 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from dm2_backend.geometry import se3
+from dm2_backend.plugins.common import path_length
 from dm2_backend.prepare.types import Frames
-
-
-def path_length(poses: np.ndarray) -> np.ndarray:
-    """Distance travelled (m) up to each pose."""
-    steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
-    return np.concatenate([[0.0], np.cumsum(steps)])
 
 
 def select(poses: np.ndarray, spacing: float, angle: float) -> np.ndarray:
@@ -25,7 +20,7 @@ def select(poses: np.ndarray, spacing: float, angle: float) -> np.ndarray:
     path = path_length(poses)
     keep = [0]
     for i in range(1, len(poses)):
-        turn = abs(np.angle(np.exp(1j * (yaw[i] - yaw[keep[-1]]))))
+        turn = abs(se3.wrap_angle(yaw[i] - yaw[keep[-1]]))
         if path[i] - path[keep[-1]] >= spacing or turn >= angle:
             keep.append(i)
     return np.asarray(keep, dtype=np.int64)

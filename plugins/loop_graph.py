@@ -4,10 +4,12 @@ batch solve that drops closures the rest of the graph disagrees with."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
+
+from dm2_backend.geometry import se3
 
 
 def pose2(v) -> gtsam.Pose2:
@@ -23,11 +25,12 @@ def between(a, b) -> np.ndarray:
     return vec(pose2(a).between(pose2(b)))
 
 
-@dataclass
+@dataclass(eq=False)
 class Closure:
     a: int  # keyframe index (earlier)
     b: int  # keyframe index (later)
     z: np.ndarray  # (x, y, yaw) of b in a's frame
+    entry: dict = field(default_factory=dict)  # its record in the topology log
 
 
 class KeyframeGraph:
@@ -89,7 +92,7 @@ class KeyframeGraph:
             graph.add(gtsam.PriorFactorPose2(0, pose2(self.odometry[0]), gtsam.noiseModel.Diagonal.Sigmas(
                 np.full(3, 1e-6))))
             for k in range(len(self.odometry)):
-                values.insert(k, pose2(self.estimate[k] if k < self.added else self.odometry[k]))
+                values.insert(k, pose2(self.estimate[k]))
                 if k:
                     graph.add(self._odometry_factor(k))
             plain = gtsam.noiseModel.Diagonal.Sigmas(self.loop_sigma)
@@ -106,7 +109,7 @@ class KeyframeGraph:
 def closure_error(poses: np.ndarray, c: Closure, sigma: np.ndarray) -> float:
     """Whitened norm of the closure's residual at ``poses``."""
     r = between(poses[c.a], poses[c.b]) - c.z
-    r[2] = np.angle(np.exp(1j * r[2]))
+    r[2] = se3.wrap_angle(r[2])
     return float(np.linalg.norm(r / sigma))
 
 

@@ -22,6 +22,7 @@ from dm2_backend.plugins.common import (
     assemble,
     fine_distance,
     lengths,
+    path_length,
     planar_pose,
     radius_neighbours,
     resolve_method,
@@ -91,7 +92,7 @@ class DescriptorTopology:
         ).astype(np.float32)
         keys = sc.ring_key(descs)
         pos = poses[:, :3, 3]
-        path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
+        path = path_length(poses)
         gap = self.min_path_gap if self.min_path_gap is not None else 4.0 * radius
         stride = self.stride or max(1, n // 2000)
         fine = fine_distance(scale)

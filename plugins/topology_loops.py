@@ -29,10 +29,20 @@ import numpy as np
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
+from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
 from dm2_backend.plugins import correlative as cm
 from dm2_backend.plugins import keyframes as kf
-from dm2_backend.plugins.common import Cloud, Match, assemble, fine_distance, lengths, planar_pose, radius_neighbours
+from dm2_backend.plugins.common import (
+    Cloud,
+    Match,
+    assemble,
+    fine_distance,
+    lengths,
+    path_length,
+    planar_pose,
+    radius_neighbours,
+)
 from dm2_backend.plugins.gates import constraint, coverage, free_space
 from dm2_backend.plugins.icp import register
 from dm2_backend.plugins.loop_graph import Closure, KeyframeGraph, between, cycle_error
@@ -90,12 +100,22 @@ class LoopsTopology:
     def run(self, frames: Frames, poses: np.ndarray) -> Topology:
         check_k(self.k)
         check_poses(frames, poses)
+        self._check()
         self._setup(frames)
         log: list[dict] = [{"plugin": self.name, **self._lengths}]
         corrected = self._close_loops(frames, poses, log)
         return self._topology(frames, corrected, log)
 
     # ------------------------------------------------------------------ set-up
+    def _check(self) -> None:
+        lengths_ = ("radius", "keyframe_distance", "submap_half_length", "resolution", "window", "max_window",
+                    "min_path_gap", "cycle_tolerance")
+        bad = [f"{n}={getattr(self, n)}" for n in lengths_ if getattr(self, n) is not None and not getattr(self, n) > 0]
+        bad += [f"{n}={getattr(self, n)}" for n in ("candidates", "consistency_window") if getattr(self, n) < 1]
+        bad += [f"{n}={getattr(self, n)}" for n in ("drift", "yaw_drift", "cycle_drift") if getattr(self, n) < 0]
+        if bad:
+            raise InputError(None, f"place recognition loops: invalid options {', '.join(bad)}")
+
     def _setup(self, frames: Frames) -> None:
         s = lengths(frames)
         res = self.resolution or 2.0 * max(s["spacing"], s["voxel"], 1e-3)
@@ -119,7 +139,7 @@ class LoopsTopology:
     def _close_loops(self, frames: Frames, poses: np.ndarray, log: list) -> np.ndarray:
         L = self._lengths
         keys = kf.select(poses, L["keyframe_distance"], np.radians(self.keyframe_angle))
-        path = kf.path_length(poses)
+        path = path_length(poses)
         self._maps = [kf.submap(frames, poses, path, int(f), L["submap_half_length"], L["resolution"] / 2)
                       for f in keys]
         self._keys, self._frames = keys, frames
@@ -130,7 +150,6 @@ class LoopsTopology:
                              + [0.002 * steps + 0.25 * L["resolution"] / L["reach"]], axis=1)
         graph = KeyframeGraph(odo, odo_sigma, np.array([L["resolution"]] * 2 + [L["resolution"] / L["reach"]]))
         pending: list[Closure] = []
-        entries: dict[int, dict] = {}  # id(closure) -> its log entry
         last = 0.0
         bar = tqdm(range(len(keys)), desc="loop closure", disable=not self.progress, leave=False)
         for b in bar:
@@ -143,15 +162,14 @@ class LoopsTopology:
                 log.append(entry)
                 if not entry["verified"]:
                     continue
-                new = Closure(a, b, np.array(entry["z"]))
-                entries[id(new)] = entry
+                new = Closure(a, b, np.array(entry["z"]), entry)
                 trusted = self._consistent(new, pending + graph.closures, odo, kpath)
                 entry["accepted"] = bool(trusted)
                 if trusted:
-                    promote = [c for c in pending if any(c is t for t in trusted)]
-                    pending = [c for c in pending if not any(c is t for t in trusted)]
+                    promote = [c for c in pending if c in trusted]  # Closure compares by identity
+                    pending = [c for c in pending if c not in trusted]
                     for c in promote:
-                        entries[id(c)].update(accepted=True, reason="verified; confirmed by a later closure")
+                        c.entry.update(accepted=True, reason="verified; confirmed by a later closure")
                     graph.close(promote + [new])
                     last = kpath[b]
                 else:
@@ -161,9 +179,8 @@ class LoopsTopology:
         key_poses, kept, dropped = graph.solve_batch(self.gate)
         log[0].update(keyframes=len(keys), closures=len(kept), dropped=len(dropped))
         for c in dropped:
-            entries[id(c)].update(accepted=False, reason="dropped by the final robust solve")
-        self.closures = [(int(keys[c.a]), int(keys[c.b])) for c in kept]
-        return correct(poses, keys, odo, key_poses, path)
+            c.entry.update(accepted=False, dropped=True, reason="dropped by the final robust solve")
+        return correct(poses, keys, odo, key_poses)
 
     def _candidates(self, estimate: np.ndarray, kpath: np.ndarray, b: int, window: float) -> list[int]:
         """Earlier keyframes that may overlap keyframe b: one (the nearest) per earlier visit."""
@@ -197,7 +214,7 @@ class LoopsTopology:
             return {"i": int(self._keys[a]), "j": int(self._keys[b]), "score": 0.0, "verified": False,
                     "accepted": False, "reason": "fewer than 10 points in a submap"}
         coarse = cm.match(kf.thin(src, coarse_res, 400, self._rng), self._grid(a, coarse_res), tuple(init),
-                          window, yaw_window, ratio=self.max_ambiguity)
+                          window, yaw_window, ratio=self.max_ambiguity, floor=self.min_score)
         entry = {"i": int(self._keys[a]), "j": int(self._keys[b]), "window": round(window, 2),
                  "yaw_window_deg": round(float(np.degrees(yaw_window)), 1), "score": round(coarse.score, 4),
                  "ambiguity": round(coarse.runner_up / max(coarse.score, 1e-9), 4), "verified": False,
@@ -214,7 +231,7 @@ class LoopsTopology:
         fine = cm.match(kf.thin(src, res, 800, self._rng), self._grid(a, res), (coarse.x, coarse.y, coarse.yaw),
                         step, step / L["reach"] * 2, ratio=1.0)
         m = self._icp(a, b, planar_pose(fine.x, fine.y, fine.yaw))
-        z = se3.to_xy_yaw(m.T[None])[0]
+        z = se3.to_xy_yaw(m.T)
         entry.update(z=[float(v) for v in z], fitness=round(m.fitness, 4), rmse=round(m.rmse, 5),
                      offset=round(float(np.linalg.norm(z[:2] - init[:2])), 3))
         reasons += self._gates(a, b, m, entry)
@@ -267,7 +284,7 @@ class LoopsTopology:
     def _topology(self, frames: Frames, corrected: np.ndarray, log: list) -> Topology:
         L = self._lengths
         pos = corrected[:, :3, 3]
-        path = kf.path_length(corrected)
+        path = path_length(corrected)
         limit = self.max_loops if self.max_loops is not None else self.k // 2
         tree = cKDTree(pos)
         rows = []
@@ -282,15 +299,11 @@ class LoopsTopology:
         return topo
 
 
-def correct(poses: np.ndarray, keys: np.ndarray, odo: np.ndarray, key_poses: np.ndarray,
-            path: np.ndarray) -> np.ndarray:
-    """Apply the keyframes' planar corrections to every frame, interpolated along the path between the
-    two keyframes around it (yaw unwrapped)."""
+def correct(poses: np.ndarray, keys: np.ndarray, odo: np.ndarray, key_poses: np.ndarray) -> np.ndarray:
+    """Apply the keyframes' planar corrections to every frame, interpolated by frame index between the two
+    keyframes around it (yaw unwrapped); keyframes get exactly their own."""
     corr = se3.to_xy_yaw(se3.from_xy_yaw(key_poses) @ se3.inverse(se3.from_xy_yaw(odo)))
     corr[:, 2] = np.unwrap(corr[:, 2])
-    kpath = path[keys]
-    if len(keys) == 1:
-        c = np.repeat(corr, len(poses), axis=0)
-    else:
-        c = np.stack([np.interp(path, kpath, corr[:, d]) for d in range(3)], axis=1)
+    frames = np.arange(len(poses))
+    c = np.stack([np.interp(frames, keys, corr[:, d]) for d in range(3)], axis=1)
     return se3.from_xy_yaw(c) @ poses

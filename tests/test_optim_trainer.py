@@ -9,9 +9,11 @@ import pytest
 import torch
 from optim_cases import Case, frames_of, one_thread, planar_case, small_config
 
+from dm2_backend.geometry import se3
 from dm2_backend.optim import losses
 from dm2_backend.optim.batching import make_groups, random_groups, temporal_groups
-from dm2_backend.optim.config import OptimConfig, derive
+from dm2_backend.optim.config import OptimConfig, derive, pose_regime
+from dm2_backend.optim.regime import disagreement, locally_accurate
 from dm2_backend.optim.trainer import CHECKPOINT, Optimiser, OptimResult
 from dm2_backend.pipeline.refine import ate_rmse
 from dm2_backend.plugins.topology_radius import RadiusTopology
@@ -212,12 +214,23 @@ def test_derived_lengths_follow_the_data():
 
 
 def test_pose_regime_follows_start_accuracy():
-    scale = {"spacing": 0.1, "voxel": 0.0}
-    drifting, closed = derive(OptimConfig(), scale), derive(OptimConfig(), scale, accurate=True)
+    drifting, closed = pose_regime(OptimConfig(), False), pose_regime(OptimConfig(), True)
     assert (drifting["drift"], drifting["lr_pose"]) == (True, 1.0)
     assert (closed["drift"], closed["lr_pose"]) == (False, 0.05)
-    forced = derive(OptimConfig(drift=True, lr_pose=0.3), scale, accurate=True)
+    forced = pose_regime(OptimConfig(drift=True, lr_pose=0.3), True)
     assert (forced["drift"], forced["lr_pose"]) == (True, 0.3)
+    # the measured disagreement: zero where the registrations equal the poses' relative poses
+    poses = se3.from_xy_yaw(np.column_stack([np.arange(4.0), np.zeros(4), 0.1 * np.arange(4)]))
+    groups = np.array([[1], [2], [3], [-1]])
+    rel = np.tile(np.eye(4), (4, 1, 1, 1))
+    rel[:3, 0] = se3.relative(poses[:3], poses[1:])
+    valid = groups >= 0
+    assert disagreement(poses, groups, rel, valid, 10.0) == pytest.approx(0.0, abs=1e-9)
+    rel[:3, 0, 0, 3] += 0.2  # every registration 0.2 m off
+    assert disagreement(poses, groups, rel, valid, 10.0) == pytest.approx(0.2)
+    assert disagreement(poses, groups, rel, np.zeros_like(valid), 10.0) is None
+    assert locally_accurate(0.05, 0.4, 0.25) and not locally_accurate(0.2, 0.4, 0.25)
+    assert not locally_accurate(None, 0.4, 0.25)
 
 
 def test_3d_sequence_runs():

@@ -76,8 +76,7 @@ def test_correct_moves_keyframes_exactly_and_interpolates_between():
     poses = se3.from_xy_yaw(np.column_stack([np.arange(5.0), np.zeros(5), np.zeros(5)]))
     odo = se3.to_xy_yaw(poses[[0, 4]])
     fixed = odo + [[0, 0, 0], [0, 1.0, 0]]
-    path = np.arange(5.0)
-    out = correct(poses, np.array([0, 4]), odo, fixed, path)
+    out = correct(poses, np.array([0, 4]), odo, fixed)
     np.testing.assert_allclose(out[4, :2, 3], [4, 1], atol=1e-9)
     np.testing.assert_allclose(out[2, :2, 3], [2, 0.5], atol=1e-9)
     np.testing.assert_allclose(out[0], poses[0], atol=1e-12)
@@ -125,3 +124,32 @@ def test_loops_on_a_short_sequence_without_revisits(floor):
     topo = load("dm2.place_recognition", "loops")(progress=False, k=3).run(few, truth[:5])
     np.testing.assert_allclose(topo.poses, truth[:5], atol=1e-9)
     assert topo.log[0]["closures"] == 0 and (topo.groups >= 0).all()
+
+
+def test_correlative_runner_up_sees_a_repeat_inside_the_best_block():
+    """A pattern repeating every 6 cells: the shifted copy scores as well and must be reported, even when
+    it falls in the same block of shifts as the best."""
+    rng = np.random.default_rng(3)
+    motif = rng.uniform(0, 0.5, (30, 2))
+    pattern = np.concatenate([motif + [0.6 * k, 0] for k in range(-8, 9)])
+    source = pattern[np.abs(pattern[:, 0]) < 2.0]
+    got = cm.match(source, cm.LikelihoodGrid(pattern, 0.1), (0.3, 0.0, 0.0), 2.0, 0.0)
+    assert got.runner_up >= 0.9 * got.score
+
+
+def test_correct_keeps_keyframes_that_share_a_path_position():
+    """Turning on the spot: two keyframes at the same path length keep their own corrections."""
+    poses = se3.from_xy_yaw(np.array([[0, 0, 0], [1, 0, 0], [1, 0, 1.0], [2, 0, 1.0]]))
+    keys = np.array([0, 1, 2, 3])
+    odo = se3.to_xy_yaw(poses)
+    fixed = odo + [[0, 0, 0], [0, 0.1, 0], [0, 0.2, 0], [0, 0.3, 0]]
+    out = correct(poses, keys, odo, fixed)
+    np.testing.assert_allclose(se3.to_xy_yaw(out), fixed, atol=1e-9)
+
+
+def test_loops_rejects_invalid_options(floor):
+    from dm2_backend.errors import InputError
+
+    frames, truth = floor
+    with pytest.raises(InputError, match="resolution=-1"):
+        load("dm2.place_recognition", "loops")(resolution=-1.0, progress=False).run(frames, truth)

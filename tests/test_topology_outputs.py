@@ -26,8 +26,8 @@ def fake_topology() -> Topology:
         {"i": 1, "j": 31, "score": 0.42, "verified": False, "accepted": False, "reason": "score 0.42 < 0.50"},
         {"i": 2, "j": 32, "score": 0.8, "verified": True, "accepted": False, "reason": "verified", "z": [1, 0, 0]},
         {"i": 3, "j": 33, "score": 0.9, "verified": True, "accepted": True, "reason": "verified", "z": [0, 0, 0]},
-        {"i": 4, "j": 34, "score": 0.7, "verified": True, "accepted": True, "reason": "verified", "z": [0, 1, 0]},
-        {"i": 4, "j": 34, "verified": True, "accepted": False, "reason": DROPPED},
+        {"i": 4, "j": 34, "score": 0.7, "verified": True, "accepted": False, "dropped": True, "reason": DROPPED,
+         "z": [0, 1, 0]},
     ]
     pos = np.column_stack([np.cos(np.linspace(0, 4 * np.pi, 40)), np.sin(np.linspace(0, 4 * np.pi, 40)),
                            np.zeros(40)]) * 5
@@ -49,7 +49,7 @@ def test_document_gives_each_candidate_a_status():
     assert doc["edges"] == {"loop": 2, "temporal": 1}
     for c, e in zip(doc["candidates"], topo.log[1:]):  # the log's scores are kept as they are
         assert {k: v for k, v in c.items() if k != "status"} == e
-    assert topo.log[5]["accepted"] is True  # the topology's own log is not changed
+    assert "status" not in topo.log[5]  # the topology's own log is not changed
     pairs = pairs_by_status(doc)
     assert pairs["accepted"].tolist() == [[3, 33]] and pairs["dropped"].tolist() == [[4, 34]]
     assert pairs["rejected"].shape == (2, 2)
@@ -84,11 +84,12 @@ def test_written_files_match_the_loops_log(loops_topology, tmp_path):
     doc = json.loads((tmp_path / "topology.json").read_text())
     log = json.loads(json.dumps(topo.log, default=outputs._json_default))
     assert doc["summary"] == log[0] and doc["plugin"] == "loops"
-    entries = [e for e in log[1:] if e.get("reason") != DROPPED]
+    entries = log[1:]
     assert len(doc["candidates"]) == len(entries) == doc["counts"]["candidates"] > 0
     for c, e in zip(doc["candidates"], entries):
         assert {k: v for k, v in c.items() if k != "status"} == e
-        assert c["status"] == ("accepted" if e["accepted"] else "verified" if e["verified"] else "rejected")
+        status = "accepted" if e["accepted"] else "verified" if e["verified"] else "rejected"
+        assert c["status"] == ("dropped" if e.get("dropped") else status)
     assert doc["counts"]["accepted"] == sum(e["accepted"] for e in entries) > 0
     assert doc["counts"]["verified"] == sum(e["verified"] for e in entries)
     assert sum(doc["reasons"].values()) >= doc["counts"]["candidates"]

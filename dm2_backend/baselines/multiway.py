@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import time
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
@@ -29,10 +30,21 @@ def dense_bytes(nodes: int) -> int:
     return 8 * (6 * nodes) ** 2
 
 
+def available_memory() -> int:
+    """Bytes available to a new allocation: MemAvailable (free plus reclaimable cache) where Linux has it."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
 def check_size(nodes: int, available: int | None = None) -> None:
     """Refuse graphs whose dense system would not fit in half the available memory (ACES, 7,374 nodes,
     needs 15.7 GB and was killed by the kernel), with a clear error instead of an out-of-memory kill."""
-    available = available if available is not None else os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    available = available if available is not None else available_memory()
     need = dense_bytes(nodes)
     if need > available // 2:
         raise InputError(None, f"multiway: Open3D's global optimisation builds a dense {6 * nodes} x {6 * nodes} "

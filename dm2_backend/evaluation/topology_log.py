@@ -1,8 +1,8 @@
 """The place recognition's log as a run-folder document (``topology.json``).
 
 ``Topology.log[0]`` is the plugin's summary; every other entry with frames ``i`` and ``j`` is a loop-closure
-candidate with its scores and ``reason``. Entries whose reason is :data:`DROPPED` mark a closure that the
-final robust solve dropped; they are merged into the candidate they name. Each candidate gets a ``status``:
+candidate with its scores and ``reason``; ``dropped: true`` marks a closure that the final robust solve
+dropped. Each candidate gets a ``status``:
 
 - ``accepted``: in the final topology (``accepted`` and not dropped);
 - ``dropped``: accepted, then dropped by the final robust solve;
@@ -34,22 +34,18 @@ def reason_kind(part: str) -> str:
 
 def candidates(log: list[dict]) -> list[dict]:
     """Copies of the candidate entries of a topology log, each with its ``status``."""
-    entries = [e for e in log[1:] if isinstance(e, dict) and "i" in e and "j" in e]
-    dropped = {(int(e["i"]), int(e["j"])) for e in entries if e.get("reason") == DROPPED}
-    out, seen = [], set()
-    for e in entries:
-        pair = (int(e["i"]), int(e["j"]))
-        if e.get("reason") == DROPPED and pair in seen:
+    out = []
+    for e in log[1:]:
+        if not (isinstance(e, dict) and "i" in e and "j" in e):
             continue
         c = dict(e)
         verified = bool(c.get("verified", c.get("accepted", False)))
-        if pair in dropped:
+        if c.get("dropped"):
             c["status"] = "dropped"
         elif c.get("accepted"):
             c["status"] = "accepted"
         else:
             c["status"] = "verified" if verified else "rejected"
-        seen.add(pair)
         out.append(c)
     return out
 

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
-import numpy as np
-
 
 @dataclass
 class OptimConfig:
@@ -77,9 +75,8 @@ class OptimConfig:
         return cls(**(values or {}))
 
 
-def derive(cfg: OptimConfig, scale: dict[str, float], accurate: bool = False) -> dict:
-    """Fill the None lengths from the data's scale (Frames.scale), and the pose regime (``drift``,
-    ``lr_pose``) from whether the initial poses are locally accurate."""
+def derive(cfg: OptimConfig, scale: dict[str, float]) -> dict:
+    """Fill the None lengths from the data's scale (Frames.scale)."""
     spacing = max(scale.get("spacing", 0.0), scale.get("voxel", 0.0), 1e-3)
     unit = cfg.unit or 2.0 * spacing
     step_t = cfg.step_translation or unit / 10.0
@@ -90,18 +87,14 @@ def derive(cfg: OptimConfig, scale: dict[str, float], accurate: bool = False) ->
         "chamfer_truncate": cfg.chamfer_truncate or 10.0 * unit,
         "step_translation": step_t,
         "step_rotation": cfg.step_rotation or step_t / max(scale.get("range_median", 1.0), 1e-3),
+    }
+
+
+def pose_regime(cfg: OptimConfig, accurate: bool) -> dict:
+    """``drift`` and ``lr_pose`` where the config leaves them None: small steps without drift terms from a
+    locally accurate start, full steps with drift terms from a drifting one."""
+    return {
         "drift": cfg.drift if cfg.drift is not None else not accurate,
         "lr_pose": cfg.lr_pose if cfg.lr_pose is not None else (0.05 if accurate else 1.0),
     }
 
-
-def disagreement(poses: np.ndarray, groups: np.ndarray, relative: np.ndarray, valid: np.ndarray,
-                 lever: float) -> float:
-    """Median over the valid pairs of how far the initial poses' relative pose is from the pairwise
-    registration: translation plus rotation times ``lever`` (m)."""
-    rows, cols = np.nonzero(valid & (groups >= 0))
-    if len(rows) == 0:
-        return float("inf")
-    T = np.linalg.inv(relative[rows, cols]) @ np.linalg.inv(poses[rows]) @ poses[groups[rows, cols]]
-    angle = np.arccos(np.clip((np.trace(T[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1.0, 1.0))
-    return float(np.median(np.linalg.norm(T[:, :3, 3], axis=1) + angle * lever))

@@ -17,9 +17,10 @@ from dm2_backend.atomic import atomic_write
 from dm2_backend.geometry import se3_torch
 from dm2_backend.optim import distributed, losses
 from dm2_backend.optim.batching import make_groups
-from dm2_backend.optim.config import OptimConfig, derive, disagreement
+from dm2_backend.optim.config import OptimConfig, derive, pose_regime
 from dm2_backend.optim.occupancy import GridOccupancy
 from dm2_backend.optim.pose_model import PoseModel
+from dm2_backend.optim.regime import disagreement, locally_accurate
 from dm2_backend.prepare.types import Frames, Pairwise, Topology
 
 CHECKPOINT = "checkpoint.pt"
@@ -76,12 +77,11 @@ class Optimiser:
         self.device = resolve_device(device)
         if cfg.threads > 0 and self.device.type == "cpu":
             torch.set_num_threads(cfg.threads)
+        self.derived = derive(cfg, frames.scale)
         spread = disagreement(warm_start, topology.groups, pairwise.relative, pairwise.valid,
                               frames.scale.get("range_median", 1.0))
-        unit = derive(cfg, frames.scale)["unit"]
-        accurate = spread < cfg.accurate_below * unit
-        self.derived = derive(cfg, frames.scale, accurate=accurate)
-        self.derived.update(start_disagreement=spread, locally_accurate_start=bool(accurate))
+        accurate = locally_accurate(spread, self.derived["unit"], cfg.accurate_below)
+        self.derived.update(pose_regime(cfg, accurate), start_disagreement=spread, locally_accurate_start=accurate)
         self.planar = frames.planar
         self.n = len(frames)
         torch.manual_seed(seed)

@@ -26,6 +26,7 @@ import torch.distributed as td
 import torch.multiprocessing as mp
 from torch.multiprocessing.spawn import ProcessException
 
+from dm2_backend.errors import InputError
 from dm2_backend.optim.config import OptimConfig
 from dm2_backend.optim.distributed import Dist, init, rank_device, wait_group
 from dm2_backend.optim.trainer import Optimiser, OptimResult, sample_points
@@ -63,6 +64,9 @@ def session(nproc: int, cache_dir: Path | None, device: str) -> Iterator[Session
                 shutil.rmtree(cache, ignore_errors=True)
             td.destroy_process_group()
     elif nproc > 1:
+        if device == "cuda" and torch.cuda.device_count() < nproc:
+            raise InputError(None, f"--nproc {nproc} with --device cuda needs {nproc} GPUs; "
+                                   f"{torch.cuda.device_count()} visible")
         with tempfile.TemporaryDirectory(prefix="dm2-nproc-") as tmp:
             yield Session(Dist(0, nproc), "spawn", cache_dir or Path(tmp) / "cache", Path(tmp))
     else:

@@ -42,7 +42,12 @@ class Prepared:
     def initial(self) -> np.ndarray:
         """Where the optimiser and the baselines start: the loop-closed poses of the place recognition when
         it made them, else the warm start."""
-        return self.topology.poses if self.topology.poses is not None else self.warm_start
+        return starting_poses(self.topology, self.warm_start)
+
+
+def starting_poses(topology: Topology, warm: np.ndarray) -> np.ndarray:
+    """The loop-closed poses of the place recognition when it made them, else the warm start."""
+    return topology.poses if topology.poses is not None else warm
 
 
 def resolve_auto(section: dict, camera: bool) -> dict:
@@ -174,8 +179,7 @@ def prepare(
     hit = cache.get(name)
     cached["registration"] = hit is not None
     if hit is None:
-        start = topo.poses if topo.poses is not None else warm
-        pair = _plugin("dm2.registration", reg, progress).run(frames, start, topo)
+        pair = _plugin("dm2.registration", reg, progress).run(frames, starting_poses(topo, warm), topo)
         hit = cache.put(
             name, {"relative": pair.relative, "valid": pair.valid, "fitness": pair.fitness, "rmse": pair.rmse},
             {"reason": {f"{i},{j}": r for (i, j), r in pair.reason.items()}},
