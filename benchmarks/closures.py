@@ -46,7 +46,10 @@ def load_run(folder: Path, stamps: Path | None = None) -> tuple[np.ndarray, np.n
     for src in sources:
         if not src.is_file():
             continue
-        traj = read_trajectory(src)
+        try:
+            traj = read_trajectory(src)
+        except InputError:  # e.g. Intel's laser stamps go backwards: TUM refuses them, the CARMEN copy keeps them
+            continue
         if poses is None:
             poses = traj.poses
         if traj.timestamps is not None and len(traj.timestamps) == len(poses):
