@@ -295,7 +295,7 @@ class LoopsTopology:
             loops.sort(key=lambda j: np.linalg.norm(pos[j] - pos[i]))
             rows.append([(j, "loop") for j in loops[:limit]] + [(j, "radius") for j in nr])
         topo = assemble(rows, self.k, self.temporal_fill, log)
-        topo.poses = corrected
+        topo.poses = corrected if log[0].get("closures") else None  # loop-closed only when a loop was closed
         return topo
 
 

@@ -116,13 +116,13 @@ def test_loops_closes_a_large_drift_loop(floor):
 
 
 def test_loops_on_a_short_sequence_without_revisits(floor):
-    """Fewer frames than a loop needs: no candidates, the poses come back unchanged, groups still filled."""
+    """Fewer frames than a loop needs: no candidates, no loop-closed poses, groups still filled."""
     frames, truth = floor
     from dm2_backend.prepare.types import Frames
 
     few = Frames(frames.points[:5], None, True, frames.scale)
     topo = load("dm2.place_recognition", "loops")(progress=False, k=3).run(few, truth[:5])
-    np.testing.assert_allclose(topo.poses, truth[:5], atol=1e-9)
+    assert topo.poses is None  # nothing was loop-closed: the optimiser judges the warm start itself
     assert topo.log[0]["closures"] == 0 and (topo.groups >= 0).all()
 
 

@@ -46,9 +46,10 @@ class OptimConfig:
     #: drifting start, 0.05 from a locally accurate one, whose remaining errors are a few cells (ACES
     #: from 0.0365 m after 2 epochs: lr 1.0 0.0705 (1 epoch), 0.2 0.0376, 0.05 0.0359)
     lr_pose: float | None = None
-    #: the start counts as locally accurate when the median disagreement between its relative poses and the
-    #: pairwise registrations is below this many units, i.e. half a point spacing (measured: RedKitchen icp
-    #: warm start 0.13, simulated 3D LiDAR after loop closure 0.09; simulated random-walk odometry 0.34 to 2.75)
+    #: the start counts as locally accurate when it is loop-closed (``Topology.poses``) or when the median
+    #: disagreement between its relative poses and the pairwise registrations is below this many units, i.e.
+    #: half a point spacing (measured: RedKitchen icp warm start 0.13, simulated 3D LiDAR after loop closure
+    #: 0.09 to 0.26; simulated random-walk odometry 0.34 to 2.75)
     accurate_below: float = 0.25
     lr_field: float = 1e-2
     lr_network: float = 1e-3
