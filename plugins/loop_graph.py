@@ -49,6 +49,10 @@ class KeyframeGraph:
         self.added = 0
         self.estimate = odometry.copy()
 
+    def _prior(self) -> gtsam.PriorFactorPose2:
+        """Keyframe 0 held at its input pose (fixes the gauge)."""
+        return gtsam.PriorFactorPose2(0, pose2(self.odometry[0]), gtsam.noiseModel.Diagonal.Sigmas(np.full(3, 1e-6)))
+
     def _odometry_factor(self, k: int) -> gtsam.BetweenFactorPose2:
         noise = gtsam.noiseModel.Diagonal.Sigmas(np.maximum(self.odo_sigma[k - 1], 1e-6))
         return gtsam.BetweenFactorPose2(k - 1, k, pose2(between(self.odometry[k - 1], self.odometry[k])), noise)
@@ -58,8 +62,7 @@ class KeyframeGraph:
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         for k in range(self.added, upto + 1):
             if k == 0:
-                graph.add(gtsam.PriorFactorPose2(0, pose2(self.odometry[0]), gtsam.noiseModel.Diagonal.Sigmas(
-                    np.full(3, 1e-6))))
+                graph.add(self._prior())
                 values.insert(0, pose2(self.odometry[0]))
             else:
                 step = between(self.odometry[k - 1], self.odometry[k])
@@ -89,8 +92,7 @@ class KeyframeGraph:
         kept, dropped = list(self.closures), []
         while True:
             graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-            graph.add(gtsam.PriorFactorPose2(0, pose2(self.odometry[0]), gtsam.noiseModel.Diagonal.Sigmas(
-                np.full(3, 1e-6))))
+            graph.add(self._prior())
             for k in range(len(self.odometry)):
                 values.insert(k, pose2(self.estimate[k]))
                 if k:
