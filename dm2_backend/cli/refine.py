@@ -42,7 +42,7 @@ def run_options(f=None, *, scans_required: bool = True):
                      help="Freiburg relations file: live relations metric and metrics."),
         click.option("--warm-start", default=None, help="Warm-start plugin (default: poses; icp without).") ,
         click.option("--place-recognition", default=None,
-                     help="Place-recognition plugin (default auto: loops for laser scans, radius for depth cameras)."),
+                     help="Place-recognition plugin (default auto: loops for laser scans, loops3d for depth cameras)."),
         click.option("--registration", default=None, help="Pairwise registration plugin (default icp)."),
         click.option("--seed", type=int, default=None, help="Random seed (deterministic runs)."),
         click.option("--cache-dir", type=path_type, default=None,

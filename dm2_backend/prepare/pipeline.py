@@ -52,11 +52,11 @@ def starting_poses(topology: Topology, warm: np.ndarray) -> np.ndarray:
 
 def resolve_auto(section: dict, camera: bool) -> dict:
     """Place recognition ``auto``: ``loops`` (loop closure under large drift, matching bird's-eye views, as
-    suits laser scanners on ground robots and vehicles), ``radius`` for depth-camera sequences (a hand-held
-    camera's frame has no vertical axis to look down)."""
+    suits laser scanners on ground robots and vehicles), ``loops3d`` (6-DoF loop closure) for depth-camera
+    sequences (a hand-held camera's frame has no vertical axis to look down)."""
     if section.get("name") != "auto":
         return section
-    return {"name": "radius" if camera else "loops", "options": dict(section.get("options") or {})}
+    return {"name": "loops3d" if camera else "loops", "options": dict(section.get("options") or {})}
 
 
 def default_cache_dir() -> Path:

@@ -1,0 +1,120 @@
+"""6-DoF loop closure (``loops3d``): the frame pose graph and the plugin on a drifted two-lap 3D room."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from plugins_scenes import room_3d
+
+from dm2_backend.errors import InputError
+from dm2_backend.geometry import se3
+from dm2_backend.plugins.loop_graph3d import Closure3, FrameGraph
+from dm2_backend.plugins.registry import load
+from dm2_backend.prepare.pipeline import resolve_auto
+
+
+def drifted(truth: np.ndarray, yaw: float, roll: float, dz: float, scale: float) -> np.ndarray:
+    """The truth with a 6-DoF random walk in every increment: yaw, roll and height bias per step and a
+    stretched step length, as a drifting front end gives."""
+    rel = se3.relative(truth[:-1], truth[1:])
+    bias = se3.from_xyz_euler(np.array([0.0, 0.0, dz, roll, 0.0, yaw]))
+    out = [truth[0]]
+    for r in rel:
+        r = r.copy()
+        r[:3, 3] *= scale
+        out.append(out[-1] @ r @ bias)
+    return np.array(out)
+
+
+def ate(est: np.ndarray, truth: np.ndarray) -> float:
+    """Translation rmse after rigid alignment of the positions (Umeyama, no scale)."""
+    a, b = est[:, :3, 3], truth[:, :3, 3]
+    ma, mb = a.mean(0), b.mean(0)
+    U, _, Vt = np.linalg.svd((b - mb).T @ (a - ma))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    return float(np.sqrt((((a - ma) @ R.T + mb - b) ** 2).sum(1).mean()))
+
+
+def test_frame_graph_distributes_the_loop_error_along_the_chain():
+    truth = se3.from_xy_yaw(np.column_stack([np.arange(20.0), np.zeros(20), np.zeros(20)]))
+    bias = se3.from_xyz_euler(np.array([0.0, 0.0, 0.01, 0.0, 0.0, 0.002]))
+    rel = se3.relative(truth[:-1], truth[1:])
+    odo = [truth[0]]
+    for r in rel:
+        odo.append(odo[-1] @ r @ bias)
+    odo = np.array(odo)
+    g = FrameGraph(odo, np.full(19, 0.03), np.full(19, 0.003), 1e-3, 1e-4)  # the bias is within a sigma
+    closure = Closure3(0, 19, se3.relative(truth[0], truth[19]))
+    poses, kept, dropped = g.solve([closure], gate=10.0)
+    assert kept == [closure] and not dropped
+    end = se3.relative(poses[0], poses[19])
+    assert np.linalg.norm(end[:3, 3] - closure.z[:3, 3]) < 0.01  # the closure holds
+    drift_before = np.linalg.norm(odo[10, :3, 3] - truth[10, :3, 3])
+    assert np.linalg.norm(poses[10, :3, 3] - truth[10, :3, 3]) < 0.5 * drift_before  # the middle moves too
+    # a closure that contradicts the rest by metres is dropped by the robust pass
+    wrong = Closure3(5, 15, se3.from_xyz_euler(np.array([3.0, 4.0, 0.0, 0.0, 0.0, 1.0])))
+    _, kept, dropped = g.solve([closure, wrong], gate=10.0)
+    assert dropped == [wrong] and kept == [closure]
+
+
+@pytest.fixture(scope="module")
+def two_laps():
+    frames, truth = room_3d(count=30, laps=2)
+    return frames, truth, drifted(truth, yaw=np.radians(0.12), roll=np.radians(0.03), dz=0.004, scale=1.01)
+
+
+def test_loops3d_closes_the_loop_of_a_drifted_3d_sequence(two_laps):
+    frames, truth, warm = two_laps
+    topo = load("dm2.place_recognition", "loops3d")(progress=False).run(frames, warm)
+    summary = topo.log[0]
+    assert summary["plugin"] == "loops3d" and summary["closures"] >= 2
+    assert topo.poses is not None
+    before, after = ate(warm, truth), ate(topo.poses, truth)
+    assert after < 0.5 * before, (before, after)
+    # loop edges join the laps (frames far apart in time); every accepted closure is near the truth
+    loops = [tuple(e) for e, kind in zip(topo.edges, topo.edge_kind) if kind == "loop"]
+    assert loops and all(j - i > 10 for i, j in loops)
+    for e in topo.log[1:]:
+        if e.get("accepted") and not e.get("dropped"):
+            err = se3.relative(se3.relative(truth[e["i"]], truth[e["j"]]), np.asarray(e["z"]))
+            assert np.linalg.norm(err[:3, 3]) < 0.15
+    assert all(set(e) >= {"i", "j", "verified", "accepted", "reason"} for e in topo.log[1:])
+
+
+def test_loops3d_without_a_loop_keeps_the_start(two_laps):
+    frames, truth, warm = two_laps
+    # no earlier keyframe lies far enough back along the path: nothing to close, the start is kept
+    topo = load("dm2.place_recognition", "loops3d")(min_path_gap=1e3, progress=False).run(frames, warm)
+    assert topo.poses is None and "loop" not in topo.edge_kind
+    assert topo.log[0]["closures"] == 0 and len(topo.log) == 1
+
+
+def test_loops3d_rejects_bad_options_and_planar_scans(two_laps):
+    frames, _, warm = two_laps
+    cls = load("dm2.place_recognition", "loops3d")
+    with pytest.raises(InputError, match="window=-1"):
+        cls(window=-1.0, progress=False).run(frames, warm)
+    planar = type(frames)(frames.points, None, True, dict(frames.scale))
+    with pytest.raises(InputError, match="planar"):
+        cls(progress=False).run(planar, warm)
+
+
+def test_auto_picks_loops3d_for_depth_cameras():
+    assert resolve_auto({"name": "auto"}, camera=True)["name"] == "loops3d"
+    assert resolve_auto({"name": "auto"}, camera=False)["name"] == "loops"
+
+
+def test_loops3d_repairs_a_failed_front_end_step(two_laps):
+    frames, truth, _ = two_laps
+    jump = se3.from_xyz_euler(np.array([0.6, -0.4, 0.0, 0.0, 0.0, 0.05]))
+    warm = truth.copy()
+    warm[40:] = truth[39] @ jump @ se3.relative(truth[39], truth[40:])  # the front end failed on frame 40
+    topo = load("dm2.place_recognition", "loops3d")(progress=False).run(frames, warm)
+    assert topo.log[0]["repaired_steps"] == [39]
+    step = se3.relative(topo.poses[39], topo.poses[40])
+    assert np.linalg.norm(step[:3, 3] - se3.relative(truth[39], truth[40])[:3, 3]) < 0.05
+    assert ate(topo.poses, truth) < 0.1 * ate(warm, truth)
+    # with repairs off the step stays as the front end gave it
+    kept = load("dm2.place_recognition", "loops3d")(repair_distance=0, min_path_gap=1e3, progress=False)
+    assert kept.run(frames, warm).poses is None
