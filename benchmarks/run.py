@@ -44,6 +44,7 @@ SETS: dict[str, dict] = {
             "sim-3d-500": ["dm2 refine", "gtsam"],
             "kitti00-6": ["dm2 refine", "gtsam", "multiway"],
             "deepmapping2d": ["dm2 refine", "gtsam"],
+            "redkitchen": ["dm2 refine", "gtsam"],
         },
         "epochs": 3,
         "timeout": 600,
