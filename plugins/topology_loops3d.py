@@ -161,14 +161,16 @@ class Loops3dTopology:
         fine = self._lengths["fine"]
         limit = self.repair_distance or fine
         steps = se3.relative(poses[:-1], poses[1:])
-        clouds = [Cloud(p, False, 2.0 * fine) for p in frames.points]
         repaired = []
+        target = Cloud(frames.points[0], False, 2.0 * fine)
         for k in tqdm(range(len(steps)), desc="odometry check", disable=not self.progress, leave=False):
-            m = register(clouds[k + 1], clouds[k], steps[k], (4.0 * fine, fine), "gicp")
+            source = Cloud(frames.points[k + 1], False, 2.0 * fine)
+            m = register(source, target, steps[k], (4.0 * fine, fine), "gicp")
             if m.fitness >= self.min_overlap and np.isfinite(m.T).all() and \
                     np.linalg.norm(se3.relative(steps[k], m.T)[:3, 3]) > limit:
                 steps[k] = orthonormal(m.T)
                 repaired.append(k)
+            target = source
         if not repaired:
             return poses, []
         out = [poses[0]]
