@@ -140,6 +140,14 @@ class Cloud:
         return self._normals
 
 
+def voxel_cloud(points: np.ndarray, voxel: float, planar: bool, normal_radius: float) -> Cloud:
+    """A :class:`Cloud` of ``points`` (e.g. several scans merged into a local map), voxel-down-sampled."""
+    if voxel > 0 and len(points):
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+        points = np.asarray(pcd.voxel_down_sample(voxel).points)
+    return Cloud(points, planar, normal_radius)
+
+
 def normals_2d(xy: np.ndarray, tree: cKDTree, k: int = 7) -> np.ndarray:
     """Unit normals of planar points: the minor principal axis of their k nearest neighbours."""
     k = min(k, len(xy))

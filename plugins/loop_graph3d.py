@@ -47,21 +47,19 @@ class FrameGraph:
             graph.add(gtsam.BetweenFactorPose3(c.i, c.j, gtsam.Pose3(c.z), noise))
         return graph
 
-    def solve(self, closures: list[Closure3], gate: float, start: np.ndarray | None = None
-              ) -> tuple[np.ndarray, list[Closure3], list[Closure3]]:
-        """Levenberg-Marquardt from ``start`` (default the input poses); closures whose whitened residual
+    def solve(self, closures: list[Closure3], gate: float) -> tuple[np.ndarray, list[Closure3], list[Closure3]]:
+        """Levenberg-Marquardt from the input poses; closures whose whitened residual
         exceeds ``gate`` are dropped one at a time (worst first) and the graph re-solved. Returns the poses,
         the kept and the dropped closures."""
         kept, dropped = list(closures), []
-        start = self.poses if start is None else start
         while True:
             values = gtsam.Values()
-            for k, T in enumerate(start):
+            for k, T in enumerate(self.poses):
                 values.insert(k, gtsam.Pose3(T))
             params = gtsam.LevenbergMarquardtParams()
             params.setMaxIterations(50)
             result = gtsam.LevenbergMarquardtOptimizer(self._graph(kept), values, params).optimize()
-            poses = np.array([result.atPose3(k).matrix() for k in range(len(start))])
+            poses = np.array([result.atPose3(k).matrix() for k in range(len(self.poses))])
             errors = [self.residual(poses, c) for c in kept]
             if not kept or max(errors) <= gate:
                 return poses, kept, dropped

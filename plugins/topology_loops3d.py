@@ -28,7 +28,6 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
@@ -42,6 +41,8 @@ from dm2_backend.plugins.common import (
     orthonormal,
     path_length,
     radius_neighbours,
+    rotation_angle,
+    voxel_cloud,
 )
 from dm2_backend.plugins.gates import constraint, coverage
 from dm2_backend.plugins.icp import register
@@ -136,11 +137,11 @@ class Loops3dTopology:
         graph = FrameGraph(poses, floor + 0.02 * steps, floor / L["range"] + 0.02 * turns + 0.005 * steps,
                            0.25 * L["voxel"], 0.25 * L["voxel"] / L["range"])
         closures: list[Closure3] = []
-        tried: set[tuple[int, int]] = set()
+        tried: dict[tuple[int, int], np.ndarray | None] = {}
         estimate = poses
         for r in range(self.rounds):
             found = self._search(estimate, path, keys, tried, log, r)
-            if not found and r:
+            if not found:
                 break
             closures += found
             estimate, closures, dropped = graph.solve(closures, self.gate)
@@ -166,8 +167,8 @@ class Loops3dTopology:
         for k in tqdm(range(len(steps)), desc="odometry check", disable=not self.progress, leave=False):
             source = Cloud(frames.points[k + 1], False, 2.0 * fine)
             m = register(source, target, steps[k], (4.0 * fine, fine), "gicp")
-            if m.fitness >= self.min_overlap and np.isfinite(m.T).all() and \
-                    np.linalg.norm(se3.relative(steps[k], m.T)[:3, 3]) > limit:
+            if np.isfinite(m.T).all() and np.linalg.norm(se3.relative(steps[k], m.T)[:3, 3]) > limit and \
+                    self._sound(source, target, m):
                 steps[k] = orthonormal(m.T)
                 repaired.append(k)
             target = source
@@ -178,8 +179,11 @@ class Loops3dTopology:
             out.append(out[-1] @ step)
         return np.array(out), repaired
 
-    def _search(self, estimate: np.ndarray, path: np.ndarray, keys: np.ndarray, tried: set, log: list,
+    def _search(self, estimate: np.ndarray, path: np.ndarray, keys: np.ndarray, tried: dict, log: list,
                 round_: int) -> list[Closure3]:
+        """Verify the candidates of every keyframe at ``estimate``; a pair is verified again in a later round
+        only when its starting relative pose moved by more than the fine distance (accepted pairs are
+        settled: their starts agree with the closure)."""
         L = self._lengths
         kpath = path[keys]
         found: list[Closure3] = []
@@ -188,13 +192,16 @@ class Loops3dTopology:
         for b in bar:
             window = min(L["max_window"], L["window"] + self.drift * (kpath[b] - last))
             for a, predicted in self._candidates(estimate, kpath, b, window):
-                if (a, b) in tried:
-                    continue
-                tried.add((a, b))
+                init = se3.relative(estimate[keys[a]], estimate[keys[b]])
+                if (a, b) in tried and (tried[(a, b)] is None or
+                                        np.linalg.norm(se3.relative(tried[(a, b)], init)[:3, 3]) <= L["fine"]):
+                    continue  # accepted, or verified from (nearly) this start already
+                tried[(a, b)] = init
                 entry = self._verify(a, b, estimate, window)
                 entry.update(predicted_overlap=round(predicted, 4), round=round_ + 1)
                 log.append(entry)
                 if entry["verified"]:
+                    tried[(a, b)] = None  # settled: never verified again
                     entry.update(accepted=True)
                     found.append(Closure3(int(keys[a]), int(keys[b]), np.asarray(entry["z"]), entry))
                     last = kpath[b]
@@ -210,12 +217,12 @@ class Loops3dTopology:
         kb = estimate[self._keys[b]]
         near = far[np.linalg.norm(estimate[self._keys[far], :3, 3] - kb[:3, 3], axis=1) < L["range"] + window]
         probe = self._maps[b].points[:: max(1, len(self._maps[b]) // 300)]
+        reach = window + L["fine"]
         scored = []
         for a in near:
             if len(self._maps[a]) == 0:
                 continue
             rel = se3.relative(estimate[self._keys[a]], kb)
-            reach = window + L["fine"]
             dist, _ = self._maps[a].tree.query(se3.transform_points(rel, probe), distance_upper_bound=reach)
             overlap = float(np.isfinite(dist).mean())
             if overlap >= self.min_predicted:
@@ -237,10 +244,22 @@ class Loops3dTopology:
             return entry
         offset = se3.relative(init, m.T)
         shift = float(np.linalg.norm(offset[:3, 3]))
-        overlap = min(m.fitness, coverage(tgt, src, se3.inverse(m.T), fine)[0])
-        c = constraint(src, tgt, m.T, fine)
-        entry.update(overlap=round(overlap, 4), constraint=round(c, 4), offset=round(shift, 4),
-                     offset_deg=round(float(np.degrees(se3.rotation_angle(offset[:3, :3]))), 3))
+        entry.update(offset=round(shift, 4), offset_deg=round(float(np.degrees(rotation_angle(offset[:3, :3]))), 3))
+        reasons = self._gates(src, tgt, m, entry)
+        if shift > window + fine:
+            reasons.append(f"correction {shift:.2f} m beyond the window {window:.2f} m")
+        entry["verified"] = not reasons
+        entry["reason"] = "; ".join(reasons) or "verified"
+        entry["z"] = m.T.tolist()  # pose of frame j in frame i
+        return entry
+
+    def _gates(self, src: Cloud, tgt: Cloud, m, entry: dict) -> list[str]:
+        """Reasons an alignment fails: overlap (the smaller of both directions), inlier rmse, translation
+        constraint; the scores go into ``entry``."""
+        L = self._lengths
+        overlap = min(m.fitness, coverage(tgt, src, se3.inverse(m.T), L["fine"])[0])
+        c = constraint(src, tgt, m.T, L["fine"])
+        entry.update(overlap=round(overlap, 4), constraint=round(c, 4))
         reasons = []
         if overlap < self.min_overlap:
             reasons.append(f"overlap {overlap:.2f} < {self.min_overlap:.2f}")
@@ -248,12 +267,11 @@ class Loops3dTopology:
             reasons.append(f"rmse {m.rmse:.3f} > {L['max_rmse']:.3f}")
         if c < self.min_constraint:
             reasons.append(f"constraint {c:.3f} < {self.min_constraint:.3f} (degenerate)")
-        if shift > window + fine:
-            reasons.append(f"correction {shift:.2f} m beyond the window {window:.2f} m")
-        entry["verified"] = not reasons
-        entry["reason"] = "; ".join(reasons) or "verified"
-        entry["z"] = m.T.tolist()  # pose of frame j in frame i
-        return entry
+        return reasons
+
+    def _sound(self, src: Cloud, tgt: Cloud, m) -> bool:
+        """A frame-pair registration good enough to replace a front-end step: it passes the closure gates."""
+        return m.fitness > 0 and not self._gates(src, tgt, m, {})
 
     def _submap(self, frames: Frames, poses: np.ndarray, keys: np.ndarray, b: int) -> Cloud:
         """Scans from keyframe b-1 to b+1, in keyframe b's frame, voxel-down-sampled."""
@@ -262,8 +280,7 @@ class Loops3dTopology:
         inv = se3.inverse(poses[keys[b]])
         pts = np.concatenate([se3.transform_points(inv @ poses[f], frames.points[f].astype(np.float64))
                               for f in range(lo, hi + 1)])
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).voxel_down_sample(self._lengths["voxel"])
-        return Cloud(np.asarray(pcd.points), False, 2.0 * self._lengths["fine"])
+        return voxel_cloud(pts, self._lengths["voxel"], False, 2.0 * self._lengths["fine"])
 
     # ------------------------------------------------------------------ topology
     def _topology(self, frames: Frames, corrected: np.ndarray, log: list) -> Topology:
@@ -272,7 +289,7 @@ class Loops3dTopology:
         L = self._lengths
         pos = corrected[:, :3, 3]
         centroid = np.array([se3.transform_points(T, p.mean(axis=0, keepdims=True).astype(np.float64))[0]
-                             for T, p in zip(corrected, frames.points)])
+                             if len(p) else T[:3, 3] for T, p in zip(corrected, frames.points)])
         path = path_length(corrected)
         limit = self.max_loops if self.max_loops is not None else self.k // 2
         tree = cKDTree(np.hstack([pos, centroid]))
@@ -281,20 +298,23 @@ class Loops3dTopology:
         for i, nr in enumerate(near):
             cand = tree.query_ball_point(np.hstack([pos[i], centroid[i]]), np.sqrt(2.0) * L["radius"])
             loops = [j for j in cand if abs(path[j] - path[i]) > L["min_path_gap"]
+                     and np.linalg.norm(pos[j] - pos[i]) < L["radius"]
                      and np.linalg.norm(centroid[j] - centroid[i]) < L["radius"]]
             loops.sort(key=lambda j: np.linalg.norm(pos[j] - pos[i]) + np.linalg.norm(centroid[j] - centroid[i]))
             rows.append([(j, "loop") for j in loops[:limit]] + [(j, "radius") for j in nr])
         topo = assemble(rows, self.k, self.temporal_fill, log)
         # corrected only when a loop was closed or a failed step repaired
         topo.poses = corrected if log[0].get("closures") or log[0].get("repaired_steps") else None
+        # (Topology.loop_closed tells the two apart: the optimiser treats only loop-closed starts as accurate)
         return topo
 
 
 def _keyframes(poses: np.ndarray, spacing: float, angle: float) -> np.ndarray:
-    """The first pose, then each pose ``spacing`` m or ``angle`` rad (any axis) from the last keyframe."""
+    """The first pose, then each pose ``spacing`` m away from the last keyframe or turned by ``angle`` rad
+    about any axis (``keyframes.select`` measures travel and yaw only, as suits ground vehicles)."""
     keep = [0]
     for i in range(1, len(poses)):
         rel = se3.relative(poses[keep[-1]], poses[i])
-        if np.linalg.norm(rel[:3, 3]) >= spacing or se3.rotation_angle(rel[:3, :3]) >= angle:
+        if np.linalg.norm(rel[:3, 3]) >= spacing or rotation_angle(rel[:3, :3]) >= angle:
             keep.append(i)
     return np.asarray(keep, dtype=np.int64)

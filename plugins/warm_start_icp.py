@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-import open3d as o3d
 from tqdm import tqdm
 
 from dm2_backend.errors import InputError
@@ -26,6 +25,7 @@ from dm2_backend.plugins.common import (
     project_planar,
     resolve_method,
     rotation_angle,
+    voxel_cloud,
 )
 from dm2_backend.plugins.icp import register
 from dm2_backend.prepare.types import Frames
@@ -116,8 +116,4 @@ class IcpWarmStart:
 
     @staticmethod
     def _map(keyframes: deque, planar: bool, voxel: float, fine: float) -> Cloud:
-        pts = np.concatenate(list(keyframes))
-        if voxel > 0:
-            pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-            pts = np.asarray(pcd.voxel_down_sample(voxel).points)
-        return Cloud(pts, planar, 2.0 * fine)
+        return voxel_cloud(np.concatenate(list(keyframes)), voxel, planar, 2.0 * fine)

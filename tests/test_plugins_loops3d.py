@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import gtsam
 import numpy as np
 import pytest
 from plugins_scenes import room_3d
 
 from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
+from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.plugins.loop_graph3d import Closure3, FrameGraph
 from dm2_backend.plugins.registry import load
 from dm2_backend.prepare.pipeline import resolve_auto
@@ -27,13 +29,7 @@ def drifted(truth: np.ndarray, yaw: float, roll: float, dz: float, scale: float)
 
 
 def ate(est: np.ndarray, truth: np.ndarray) -> float:
-    """Translation rmse after rigid alignment of the positions (Umeyama, no scale)."""
-    a, b = est[:, :3, 3], truth[:, :3, 3]
-    ma, mb = a.mean(0), b.mean(0)
-    U, _, Vt = np.linalg.svd((b - mb).T @ (a - ma))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    R = U @ D @ Vt
-    return float(np.sqrt((((a - ma) @ R.T + mb - b) ** 2).sum(1).mean()))
+    return ate_rmse(truth, est)
 
 
 def test_frame_graph_distributes_the_loop_error_along_the_chain():
@@ -52,6 +48,14 @@ def test_frame_graph_distributes_the_loop_error_along_the_chain():
     assert np.linalg.norm(end[:3, 3] - closure.z[:3, 3]) < 0.01  # the closure holds
     drift_before = np.linalg.norm(odo[10, :3, 3] - truth[10, :3, 3])
     assert np.linalg.norm(poses[10, :3, 3] - truth[10, :3, 3]) < 0.5 * drift_before  # the middle moves too
+    # the residual is GTSAM's whitened error (rotation first in the Pose3 tangent space, very different sigmas)
+    g2 = FrameGraph(odo, np.full(19, 0.03), np.full(19, 0.003), 0.5, 1e-4)
+    values = gtsam.Values()
+    values.insert(0, gtsam.Pose3(odo[0]))
+    values.insert(19, gtsam.Pose3(odo[19]))
+    factor = gtsam.BetweenFactorPose3(0, 19, gtsam.Pose3(closure.z), gtsam.noiseModel.Diagonal.Sigmas(g2.loop_sigma))
+    assert g2.residual(odo, closure) == pytest.approx(np.linalg.norm(factor.whitenedError(values)), rel=1e-6)
+    assert g2.residual(odo, closure) > 100  # the rotation part dominates: 0.04 rad at 1e-4
     # a closure that contradicts the rest by metres is dropped by the robust pass
     wrong = Closure3(5, 15, se3.from_xyz_euler(np.array([3.0, 4.0, 0.0, 0.0, 0.0, 1.0])))
     _, kept, dropped = g.solve([closure, wrong], gate=10.0)
@@ -112,6 +116,8 @@ def test_loops3d_repairs_a_failed_front_end_step(two_laps):
     warm[40:] = truth[39] @ jump @ se3.relative(truth[39], truth[40:])  # the front end failed on frame 40
     topo = load("dm2.place_recognition", "loops3d")(progress=False).run(frames, warm)
     assert topo.log[0]["repaired_steps"] == [39]
+    assert topo.loop_closed == (topo.log[0]["closures"] > 0)
+    assert np.allclose(topo.poses[:40], warm[:40], atol=0.02)  # before the failed step: as it was
     step = se3.relative(topo.poses[39], topo.poses[40])
     assert np.linalg.norm(step[:3, 3] - se3.relative(truth[39], truth[40])[:3, 3]) < 0.05
     assert ate(topo.poses, truth) < 0.1 * ate(warm, truth)

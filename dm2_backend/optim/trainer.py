@@ -82,7 +82,7 @@ class Optimiser:
                               frames.scale.get("range_median", 1.0))
         # loop-closed poses need no drift terms (they would undo the closures: sim-3d-5000, 0.95 m start, drifted
         # to 40 m with them); other starts are judged by the measured disagreement
-        accurate = topology.poses is not None or locally_accurate(spread, self.derived["unit"], cfg.accurate_below)
+        accurate = topology.loop_closed or locally_accurate(spread, self.derived["unit"], cfg.accurate_below)
         self.derived.update(pose_regime(cfg, accurate), start_disagreement=spread, locally_accurate_start=accurate)
         self.planar = frames.planar
         self.n = len(frames)

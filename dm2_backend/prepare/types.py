@@ -41,6 +41,11 @@ class Topology:
     def k(self) -> int:
         return self.groups.shape[1]
 
+    @property
+    def loop_closed(self) -> bool:
+        """The corrected poses closed at least one loop (not only repaired the start)."""
+        return self.poses is not None and bool(self.log and self.log[0].get("closures"))
+
 
 @dataclass
 class Pairwise:
