@@ -95,6 +95,22 @@ def test_consistency_zero_when_relatives_agree_and_grows_with_error():
     assert float(losses.consistency(turned, T[1:], relative, pts)) > 0.1
 
 
+def test_free_space_samples_of_a_grazing_ray_are_dropped_near_the_ground():
+    # a LiDAR 1.8 m above flat ground sees it 20 m ahead: the ray runs within 0.3 m of the ground for its last
+    # 3 m, where the other rays observed ground points; those samples must not be labelled free
+    g = torch.Generator().manual_seed(0)
+    x = torch.linspace(0.0, 25.0, 251, dtype=torch.float64)
+    ground = torch.stack([x, torch.zeros_like(x), torch.zeros_like(x)], -1)[None]  # (1, 251, 3)
+    origin = torch.tensor([[0.0, 0.0, 1.8]], dtype=torch.float64)
+    hit = torch.tensor([[[20.0, 0.0, 0.0]]], dtype=torch.float64)
+    free = losses.free_space_samples(hit, origin, 200, 0.3, g)
+    kept = losses.clear_of(free, ground, 0.3)
+    height = free[..., 2].reshape(-1)
+    assert (height < 0.3).sum() > 10  # the ray alone leaves samples next to the ground
+    assert len(kept) == int((height >= 0.3).sum()) and (kept[:, 2] >= 0.3).all()
+    assert kept.requires_grad == free.requires_grad
+
+
 def test_free_space_samples_on_segments_stop_margin_short():
     g = torch.Generator().manual_seed(0)
     rng = np.random.default_rng(7)

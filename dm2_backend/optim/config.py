@@ -33,6 +33,9 @@ class OptimConfig:
     #: points per frame (a subset of the above) and free-space samples per ray for the occupancy BCE
     bce_points_per_frame: int = 64
     samples_per_ray: int = 2
+    #: drop free-space samples within ``free_margin`` of any observed point of the step (rays grazing the
+    #: ground or a wall); False samples along the rays only, as the paper does
+    free_clear: bool = True
     #: loss weights: total = bce + alpha * chamfer + beta * consistency (lengths in units of ``unit``)
     alpha: float = 1.0
     beta: float = 1.0

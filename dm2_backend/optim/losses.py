@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
+from scipy.spatial import cKDTree
 
 from dm2_backend.geometry import se3_torch
 
@@ -19,6 +21,19 @@ def free_space_samples(
     u = torch.rand(*points.shape[:2], per_ray, generator=generator, dtype=points.dtype) * top
     samples = origins[:, None, None, :] + u.unsqueeze(-1) * ray.unsqueeze(2)
     return samples.reshape(points.shape[0], -1, 3)
+
+
+def clear_of(samples: torch.Tensor, surface: torch.Tensor, margin: float) -> torch.Tensor:
+    """The free-space ``samples`` (..., D) farther than ``margin`` from every ``surface`` point (..., D), as (S, D).
+
+    A ray that grazes a surface (the ground seen by a LiDAR far ahead, a wall along a corridor) runs within a
+    cell of it long before its hit, so samples taken only along the ray would be labelled free where other rays
+    observed the surface; dropping them keeps the two labels apart."""
+    pts = samples.reshape(-1, samples.shape[-1])
+    tree = cKDTree(surface.detach().reshape(-1, surface.shape[-1]).cpu().numpy())
+    dist, _ = tree.query(pts.detach().cpu().numpy(), k=1, distance_upper_bound=margin)
+    keep = torch.from_numpy(~np.isfinite(dist)).to(pts.device)
+    return pts[keep]
 
 
 def occupancy_bce(field, occupied: torch.Tensor, free: torch.Tensor) -> torch.Tensor:

@@ -148,9 +148,10 @@ class Optimiser:
         ms = torch.from_numpy(slot[member]).to(self.device)
         if cfg.use_bce:
             hits = world[ms, : cfg.bce_points_per_frame]
-            free = losses.free_space_samples(
-                hits, Tf[ms, :3, 3], cfg.samples_per_ray, self.derived["free_margin"], generator
-            )
+            margin = self.derived["free_margin"]
+            free = losses.free_space_samples(hits, Tf[ms, :3, 3], cfg.samples_per_ray, margin, generator)
+            if cfg.free_clear:
+                free = losses.clear_of(free, world, margin)
             out["bce"] = losses.occupancy_bce(self.field, hits, free)
             total = total + out["bce"]
         if cfg.use_chamfer:
