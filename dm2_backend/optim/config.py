@@ -34,8 +34,9 @@ class OptimConfig:
     bce_points_per_frame: int = 64
     samples_per_ray: int = 2
     #: drop free-space samples within ``free_margin`` of any observed point of the step (rays grazing the
-    #: ground or a wall); False samples along the rays only, as the paper does
-    free_clear: bool = True
+    #: ground or a wall). Off by default, as the paper samples along the rays only: measured mixed (simulated
+    #: 3D LiDAR 500 frames 0.0567 -> 0.0492 m, 2,000 frames 0.305 -> 0.325, ACES 0.0358 -> 0.0360)
+    free_clear: bool = False
     #: loss weights: total = bce + alpha * chamfer + beta * consistency (lengths in units of ``unit``)
     alpha: float = 1.0
     beta: float = 1.0
