@@ -109,6 +109,10 @@ def test_free_space_samples_of_a_grazing_ray_are_dropped_near_the_ground():
     assert (height < 0.3).sum() > 10  # the ray alone leaves samples next to the ground
     assert len(kept) == int((height >= 0.3).sum()) and (kept[:, 2] >= 0.3).all()
     assert kept.requires_grad == free.requires_grad
+    # nothing left to label free: the BCE keeps its occupied term only (finite)
+    field = GridOccupancy(np.zeros(3), np.full(3, 25.0), 1.0)
+    bce = losses.occupancy_bce(field, ground, losses.clear_of(free, ground, 10.0))
+    assert torch.isfinite(bce) and float(bce.detach()) > 0
 
 
 def test_free_space_samples_on_segments_stop_margin_short():

@@ -40,10 +40,11 @@ def occupancy_bce(field, occupied: torch.Tensor, free: torch.Tensor) -> torch.Te
     """The paper's BCE: observed points labelled 1, free-space samples labelled 0 (each term averaged)."""
     dims = field.dim
     lo = field(occupied[..., :dims].float())
-    lf = field(free[..., :dims].float())
-    return F.binary_cross_entropy_with_logits(lo, torch.ones_like(lo)) + F.binary_cross_entropy_with_logits(
-        lf, torch.zeros_like(lf)
-    )
+    loss = F.binary_cross_entropy_with_logits(lo, torch.ones_like(lo))
+    if free.numel():  # every sample may have been dropped as too close to a surface (clear_of)
+        lf = field(free[..., :dims].float())
+        loss = loss + F.binary_cross_entropy_with_logits(lf, torch.zeros_like(lf))
+    return loss
 
 
 def consistency(
