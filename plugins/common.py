@@ -196,6 +196,27 @@ def radius_neighbours(positions: np.ndarray, radius: float, k: int) -> list[list
     return [idx[i][inside[i]][:k].tolist() for i in range(n)]
 
 
+def loop_rows(
+    pos: np.ndarray, path: np.ndarray, radius: float, min_gap: float, k: int, limit: int,
+    looks_at: np.ndarray | None = None,
+) -> list[list[tuple[int, str]]]:
+    """Candidate rows for :func:`assemble`: per frame up to ``limit`` loop partners (farther than ``min_gap``
+    along the path, within ``radius``, and with ``looks_at`` (N, 3) also looking at a place within ``radius``;
+    nearest first), then up to ``k`` radius neighbours."""
+    tree = cKDTree(pos)
+    rows = []
+    for i, near in enumerate(radius_neighbours(pos, radius, k)):
+        loops = [j for j in tree.query_ball_point(pos[i], radius) if abs(path[j] - path[i]) > min_gap]
+        if looks_at is None:
+            loops.sort(key=lambda j: np.linalg.norm(pos[j] - pos[i]))
+        else:
+            gap = {j: np.linalg.norm(looks_at[j] - looks_at[i]) for j in loops}
+            loops = [j for j in loops if gap[j] < radius]
+            loops.sort(key=lambda j: np.linalg.norm(pos[j] - pos[i]) + gap[j])
+        rows.append([(j, "loop") for j in loops[:limit]] + [(j, "radius") for j in near])
+    return rows
+
+
 def assemble(
     candidates: list[list[tuple[int, str]]], k: int, temporal: bool = True, log: list | None = None
 ) -> Topology:

@@ -26,7 +26,6 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from dm2_backend.errors import InputError
@@ -39,9 +38,9 @@ from dm2_backend.plugins.common import (
     assemble,
     fine_distance,
     lengths,
+    loop_rows,
     path_length,
     planar_pose,
-    radius_neighbours,
 )
 from dm2_backend.plugins.gates import constraint, coverage, free_space
 from dm2_backend.plugins.icp import register
@@ -283,17 +282,8 @@ class LoopsTopology:
     # ------------------------------------------------------------------ topology
     def _topology(self, frames: Frames, corrected: np.ndarray, log: list) -> Topology:
         L = self._lengths
-        pos = corrected[:, :3, 3]
-        path = path_length(corrected)
         limit = self.max_loops if self.max_loops is not None else self.k // 2
-        tree = cKDTree(pos)
-        rows = []
-        near = radius_neighbours(pos, L["radius"], self.k)
-        for i, nr in enumerate(near):
-            cand = tree.query_ball_point(pos[i], L["radius"])
-            loops = [j for j in cand if abs(path[j] - path[i]) > L["min_path_gap"]]
-            loops.sort(key=lambda j: np.linalg.norm(pos[j] - pos[i]))
-            rows.append([(j, "loop") for j in loops[:limit]] + [(j, "radius") for j in nr])
+        rows = loop_rows(corrected[:, :3, 3], path_length(corrected), L["radius"], L["min_path_gap"], self.k, limit)
         topo = assemble(rows, self.k, self.temporal_fill, log)
         topo.poses = corrected if log[0].get("closures") else None  # loop-closed only when a loop was closed
         return topo

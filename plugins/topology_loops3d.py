@@ -28,7 +28,6 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from dm2_backend.errors import InputError
@@ -38,9 +37,9 @@ from dm2_backend.plugins.common import (
     assemble,
     fine_distance,
     lengths,
+    loop_rows,
     orthonormal,
     path_length,
-    radius_neighbours,
     rotation_angle,
     voxel_cloud,
 )
@@ -290,18 +289,8 @@ class Loops3dTopology:
         pos = corrected[:, :3, 3]
         centroid = np.array([se3.transform_points(T, p.mean(axis=0, keepdims=True).astype(np.float64))[0]
                              if len(p) else T[:3, 3] for T, p in zip(corrected, frames.points)])
-        path = path_length(corrected)
         limit = self.max_loops if self.max_loops is not None else self.k // 2
-        tree = cKDTree(np.hstack([pos, centroid]))
-        near = radius_neighbours(pos, L["radius"], self.k)
-        rows = []
-        for i, nr in enumerate(near):
-            cand = tree.query_ball_point(np.hstack([pos[i], centroid[i]]), np.sqrt(2.0) * L["radius"])
-            loops = [j for j in cand if abs(path[j] - path[i]) > L["min_path_gap"]
-                     and np.linalg.norm(pos[j] - pos[i]) < L["radius"]
-                     and np.linalg.norm(centroid[j] - centroid[i]) < L["radius"]]
-            loops.sort(key=lambda j: np.linalg.norm(pos[j] - pos[i]) + np.linalg.norm(centroid[j] - centroid[i]))
-            rows.append([(j, "loop") for j in loops[:limit]] + [(j, "radius") for j in nr])
+        rows = loop_rows(pos, path_length(corrected), L["radius"], L["min_path_gap"], self.k, limit, centroid)
         topo = assemble(rows, self.k, self.temporal_fill, log)
         # corrected only when a loop was closed or a failed step repaired
         topo.poses = corrected if log[0].get("closures") or log[0].get("repaired_steps") else None
