@@ -126,12 +126,12 @@ class Loops3dTopology:
     def _close_loops(self, frames: Frames, poses: np.ndarray, log: list) -> np.ndarray:
         L = self._lengths
         poses, repaired = self._repair(frames, poses)
-        keys = _keyframes(poses, L["keyframe_distance"], np.radians(self.keyframe_angle))
-        self._keys = keys
-        self._maps = [self._submap(frames, poses, keys, b) for b in range(len(keys))]
+        self._keys = keys = _keyframes(poses, L["keyframe_distance"], np.radians(self.keyframe_angle))
+        self._maps = [self._submap(frames, poses, b) for b in range(len(keys))]
         path = path_length(poses)
-        steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
-        turns = se3.rotation_angle(se3.relative(poses[:-1], poses[1:])[:, :3, :3])
+        increments = se3.relative(poses[:-1], poses[1:])
+        steps = np.linalg.norm(increments[:, :3, 3], axis=1)
+        turns = se3.rotation_angle(increments[:, :3, :3])
         floor = 0.05 * L["voxel"]
         graph = FrameGraph(poses, floor + 0.02 * steps, floor / L["range"] + 0.02 * turns + 0.005 * steps,
                            0.25 * L["voxel"], 0.25 * L["voxel"] / L["range"])
@@ -139,7 +139,7 @@ class Loops3dTopology:
         tried: dict[tuple[int, int], np.ndarray | None] = {}
         estimate = poses
         for r in range(self.rounds):
-            found = self._search(estimate, path, keys, tried, log, r)
+            found = self._search(estimate, path, tried, log, r)
             if not found:
                 break
             closures += found
@@ -178,12 +178,11 @@ class Loops3dTopology:
             out.append(out[-1] @ step)
         return np.array(out), repaired
 
-    def _search(self, estimate: np.ndarray, path: np.ndarray, keys: np.ndarray, tried: dict, log: list,
-                round_: int) -> list[Closure3]:
+    def _search(self, estimate: np.ndarray, path: np.ndarray, tried: dict, log: list, round_: int) -> list[Closure3]:
         """Verify the candidates of every keyframe at ``estimate``; a pair is verified again in a later round
         only when its starting relative pose moved by more than the fine distance (accepted pairs are
         settled: their starts agree with the closure)."""
-        L = self._lengths
+        L, keys = self._lengths, self._keys
         kpath = path[keys]
         found: list[Closure3] = []
         last = 0.0
@@ -196,7 +195,7 @@ class Loops3dTopology:
                                         np.linalg.norm(se3.relative(tried[(a, b)], init)[:3, 3]) <= L["fine"]):
                     continue  # accepted, or verified from (nearly) this start already
                 tried[(a, b)] = init
-                entry = self._verify(a, b, estimate, window)
+                entry = self._verify(a, b, init, window)
                 entry.update(predicted_overlap=round(predicted, 4), round=round_ + 1)
                 log.append(entry)
                 if entry["verified"]:
@@ -228,11 +227,10 @@ class Loops3dTopology:
                 scored.append((overlap, int(a)))
         return [(a, o) for o, a in sorted(scored, reverse=True)[: self.candidates]]
 
-    def _verify(self, a: int, b: int, estimate: np.ndarray, window: float) -> dict:
-        """GICP of keyframe b's submap onto a's from the estimate, then the gates."""
+    def _verify(self, a: int, b: int, init: np.ndarray, window: float) -> dict:
+        """GICP of keyframe b's submap onto a's from ``init`` (b in a's frame at the estimate), then the gates."""
         L = self._lengths
         i, j = int(self._keys[a]), int(self._keys[b])
-        init = se3.relative(estimate[i], estimate[j])
         src, tgt = self._maps[b], self._maps[a]
         fine = L["fine"]
         m = register(src, tgt, init, (max(window, 4.0 * fine), 2.0 * fine, fine), "gicp")
@@ -272,8 +270,9 @@ class Loops3dTopology:
         """A frame-pair registration good enough to replace a front-end step: it passes the closure gates."""
         return m.fitness > 0 and not self._gates(src, tgt, m, {})
 
-    def _submap(self, frames: Frames, poses: np.ndarray, keys: np.ndarray, b: int) -> Cloud:
+    def _submap(self, frames: Frames, poses: np.ndarray, b: int) -> Cloud:
         """Scans from keyframe b-1 to b+1, in keyframe b's frame, voxel-down-sampled."""
+        keys = self._keys
         lo = int(keys[b - 1]) if b > 0 else 0
         hi = int(keys[b + 1]) if b + 1 < len(keys) else len(poses) - 1
         inv = se3.inverse(poses[keys[b]])
