@@ -95,6 +95,8 @@ def run_case(method: Method, input_args: list[str], run_dir: Path, cache_dir: Pa
         report = json.loads(report_path.read_text())
         case.update(status="ok", frames=report.get("frames"), metrics=report.get("metrics", {}),
                     warm_start_metrics=report.get("warm_start_metrics", {}),
+                    loop_closed_metrics=report.get("loop_closed_metrics"),
+                    start=report.get("start"), selection=report.get("selection"),
                     timings=report.get("timings", {}),
                     prepare_cached=report.get("prepare", {}).get("cached", {}),
                     report_peak_rss_mb=report.get("peak_rss_mb"), best_epoch=report.get("best_epoch"),

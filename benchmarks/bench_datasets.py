@@ -96,6 +96,15 @@ def kitti00(env: Env) -> Inputs:
                    "warm_start": "icp"})
 
 
+def balm(env: Env) -> Inputs:
+    folder = DATA / "lidar3d" / "balm_realworld_000-079"
+    _need(folder / "poses.txt", folder / "times.txt")
+    return Inputs(["-s", str(folder / "velodyne"), "-p", str(folder / "poses.txt"), "--times",
+                   str(folder / "times.txt")], 80,
+                  {"scans": str(folder / "velodyne"), "poses": "poses.txt (a LiDAR odometry front end's)",
+                   "gt": "none: scored by map entropy"})
+
+
 def deepmapping2d(env: Env) -> Inputs:
     """Extract the tar into the scratch folder; scans as .npy without the all-zero (invalid ray) points and
     scaled by 512 into the units of ``gt_pose.mat``, as DeepMapping's own ``script/eval_2D.py`` does."""
@@ -183,6 +192,8 @@ DATASETS: dict[str, Dataset] = {d.name: d for d in [
             "the path nearly free, so its rotation error means little here (paper_ate_rot_deg in the JSON "
             "does not align); the official ground truth also moves 0.86 m/frame where the scans show about "
             "0.7 m."),
+    Dataset("balm", "80 real 3D LiDAR keyframes (indoor/campus, BALM 2 benchmark input) with a front end's "
+            "poses; no ground truth", "map", balm),
     Dataset("deepmapping2d", "DeepMapping 2D simulated set v1_pose0 (256 scans), icp warm start", "ape",
             deepmapping2d),
     _sim(500, True), _sim(2000, True),

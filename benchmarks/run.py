@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_cases import METHODS, command_available, run_case  # noqa: E402
 from bench_datasets import DATASETS, PUBLISHED, REPO, Env, Skip  # noqa: E402
-from bench_report import add_derived, markdown, scaling_plot, warm_start_case  # noqa: E402
+from bench_report import add_derived, loop_closed_case, markdown, scaling_plot, warm_start_case  # noqa: E402
 
 ALL = list(METHODS)
 ABLATIONS = ["no consistency", "temporal batches", "L-Net poses"]
@@ -56,6 +56,12 @@ SETS: dict[str, dict] = {
     },
     "freiburg-ablations": {
         "cases": {"aces": ["L-Net poses", "no consistency"]},
+        "epochs": None,
+        "timeout": 3600,
+    },
+    "3d": {
+        "cases": {name: ["dm2 refine", "gtsam", "g2o"]
+                  for name in ("sim-3d-500", "sim-3d-2000", "redkitchen", "kitti00-6", "balm")},
         "epochs": None,
         "timeout": 3600,
     },
@@ -111,7 +117,8 @@ def write_results(results: dict, out: Path, t_start: float, complete: bool) -> d
         if ds.get("skipped") or not any(c["dataset"] == name for c in cases):
             continue
         first = next(i for i, c in enumerate(cases) if c["dataset"] == name)
-        cases.insert(first, warm_start_case(name, cases))
+        stages = [warm_start_case(name, cases), loop_closed_case(name, cases)]
+        cases[first:first] = [c for c in stages if c is not None]
     r["machine"]["loadavg_end"] = os.getloadavg()
     r["wall_s"] = time.perf_counter() - t_start
     out.mkdir(parents=True, exist_ok=True)

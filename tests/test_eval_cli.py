@@ -140,7 +140,7 @@ def test_bad_options_exit_2(files, args, text):
 
 def test_needs_gt_or_relations(files):
     r = run("eval", "--est", files["est"])
-    assert r.exit_code == 2 and "--gt, --relations" in r.output
+    assert r.exit_code == 2 and "--gt, --relations, --scans" in r.output
 
 
 def _report(folder: Path, **data) -> Path:
@@ -164,6 +164,17 @@ def test_compare_prints_one_table(tmp_path):
     assert "1.500000" in row and "0.500000" in row
     assert next(x for x in lines if x.startswith("rpe_rot_rmse_deg")).split()[1] == "-"
     assert "105.000000" in next(x for x in lines if x.startswith("time total"))
+
+
+def test_compare_counts_a_run_total_once_and_says_what_was_cached(tmp_path):
+    a = _report(tmp_path / "refine", method="dm2 refine", timings={"registration": 30.0, "optimise": 60.0,
+                "total": 95.0}, prepare={"cached": {"frames": False, "registration": False}})
+    b = _report(tmp_path / "gtsam", method="gtsam", timings={"registration": 0.1, "optimise": 1.0, "total": 2.0},
+                prepare={"cached": {"frames": True, "registration": True}})
+    lines = run("compare", a, b).output.splitlines()
+    totals = [x for x in lines if x.startswith("time total")]
+    assert len(totals) == 1 and totals[0].split()[-2:] == ["95.000000", "2.000000"]
+    assert next(x for x in lines if x.startswith("preparation cached")).split()[-2:] == ["no", "frames,registration"]
 
 
 def test_compare_bad_reports_exit_2(tmp_path):

@@ -22,6 +22,8 @@ from dm2_backend.optim.distributed import Dist, shard
 from dm2_backend.optim.trainer import CHECKPOINT, sample_points
 from dm2_backend.pipeline import parallel
 from dm2_backend.pipeline.inputs import load_inputs
+from dm2_backend.pipeline.refine import map_entropy, map_sampler
+from dm2_backend.pipeline.start import choose_start
 from dm2_backend.prepare import store
 from dm2_backend.prepare.pipeline import load_prepared
 from dm2_backend.simulate.sequence import write_sequence
@@ -137,7 +139,10 @@ def job(seq: Path, cache: Path, out: Path, scratch: Path, resume: bool, metric, 
     sess = parallel.Session(Dist(0, 2), "spawn", cache, scratch)
     prep, samples = parallel.prepare_once(inputs, cfg, ocfg, sess, progress=False)
     assert all(prep.cached.values())
-    return parallel.Job(cache, prep.keys, samples, ocfg, cfg, out, resume, False, metric, 2, scratch)
+    sampler = map_sampler(inputs)
+    start = choose_start(prep, ocfg, sampler)
+    watch = parallel.Watch(metric, map_entropy(sampler))
+    return parallel.Job(cache, prep.keys, start, samples, ocfg, cfg, out, resume, False, watch, 2, scratch)
 
 
 def test_resume_of_a_distributed_run(seq, runs, tmp_path):

@@ -154,7 +154,7 @@ def chamfer_at(opt: Optimiser, poses: np.ndarray) -> float:
     T = torch.from_numpy(poses)
     world = se3_torch.transform(T.float(), opt.points)
     idx = np.arange(opt.n)
-    return float(opt._chamfer(idx, opt.groups, idx, T, world))
+    return float(opt._chamfer(idx, opt.groups, idx, T, world, torch.from_numpy(idx)))
 
 
 def test_chamfer_lowest_at_ground_truth(case, gt_opt):

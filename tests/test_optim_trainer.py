@@ -9,10 +9,10 @@ import pytest
 import torch
 from optim_cases import Case, frames_of, one_thread, planar_case, small_config
 
-from dm2_backend.geometry import se3
+from dm2_backend.geometry import se3, se3_torch
 from dm2_backend.optim import losses
 from dm2_backend.optim.batching import make_groups, random_groups, temporal_groups
-from dm2_backend.optim.config import OptimConfig, derive, pose_regime
+from dm2_backend.optim.config import OptimConfig, derive, loss_regime, pose_regime, sampled_points
 from dm2_backend.optim.regime import disagreement, locally_accurate
 from dm2_backend.optim.trainer import CHECKPOINT, Optimiser, OptimResult
 from dm2_backend.pipeline.refine import ate_rmse
@@ -80,7 +80,10 @@ def test_refine_lowers_ate_with_icp_pairwise(case, full_run):
     assert (folder / CHECKPOINT).is_file()
     assert set(result.derived) == {"unit", "finest_cell", "free_margin", "chamfer_truncate",
                                    "step_translation", "step_rotation", "epochs", "drift", "lr_pose",
-                                   "start_disagreement", "locally_accurate_start"}
+                                   "start_disagreement", "locally_accurate_start", "use_bce", "use_consistency",
+                                   "chamfer_metric", "pose_warmup", "pose_warmup_steps", "from_graph",
+                                   "points_per_frame"}
+    assert result.selection == f"lowest epoch loss: epoch {result.best_epoch}"  # no map metric given
     assert result.derived["epochs"] == EPOCHS
     # a drifting warm start (not loop-closed, registrations disagree with it): drift terms, full pose steps
     assert result.derived["start_disagreement"] > OptimConfig().accurate_below * result.derived["unit"]
@@ -246,3 +249,84 @@ def test_3d_sequence_runs():
     result = opt.run()
     assert np.isfinite(result.poses).all() and result.stopped is None
     assert np.abs(result.poses[:, 2, 3] - warm[:, 2, 3]).max() > 0  # z is free in 3D
+
+
+class MapScores:
+    """Map metric returning given values in call order (the first call scores the start), keeping the poses."""
+
+    def __init__(self, values: list[float]) -> None:
+        self.values, self.poses = list(values), []
+
+    def __call__(self, poses: np.ndarray) -> float:
+        self.poses.append(poses.copy())
+        return self.values[len(self.poses) - 1]
+
+
+def test_select_by_map_returns_the_sharpest_epoch(case):
+    scores = MapScores([5.0, 4.0, 2.0, 3.0, 6.0])  # start, epochs 0..3
+    opt = Optimiser(case.frames, case.warm, case.topology, case.pairwise, small_config(epochs=4), seed=0,
+                    device="cpu", map_metric=scores, progress=False)
+    result = opt.run()
+    assert result.best_epoch == 1
+    np.testing.assert_array_equal(result.poses, scores.poses[2])
+    assert [row["map_entropy"] for row in result.history] == [4.0, 2.0, 3.0, 6.0]
+    assert result.selection.startswith("sharpest map: epoch 1")
+
+
+def test_select_by_map_never_returns_a_blurrier_map_than_the_start(case):
+    scores = MapScores([1.0, 2.0, 3.0])
+    opt = Optimiser(case.frames, case.warm, case.topology, case.pairwise, small_config(epochs=2), seed=0,
+                    device="cpu", map_metric=scores, progress=False)
+    result = opt.run()
+    assert result.best_epoch == -1 and result.selection.startswith("the start")
+    np.testing.assert_allclose(result.poses, case.warm, atol=1e-9)
+    # with select "loss" the map metric is only recorded
+    loss_run = Optimiser(case.frames, case.warm, case.topology, case.pairwise,
+                         small_config(epochs=2, select="loss"), seed=0, device="cpu",
+                         map_metric=MapScores([1.0, 2.0, 3.0]), progress=False).run()
+    assert loss_run.best_epoch >= 0 and "map_entropy" in loss_run.history[0]
+
+
+def test_loss_regime_from_the_pose_graph_start():
+    cfg = OptimConfig()
+    graph3d = loss_regime(cfg, planar=False, from_graph=True)
+    assert graph3d == {"use_bce": False, "use_consistency": False, "chamfer_metric": "plane", "pose_warmup": 1.0}
+    assert loss_regime(cfg, planar=True, from_graph=False) == {
+        "use_bce": True, "use_consistency": True, "chamfer_metric": "point", "pose_warmup": 0.0}
+    explicit = OptimConfig(use_bce=True, use_consistency=True, chamfer_metric="point", pose_warmup=0.5)
+    assert loss_regime(explicit, planar=False, from_graph=True) == {
+        "use_bce": True, "use_consistency": True, "chamfer_metric": "point", "pose_warmup": 0.5}
+    assert sampled_points(cfg, 1024, planar=False) == 1024 and sampled_points(cfg, 1024, planar=True) == 256
+    assert sampled_points(OptimConfig(start="prepared"), 1024, planar=False) == 256
+    # 3D: the unit follows the raw scans' spacing (the frames are a subsample), planar data the frames'
+    scale = {"spacing": 0.4, "spacing_raw": 0.15, "voxel": 0.1, "range_median": 8.0}
+    assert derive(cfg, scale, planar=False)["unit"] == pytest.approx(0.3)
+    assert derive(cfg, scale, planar=True)["unit"] == pytest.approx(0.8)
+    assert derive(cfg, scale, planar=False, from_graph=True)["chamfer_truncate"] == pytest.approx(0.3)
+
+
+def test_plane_chamfer_is_lowest_at_ground_truth():
+    lidar = LidarModel(beams=16, columns=360, max_range=40.0)
+    scans, gt, _ = simulate(SimSettings(frames=12, planar=False, extent=20.0, lidar=lidar), progress=False)
+    frames = frames_of(scans, planar=False)
+    topo = RadiusTopology().run(frames, gt)
+    shell = Case(scans, gt, gt, frames, topo, None)
+    opt = Optimiser(frames, gt, topo, shell.pairwise_from(gt), small_config(chamfer_metric="plane",
+                    points_per_frame=256), seed=0, device="cpu", progress=False)
+    assert opt.normals is not None
+    np.testing.assert_allclose(np.linalg.norm(opt.normals.numpy(), axis=-1), 1.0, atol=1e-5)
+
+    def chamfer(poses):
+        T = torch.from_numpy(poses)
+        idx = np.arange(opt.n)
+        world = se3_torch.transform(T.float(), opt.points)
+        return float(opt._chamfer(idx, opt.groups, idx, T, world, torch.from_numpy(idx)))
+
+    rng = np.random.default_rng(0)
+    previous = chamfer(gt)
+    for sigma in (0.05, 0.2, 0.5):
+        noise = np.concatenate([rng.normal(0, sigma, (len(gt), 3)), rng.normal(0, sigma / 20, (len(gt), 3))], 1)
+        noise[0] = 0
+        value = chamfer(gt @ se3.from_xyz_euler(noise))
+        assert value > previous
+        previous = value

@@ -114,6 +114,12 @@ def test_report(run):
     assert all(np.isfinite(e["ate"]) and np.isfinite(e["loss"]) for e in report["epochs"])
     assert report["best_epoch"] in (0, 1) and report["derived"]["unit"] > 0
     assert "ape_trans_rmse_m" in result.output and "wrote" in result.output
+    # map sharpness of every stage, without ground truth; the returned poses never blurrier than the start
+    assert report["map_quality"]["radius_m"] > 0 and "map_entropy" in metrics
+    assert report["start"]["name"] == "prepared" and report["start_metrics"]["map_entropy"] is not None
+    assert metrics["map_entropy"] <= report["start_metrics"]["map_entropy"]
+    assert report["selection"].startswith(("sharpest map", "the start"))
+    assert [e["map_entropy"] for e in report["epochs"]] and "map_entropy" in result.output
 
 
 def test_quiet_prints_no_progress_bars(run):

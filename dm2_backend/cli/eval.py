@@ -11,6 +11,7 @@ from dm2_backend.cli.options import duplicate_times_option
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.ape_rpe import ALIGN_MODES, DELTA_UNITS, evaluate_poses
+from dm2_backend.evaluation.map_quality import MapSampler, estimate_map
 from dm2_backend.evaluation.paper_ate import paper_ate
 from dm2_backend.evaluation.relations import MAX_DT, load_relations, relations_error
 from dm2_backend.evaluation.report import (
@@ -24,7 +25,7 @@ from dm2_backend.evaluation.report import (
     write_json,
     write_markdown,
 )
-from dm2_backend.formats import ReadOptions, read_trajectory
+from dm2_backend.formats import ReadOptions, open_scans, read_trajectory
 
 path_type = click.Path(path_type=Path)
 
@@ -85,6 +86,10 @@ def _plots(
 @click.option("--est-topic", default=None, help="Bag topic of the estimates.")
 @click.option("--gt-times", type=path_type, default=None, help="KITTI times.txt for --gt.")
 @click.option("--est-times", type=path_type, default=None, help="KITTI times.txt for --est.")
+@click.option("--scans", "scans_path", type=path_type, default=None,
+              help="Scan source: adds the map entropy and plane variance of the scans at each estimate "
+                   "(no ground truth needed).")
+@click.option("--scans-format", default=None, help="Format of --scans (detected otherwise).")
 @click.option("--relations", "relations_path", type=path_type, default=None,
               help="Freiburg .relations file (t1 t2 x y z roll pitch yaw); --gt may then be omitted.")
 @click.option("--relations-max-dt", type=float, default=MAX_DT, show_default=True,
@@ -107,15 +112,16 @@ def _plots(
               help="Write evo result archives (.zip, readable by evo_res) into this folder.")
 @duplicate_times_option
 def command(gt_path, est_paths, gt_format, est_format, gt_topic, est_topic, gt_times, est_times,
-            relations_path, relations_max_dt, align, align_origin, max_diff, delta, delta_unit, json_path,
-            csv_path, md_path, plot_dir, run_report, evo_dir, duplicate_times) -> None:
-    """Evaluate one or more estimated trajectories against a ground truth and/or relations.
+            scans_path, scans_format, relations_path, relations_max_dt, align, align_origin, max_diff, delta,
+            delta_unit, json_path, csv_path, md_path, plot_dir, run_report, evo_dir, duplicate_times) -> None:
+    """Evaluate one or more estimated trajectories against a ground truth, relations and/or the map they make.
 
     APE and RPE (translation m, rotation deg) are computed with evo and equal evo_ape / evo_rpe;
-    "paper ATE" is the DeepMapping2 paper's own definition; --relations adds the Freiburg relations metric.
+    "paper ATE" is the DeepMapping2 paper's own definition; --relations adds the Freiburg relations metric;
+    --scans the mean map entropy and plane variance (lower = sharper) of the scans at each estimate.
     """
-    if gt_path is None and relations_path is None:
-        raise click.UsageError("give --gt, --relations or both")
+    if gt_path is None and relations_path is None and scans_path is None:
+        raise click.UsageError("give --gt, --relations, --scans or several")
     if align_origin and align not in (None, "none"):
         raise click.UsageError("--align-origin excludes --align se3/sim3 (as in evo)")
     align = align or ("none" if align_origin else "se3")
@@ -133,11 +139,14 @@ def command(gt_path, est_paths, gt_format, est_format, gt_topic, est_topic, gt_t
     if gt is not None and len(gt) == 0:
         raise InputError(gt_path, "no poses")
     relations = load_relations(relations_path) if relations_path else None
+    scans = open_scans(scans_path, scans_format, ReadOptions(extra=dup)) if scans_path else None
+    sampler = MapSampler.from_scans(scans) if scans is not None else None
     report = EvalReport(
         ground_truth=str(gt_path) if gt_path else None,
         relations_file=str(relations_path) if relations_path else None,
         settings={"align": align, "align_origin": align_origin, "max_diff": max_diff, "delta": delta,
                   "delta_unit": delta_unit, "relations_max_dt": relations_max_dt},
+        map=None if sampler is None else {"scans_path": str(scans_path), **sampler.settings_summary()},
     )
     est_options = ReadOptions(topic=est_topic, times=est_times, extra=dup)
     for path, label in zip(est_paths, _labels(est_paths), strict=True):
@@ -153,6 +162,8 @@ def command(gt_path, est_paths, gt_format, est_format, gt_topic, est_topic, gt_t
                 entry.paper = paper_ate(np.array(entry.poses.ref.poses_se3), entry.poses.est_raw)
         if relations is not None:
             entry.relations = relations_error(est, relations, max_dt=relations_max_dt, source=path)
+        if sampler is not None:
+            entry.map = estimate_map(sampler, scans, est, max_diff, source=path)
         report.estimates.append(entry)
 
     click.echo(terminal_text(report))

@@ -34,6 +34,7 @@ from evo.tools import file_interface
 from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation.ape_rpe import STAT_KEYS, PoseErrors
+from dm2_backend.evaluation.map_quality import MapQuality
 from dm2_backend.evaluation.paper_ate import LABEL as PAPER_LABEL
 from dm2_backend.evaluation.paper_ate import PaperATE
 from dm2_backend.evaluation.relations import RelationsResult
@@ -51,6 +52,8 @@ _LABELS = {
     "relations_trans_sq": "relations trans^2",
     "relations_rot": "relations rot",
     "relations_rot_sq": "relations rot^2",
+    "map_entropy": "map entropy",
+    "map_plane_variance": "map plane variance",
 }
 
 
@@ -64,6 +67,7 @@ class EstimateReport:
     paper: PaperATE | None = None
     relations: RelationsResult | None = None
     positions: np.ndarray | None = None  # estimated positions as read (plots without ground truth)
+    map: MapQuality | None = None  # map sharpness of the scans at these poses (``dm2 eval --scans``)
 
 
 @dataclass
@@ -72,6 +76,7 @@ class EvalReport:
     relations_file: str | None
     settings: dict
     estimates: list[EstimateReport] = field(default_factory=list)
+    map: dict | None = None  # how the map metrics were computed (scans, voxel, radius, ...)
 
 
 def _num(v: float | None) -> float | None:
@@ -99,6 +104,12 @@ def rows(report: EvalReport) -> list[dict]:
                 out.append({"estimate": est.label, "metric": f"relations_{key}", "unit": unit,
                             "count": est.relations.used, "value": s[f"{key}_mean"],
                             "mean": s[f"{key}_mean"], "std": s[f"{key}_std"]})
+        if est.map is not None:
+            m = est.map
+            out.append({"estimate": est.label, "metric": "map_entropy", "unit": "nats", "count": m.queries,
+                        "value": m.entropy, "mean": m.entropy})
+            out.append({"estimate": est.label, "metric": "map_plane_variance", "unit": "m^2", "count": m.queries,
+                        "value": m.plane_variance, "mean": m.plane_variance})
     return out
 
 
@@ -127,9 +138,12 @@ def to_json(report: EvalReport) -> dict:
             entry["metrics"]["relations"] = {"used": r.used, "skipped": r.skipped, "planar": r.planar,
                                              "max_dt": r.max_dt, "units": {"trans": "m", "rot": "deg"},
                                              **{k: _num(v) for k, v in r.stats.items()}}
+        if est.map is not None:
+            entry["metrics"]["map"] = {k: _num(v) if isinstance(v, float) else v
+                                       for k, v in est.map.as_dict().items()}
         estimates.append(entry)
     return {"format": FORMAT, "ground_truth": report.ground_truth, "relations": report.relations_file,
-            "settings": report.settings, "estimates": estimates}
+            "settings": report.settings, "map": report.map, "estimates": estimates}
 
 
 def run_metrics(est: EstimateReport) -> dict[str, float]:
@@ -199,8 +213,17 @@ def describe(est: EstimateReport) -> list[str]:
     return lines
 
 
+def map_line(report: EvalReport) -> list[str]:
+    if report.map is None:
+        return []
+    m = report.map
+    return [f"map: {m['scans']} scans voxelised at {m['voxel_m']:.4g} m ({m['points']} points), "
+            f"neighbourhood radius {m['radius_m']:.4g} m (derived from the scans), {m['queries']} sampled "
+            f"points; lower entropy / plane variance = sharper"]
+
+
 def terminal_text(report: EvalReport) -> str:
-    lines = [line for est in report.estimates for line in describe(est)]
+    lines = [line for est in report.estimates for line in describe(est)] + map_line(report)
     header, body = _display_rows(report)
     lines += ["", format_table(header, body)]
     if any(e.paper is not None for e in report.estimates):
@@ -236,6 +259,7 @@ def write_markdown(report: EvalReport, path: str | Path) -> None:
     if report.relations_file:
         lines.append(f"Relations: `{report.relations_file}`  ")
     lines += [f"- {line}" for est in report.estimates for line in describe(est)]
+    lines += [f"- {line}" for line in map_line(report)]
     lines += ["", "| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     lines += ["| " + " | ".join(fmt(c) for c in r) + " |" for r in body]
     if any(e.paper is not None for e in report.estimates):
@@ -296,15 +320,23 @@ def compare_table(reports: dict[str, dict]) -> str:
         body.append([k, *(_as_number(reports[r].get("metrics", {}).get(k)) for r in runs)])
     for k in stage_keys:
         body.append([f"time {k} [s]", *(_as_number(reports[r].get("timings", {}).get(k)) for r in runs)])
-    if stage_keys:
+    if stage_keys and "total" not in stage_keys:  # a run's own total counts the stages once, with start-up
         totals = []
         for r in runs:
             vals = [_as_number(v) for v in reports[r].get("timings", {}).values()]
             nums = [v for v in vals if isinstance(v, float)]
             totals.append(sum(nums) if nums else None)
         body.append(["time total [s]", *totals])
+    if any(any(r.get("prepare", {}).get("cached", {}).values()) for r in reports.values()):
+        body.append(["preparation cached", *(_cached(reports[r]) for r in runs)])
     body.append(["peak RSS [MB]", *(_as_number(reports[r].get("peak_rss_mb")) for r in runs)])
     return format_table(["quantity", *runs], body)
+
+
+def _cached(report: dict) -> str:
+    """Which preparation steps a run loaded from the cache instead of computing (their time is not in it)."""
+    steps = [k for k, v in report.get("prepare", {}).get("cached", {}).items() if v]
+    return ",".join(steps) if steps else "no"
 
 
 def _as_number(v):

@@ -17,7 +17,7 @@ from dm2_backend.atomic import atomic_write
 from dm2_backend.geometry import se3_torch
 from dm2_backend.optim import distributed, losses
 from dm2_backend.optim.batching import make_groups
-from dm2_backend.optim.config import OptimConfig, derive, pose_regime
+from dm2_backend.optim.config import OptimConfig, derive, loss_regime, pose_regime, sampled_points
 from dm2_backend.optim.occupancy import GridOccupancy
 from dm2_backend.optim.pose_model import PoseModel
 from dm2_backend.optim.regime import disagreement, locally_accurate
@@ -33,6 +33,8 @@ class OptimResult:
     history: list[dict] = field(default_factory=list)
     derived: dict = field(default_factory=dict)
     stopped: str | None = None
+    #: which poses were returned and why (``best_epoch`` -1: the start itself)
+    selection: str = ""
 
 
 def resolve_device(name: str) -> torch.device:
@@ -50,6 +52,22 @@ def sample_points(frames: Frames, m: int, seed: int) -> np.ndarray:
     return out
 
 
+def sample_normals(frames: Frames, samples: np.ndarray, k: int = 12) -> np.ndarray:
+    """Unit surface normal at each sampled point (N, m, 3): the smallest principal axis of its ``k`` nearest
+    points in its own frame."""
+    out = np.zeros(samples.shape, dtype=np.float32)
+    for i, (pts, q) in enumerate(zip(frames.points, samples, strict=True)):
+        kk = min(k, len(pts))
+        if kk < 3:
+            continue
+        _, idx = cKDTree(pts).query(q, k=kk)
+        nb = pts[idx].astype(np.float64)  # (m, k, 3)
+        nb -= nb.mean(1, keepdims=True)
+        _, vecs = np.linalg.eigh(np.einsum("mki,mkj->mij", nb, nb))
+        out[i] = vecs[:, :, 0]
+    return out
+
+
 class Optimiser:
     """Refines warm-start poses by minimising BCE + alpha Chamfer + beta consistency over anchor groups."""
 
@@ -63,21 +81,31 @@ class Optimiser:
         seed: int = 0,
         device: str = "auto",
         metric: Callable[[np.ndarray], float] | None = None,
+        map_metric: Callable[[np.ndarray], float] | None = None,
         progress: bool = True,
         samples: np.ndarray | None = None,
         dist: distributed.Dist | None = None,
+        from_graph: bool = False,
     ) -> None:
-        """``samples``: the points of :func:`sample_points` computed ahead (a memory-mapped array shared by the
+        """``metric``: accuracy against ground truth, shown and recorded per epoch, never used to choose;
+        ``map_metric``: the map entropy of poses (lower = sharper), recorded per epoch and, with
+        ``cfg.select == "map"``, what chooses the returned poses among the start and the epochs;
+        ``from_graph``: ``warm_start`` is the pose-graph solution (see ``config.loss_regime``);
+        ``samples``: the points of :func:`sample_points` computed ahead (a memory-mapped array shared by the
         ranks); ``dist``: this process's rank when several optimise together (see ``distributed``)."""
         self.cfg = cfg
         self.dist = dist or distributed.Dist()
         self.seed = seed
         self.metric = metric
+        self.map_metric = map_metric
+        if cfg.select not in ("map", "loss"):
+            raise ValueError(f"unknown select {cfg.select!r} (map or loss)")
         self.progress = progress
         self.device = resolve_device(device)
         if cfg.threads > 0 and self.device.type == "cpu":
             torch.set_num_threads(cfg.threads)
-        self.derived = derive(cfg, frames.scale)
+        self.derived = derive(cfg, frames.scale, frames.planar, from_graph)
+        self.derived.update(loss_regime(cfg, frames.planar, from_graph), from_graph=from_graph)
         spread = disagreement(warm_start, topology.groups, pairwise.relative, pairwise.valid,
                               frames.scale.get("range_median", 1.0))
         # loop-closed poses need no drift terms (they would undo the closures: sim-3d-5000, 0.95 m start, drifted
@@ -87,8 +115,16 @@ class Optimiser:
         self.planar = frames.planar
         self.n = len(frames)
         torch.manual_seed(seed)
-        pts = sample_points(frames, cfg.points_per_frame, seed) if samples is None else samples
+        if samples is None:
+            samples = sample_points(frames, sampled_points(cfg, frames.max_points, frames.planar), seed)
+        pts = samples
+        self.derived["points_per_frame"] = pts.shape[1]
         self.points = torch.from_numpy(pts).to(self.device)
+        self.normals = None
+        if self.derived["chamfer_metric"] == "plane":
+            self.normals = torch.from_numpy(sample_normals(frames, pts)).to(self.device)
+        elif self.derived["chamfer_metric"] != "point":
+            raise ValueError(f"unknown chamfer_metric {self.derived['chamfer_metric']!r} (point or plane)")
         self.topo_groups = topology.groups
         self.groups = make_groups(cfg.batching, topology.groups, seed)
         self.relative = torch.from_numpy(pairwise.relative).to(self.device)
@@ -116,10 +152,17 @@ class Optimiser:
             self.epochs = max(1, min(cfg.epochs, cfg.max_steps // self.steps_per_epoch))
         self.derived["epochs"] = self.epochs
         total = max(1, self.epochs * self.steps_per_epoch)
+        warmup = int(round(self.derived["pose_warmup"] * self.steps_per_epoch)) if self.derived["drift"] is False else 0
+        self.derived["pose_warmup_steps"] = warmup
+
+        def cosine(s: int) -> float:
+            return cfg.lr_final + (1 - cfg.lr_final) * 0.5 * (1 + math.cos(math.pi * min(s, total) / total))
+
+        def poses_after_warmup(s: int) -> float:  # the poses hold still while the field learns the map
+            return 0.0 if s < warmup else cosine(s)
+
         self.sched = torch.optim.lr_scheduler.LambdaLR(
-            self.optim,
-            lambda s: cfg.lr_final + (1 - cfg.lr_final) * 0.5 * (1 + math.cos(math.pi * min(s, total) / total)),
-        )
+            self.optim, [cosine, poses_after_warmup] + [cosine] * (len(groups) - 2))
 
     def _map_box(self, poses: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         sub = pts[:, :: max(1, pts.shape[1] // 32)]
@@ -146,7 +189,7 @@ class Optimiser:
         total = torch.zeros((), device=self.device)
         member = np.unique(np.concatenate([anchors, groups[groups >= 0]]))
         ms = torch.from_numpy(slot[member]).to(self.device)
-        if cfg.use_bce:
+        if self.derived["use_bce"]:
             hits = world[ms, : cfg.bce_points_per_frame]
             margin = self.derived["free_margin"]
             free = losses.free_space_samples(hits, Tf[ms, :3, 3], cfg.samples_per_ray, margin, generator)
@@ -155,9 +198,9 @@ class Optimiser:
             out["bce"] = losses.occupancy_bce(self.field, hits, free)
             total = total + out["bce"]
         if cfg.use_chamfer:
-            out["chamfer"] = self._chamfer(anchors, groups, slot, T, world) / unit
+            out["chamfer"] = self._chamfer(anchors, groups, slot, T, world, fidx) / unit
             total = total + cfg.alpha * out["chamfer"]
-        if cfg.use_consistency:
+        if self.derived["use_consistency"]:
             a = torch.from_numpy(slot[anchors]).to(self.device)
             nb = torch.from_numpy(slot[np.where(topo >= 0, topo, anchors[:, None])]).to(self.device)
             rel = self.relative[torch.from_numpy(anchors).to(self.device)]
@@ -175,7 +218,7 @@ class Optimiser:
         out["loss"] = total
         return out
 
-    def _chamfer(self, anchors, groups, slot, T, world) -> torch.Tensor:
+    def _chamfer(self, anchors, groups, slot, T, world, fidx) -> torch.Tensor:
         """Chamfer between each anchor and its group members. Nearest neighbours come from one KD-tree over
         the batch's current world points with the frame number as a far-apart 4th coordinate, so every query
         only finds points of the frame it asks about."""
@@ -201,7 +244,15 @@ class Optimiser:
         nA = torch.gather(N, 1, ian.unsqueeze(-1).expand(-1, -1, 3))
         nN = torch.gather(A, 1, ina.unsqueeze(-1).expand(-1, -1, 3))
         cut = self.derived["chamfer_truncate"]
-        return (A - nA).norm(dim=-1).clamp(max=cut).mean() + (N - nN).norm(dim=-1).clamp(max=cut).mean()
+        if self.normals is None:
+            return (A - nA).norm(dim=-1).clamp(max=cut).mean() + (N - nN).norm(dim=-1).clamp(max=cut).mean()
+        # point-to-plane: the residual along the neighbour's surface normal (rotated into the world)
+        Rn = torch.einsum("fij,fmj->fmi", T[:, :3, :3].float(), self.normals[fidx])
+        nrm_N = torch.gather(Rn[sj_t], 1, ian.unsqueeze(-1).expand(-1, -1, 3))
+        nrm_A = torch.gather(Rn[sa_t], 1, ina.unsqueeze(-1).expand(-1, -1, 3))
+        da = ((A - nA) * nrm_N).sum(-1).abs().clamp(max=cut)
+        dn = ((N - nN) * nrm_A).sum(-1).abs().clamp(max=cut)
+        return da.mean() + dn.mean()
 
     # ------------------------------------------------------------------ epochs
     def poses(self) -> np.ndarray:
@@ -227,7 +278,10 @@ class Optimiser:
         evaluates ``metric``, and every rank resumes from rank 0's checkpoint."""
         dist, lead = self.dist, self.dist.rank == 0
         history: list[dict] = []
+        by_map = self.cfg.select == "map" and self.map_metric is not None
         best = {"loss": math.inf, "epoch": -1, "poses": self.poses()}
+        if by_map and lead:  # the start is a candidate: refine never returns a blurrier map than it was given
+            best["map"] = best["start_map"] = float(self.map_metric(best["poses"]))
         start = 0
         ckpt = checkpoint_dir / CHECKPOINT if checkpoint_dir else None
         state = None
@@ -278,10 +332,21 @@ class Optimiser:
             poses = self.poses()
             if self.metric is not None and lead:
                 row["ate"] = float(self.metric(poses))
+            if self.map_metric is not None and lead:
+                row["map_entropy"] = float(self.map_metric(poses))
             history.append(row)
-            if row["loss"] < best["loss"]:
-                best = {"loss": row["loss"], "epoch": epoch, "poses": poses}
-            bar.set_postfix({k: f"{row[k]:.4g}" for k in ("loss", "ate") if k in row})
+            if (row["map_entropy"] < best["map"]) if by_map and lead else (row["loss"] < best["loss"]):
+                best = {**best, "loss": row["loss"], "epoch": epoch, "poses": poses,
+                        **({"map": row["map_entropy"]} if by_map and lead else {})}
+            bar.set_postfix({k: f"{row[k]:.4g}" for k in ("loss", "ate", "map_entropy") if k in row})
             if ckpt is not None and lead:
                 self._save(ckpt, self._state(epoch, best, history))
-        return OptimResult(best["poses"], best["epoch"], history, self.derived, stopped)
+        return OptimResult(best["poses"], best["epoch"], history, self.derived, stopped, _selection(best, by_map))
+
+
+def _selection(best: dict, by_map: bool) -> str:
+    if not by_map:
+        return f"lowest epoch loss: epoch {best['epoch']}" if best["epoch"] >= 0 else "the start (no epoch ran)"
+    if best["epoch"] < 0:
+        return f"the start: no epoch made a sharper map (map entropy {best['start_map']:.4f})"
+    return f"sharpest map: epoch {best['epoch']} (map entropy {best['map']:.4f}, start {best['start_map']:.4f})"

@@ -27,9 +27,10 @@ import torch.multiprocessing as mp
 from torch.multiprocessing.spawn import ProcessException
 
 from dm2_backend.errors import InputError
-from dm2_backend.optim.config import OptimConfig
+from dm2_backend.optim.config import OptimConfig, sampled_points
 from dm2_backend.optim.distributed import Dist, init, rank_device, wait_group
 from dm2_backend.optim.trainer import Optimiser, OptimResult, sample_points
+from dm2_backend.pipeline.start import Start
 from dm2_backend.prepare import store
 from dm2_backend.prepare.pipeline import Prepared, _key, load_prepared, prepare
 
@@ -91,27 +92,39 @@ def prepare_once(inputs, cfg: dict, ocfg: OptimConfig, sess: Session, progress: 
 
 def samples_entry(cache: Path, prep: Prepared, ocfg: OptimConfig, seed: int) -> str:
     """Cache entry of :func:`sample_points` for these frames (the same points the optimiser would draw)."""
-    name = f"samples-{_key(prep.keys['frames'], ocfg.points_per_frame, seed)}"
+    m = sampled_points(ocfg, prep.frames.max_points, prep.frames.planar)
+    name = f"samples-{_key(prep.keys['frames'], m, seed)}"
     if store.get(cache, name) is None:
-        store.put(cache, name, {"samples": sample_points(prep.frames, ocfg.points_per_frame, seed)})
+        store.put(cache, name, {"samples": sample_points(prep.frames, m, seed)})
     return name
 
 
-def build(prep: Prepared, ocfg: OptimConfig, cfg: dict, metric: Callable | None = None, progress: bool = True,
-          samples: np.ndarray | None = None, dist: Dist | None = None) -> Optimiser:
-    """The optimiser of a run (one construction for every launch mode)."""
+@dataclass
+class Watch:
+    """What rank 0 evaluates per epoch: ``metric`` accuracy against ground truth (shown, never used to
+    choose), ``map_metric`` the map entropy (chooses the returned poses, see ``OptimConfig.select``)."""
+
+    metric: Callable | None = None
+    map_metric: Callable | None = None
+
+
+def build(prep: Prepared, start: Start, ocfg: OptimConfig, cfg: dict, watch: Watch | None = None,
+          progress: bool = True, samples: np.ndarray | None = None, dist: Dist | None = None) -> Optimiser:
+    """The optimiser of a run (one construction for every launch mode), starting from ``start``."""
     dist = dist or Dist()
+    watch = watch if dist.rank == 0 and watch is not None else Watch()
     device = str(rank_device(cfg["device"], dist)) if dist.enabled else cfg["device"]
-    return Optimiser(prep.frames, prep.initial, prep.topology, prep.pairwise, ocfg, seed=cfg["seed"],
-                     device=device, metric=metric if dist.rank == 0 else None, progress=progress and dist.rank == 0,
-                     samples=samples, dist=dist)
+    return Optimiser(prep.frames, start.poses, prep.topology, prep.pairwise, ocfg, seed=cfg["seed"],
+                     device=device, metric=watch.metric, map_metric=watch.map_metric,
+                     progress=progress and dist.rank == 0, samples=samples, dist=dist,
+                     from_graph=start.name == "graph")
 
 
-def optimise_rank(prep: Prepared, samples: str, ocfg: OptimConfig, cfg: dict, sess: Session, out: Path,
-                  resume: bool, progress: bool, metric: Callable | None) -> tuple[OptimResult, str]:
+def optimise_rank(prep: Prepared, start: Start, samples: str, ocfg: OptimConfig, cfg: dict, sess: Session,
+                  out: Path, resume: bool, progress: bool, watch: Watch) -> tuple[OptimResult, str]:
     """This torchrun rank's part of the optimisation; rank 0's result is the run's."""
     points = store.get(sess.cache, samples)[0]["samples"]
-    opt = build(prep, ocfg, cfg, metric, progress, points, sess.dist)
+    opt = build(prep, start, ocfg, cfg, watch, progress, points, sess.dist)
     return opt.run(checkpoint_dir=out, resume=resume), str(opt.device)
 
 
@@ -122,13 +135,14 @@ class Job:
 
     cache: Path
     keys: dict[str, str]
+    start: Start
     samples: str
     ocfg: OptimConfig
     cfg: dict
     out: Path
     resume: bool
     progress: bool
-    metric: Callable | None
+    watch: Watch
     world: int
     scratch: Path
 
@@ -146,7 +160,7 @@ def run_rank(rank: int, job: Job) -> OptimResult:
     try:
         prep = load_prepared(job.cache, job.keys)
         points = store.get(job.cache, job.samples)[0]["samples"]
-        opt = build(prep, job.ocfg, job.cfg, job.metric, job.progress, points, dist)
+        opt = build(prep, job.start, job.ocfg, job.cfg, job.watch, job.progress, points, dist)
         result = opt.run(checkpoint_dir=job.out, resume=job.resume)
         if rank == 0:
             peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

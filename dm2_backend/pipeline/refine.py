@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -12,13 +13,17 @@ import numpy as np
 from dm2_backend import __version__, config
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation.ape_rpe import evaluate_poses
+from dm2_backend.evaluation.map_quality import DEFINITION as MAP_DEFINITION
+from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.evaluation.paper_ate import paper_ate
 from dm2_backend.evaluation.relations import relations_error
 from dm2_backend.evaluation.report import EstimateReport, run_metrics
+from dm2_backend.optim import distributed
 from dm2_backend.optim.config import OptimConfig
 from dm2_backend.pipeline import outputs, parallel
 from dm2_backend.pipeline.inputs import RunInputs
 from dm2_backend.pipeline.live import ate_rmse, live_metric  # noqa: F401 (ate_rmse: also imported from here)
+from dm2_backend.pipeline.start import choose_start
 from dm2_backend.prepare.pipeline import Prepared
 from dm2_backend.trajectory import Trajectory
 
@@ -61,10 +66,29 @@ def trajectory_of(poses: np.ndarray, inputs: RunInputs) -> Trajectory:
     return Trajectory(poses, output_timestamps(inputs), planar=inputs.scans.planar, meta=meta)
 
 
+def map_sampler(inputs: RunInputs, progress: bool = False) -> MapSampler:
+    """The scans voxelised once for the map metrics of every pose set of the run."""
+    return MapSampler.from_scans(inputs.scans, progress=progress)
+
+
+def map_entropy(sampler: MapSampler | None) -> Callable[[np.ndarray], float] | None:
+    return None if sampler is None else sampler.entropy
+
+
+def map_metrics(sampler: MapSampler, poses: np.ndarray) -> dict[str, float]:
+    q = sampler.evaluate(poses)
+    return {"map_entropy": q.entropy, "map_plane_variance_m2": q.plane_variance}
+
+
 def write_common(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final: np.ndarray, method: str,
-                 timings: dict, extra: dict | None = None, epochs: list[dict] | None = None) -> dict:
-    """The parts of a run folder shared by ``refine`` and ``baseline``; returns the report."""
+                 timings: dict, extra: dict | None = None, epochs: list[dict] | None = None,
+                 sampler: MapSampler | None = None, start: np.ndarray | None = None) -> dict:
+    """The parts of a run folder shared by ``refine`` and ``baseline``; returns the report. ``sampler``: the
+    scans prepared for the map metrics (made here when None); ``start``: where the optimiser started."""
     out.mkdir(parents=True, exist_ok=True)
+    sampler = sampler or map_sampler(inputs)
+    stages = {"warm_start": prep.warm_start, "loop_closed": prep.topology.poses, "start": start, "final": final}
+    maps = {name: map_metrics(sampler, poses) for name, poses in stages.items() if poses is not None}
     config.dump(cfg, out / "config.yaml")
     warm_traj = trajectory_of(prep.warm_start, inputs)
     final_traj = trajectory_of(final, inputs)
@@ -82,10 +106,16 @@ def write_common(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final:
         "dm2_version": __version__,
         "frames": len(prep.frames),
         "planar": prep.frames.planar,
-        "metrics": metrics_of(final_traj, inputs),
-        "warm_start_metrics": metrics_of(warm_traj, inputs),
-        **({"loop_closed_metrics": metrics_of(trajectory_of(prep.topology.poses, inputs), inputs)}
+        "metrics": {**metrics_of(final_traj, inputs), **maps["final"]},
+        "warm_start_metrics": {**metrics_of(warm_traj, inputs), **maps["warm_start"]},
+        **({"loop_closed_metrics": {**metrics_of(trajectory_of(prep.topology.poses, inputs), inputs),
+                                    **maps["loop_closed"]}}
            if prep.topology.poses is not None else {}),
+        **({"start_metrics": {**metrics_of(trajectory_of(start, inputs), inputs), **maps["start"]}}
+           if start is not None else {}),
+        "map_quality": {"voxel_m": sampler.voxel, "radius_m": sampler.radius, "points": int(sampler.offsets[-1]),
+                        "queries": len(sampler.query_index), "min_points": sampler.min_points,
+                        "definition": MAP_DEFINITION},
         "timings": timings,
         "peak_rss_mb": outputs.peak_rss_mb(),
         "prepare": {
@@ -117,26 +147,35 @@ def refine(inputs: RunInputs, cfg: dict, out: Path, cache_dir: Path | None, resu
         if lead:
             out.mkdir(parents=True, exist_ok=True)
         prep, samples = parallel.prepare_once(inputs, cfg, ocfg, sess, progress)
-        metric = live_metric(inputs, stamps) if lead else None
+        t_map = time.perf_counter()
+        sampler = map_sampler(inputs, progress) if lead else None
+        start = choose_start(prep, ocfg, sampler) if lead else None
+        if sess.mode == "torchrun":
+            start = distributed.broadcast(start)
+        t_map = time.perf_counter() - t_map
+        watch = parallel.Watch(live_metric(inputs, stamps), map_entropy(sampler)) if lead else None
         extra = {}
         if sess.mode == "single":
-            opt = parallel.build(prep, ocfg, cfg, metric, progress)
+            opt = parallel.build(prep, start, ocfg, cfg, watch, progress)
             t_opt = time.perf_counter()
             result, device = opt.run(checkpoint_dir=out, resume=resume), str(opt.device)
         elif sess.mode == "spawn":  # timed with starting the processes and building their optimisers
             t_opt = time.perf_counter()
-            job = parallel.Job(sess.cache, prep.keys, samples, ocfg, cfg, out, resume, progress, metric,
-                               sess.dist.world, sess.scratch)
+            job = parallel.Job(sess.cache, prep.keys, start, samples, ocfg, cfg, out, resume, progress,
+                               watch, sess.dist.world, sess.scratch)
             done = parallel.spawn(job)
             result, device, extra["rank_peak_rss_mb"] = done["result"], done["device"], done["rank_peak_rss_mb"]
         else:
             t_opt = time.perf_counter()
-            result, device = parallel.optimise_rank(prep, samples, ocfg, cfg, sess, out, resume, progress, metric)
+            result, device = parallel.optimise_rank(prep, start, samples, ocfg, cfg, sess, out, resume,
+                                                    progress, watch)
         if not lead:
             return None
         timings = dict(prep.timings)
+        timings["start"] = t_map
         timings["optimise"] = time.perf_counter() - t_opt
         timings["total"] = time.perf_counter() - t_start
-        extra.update(best_epoch=result.best_epoch, stopped=result.stopped, derived=result.derived, device=device,
-                     processes=sess.dist.world)
-        return write_common(out, cfg, inputs, prep, result.poses, "dm2 refine", timings, extra, result.history)
+        extra.update(best_epoch=result.best_epoch, selection=result.selection, start=start.summary(),
+                     stopped=result.stopped, derived=result.derived, device=device, processes=sess.dist.world)
+        return write_common(out, cfg, inputs, prep, result.poses, "dm2 refine", timings, extra, result.history,
+                            sampler=sampler, start=start.poses)

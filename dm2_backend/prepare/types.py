@@ -23,6 +23,10 @@ class Frames:
     def __len__(self) -> int:
         return len(self.points)
 
+    @property
+    def max_points(self) -> int:
+        return max((len(p) for p in self.points), default=0)
+
 
 @dataclass
 class Topology:

@@ -1,0 +1,62 @@
+"""Where refine's optimiser starts: the pose-graph solution when its map is sharper, else the prepared poses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from optim_cases import one_thread, perturb, planar_case
+
+from dm2_backend.baselines import gtsam_backend
+from dm2_backend.baselines.graph import build_graph
+from dm2_backend.baselines.options import GraphResult
+from dm2_backend.errors import InputError
+from dm2_backend.evaluation.map_quality import MapSampler
+from dm2_backend.optim.config import OptimConfig
+from dm2_backend.pipeline import start as start_module
+from dm2_backend.pipeline.start import GRAPH_SOLVER, choose_start
+from dm2_backend.prepare.pipeline import Prepared
+from dm2_backend.scans import Scan, ScanSequence
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _single_thread():
+    yield from one_thread()
+
+
+@pytest.fixture(scope="module")
+def prepared() -> Prepared:
+    case = planar_case()
+    return Prepared(case.frames, case.warm, case.topology, case.pairwise)
+
+
+@pytest.fixture(scope="module")
+def sampler() -> MapSampler:
+    scans = planar_case().scans
+    seq = ScanSequence(lambda i: Scan(scans[i]), len(scans), planar=True)
+    return MapSampler.from_scans(seq)
+
+
+def test_graph_start_is_the_gtsam_baseline_when_sharper(prepared, sampler):
+    start = choose_start(prepared, OptimConfig(start="graph"), sampler)
+    graph = build_graph(prepared.frames, prepared.initial, prepared.topology, prepared.pairwise)
+    np.testing.assert_allclose(start.poses, gtsam_backend.optimize(graph, GRAPH_SOLVER).poses)
+    assert start.name == "graph" and start.map_entropy["graph"] < start.map_entropy["prepared"]
+    assert sampler.entropy(start.poses) == pytest.approx(start.map_entropy["graph"])
+
+
+def test_a_blurrier_graph_solution_is_not_taken(prepared, sampler, monkeypatch):
+    def bent(graph, options):
+        return GraphResult(perturb(graph.poses, 0.5, 0.05, seed=3), None, None, None, 0.0, "gtsam")
+
+    monkeypatch.setattr(start_module.gtsam_backend, "optimize", bent)
+    start = choose_start(prepared, OptimConfig(start="graph"), sampler)
+    assert start.name == "prepared" and "blurrier" in start.why
+    np.testing.assert_array_equal(start.poses, prepared.initial)
+
+
+def test_prepared_and_auto_on_planar_data(prepared, sampler):
+    for name in ("prepared", "auto"):
+        start = choose_start(prepared, OptimConfig(start=name), sampler)
+        assert start.name == "prepared" and start.poses is prepared.initial
+    with pytest.raises(InputError, match="optimiser.start"):
+        choose_start(prepared, OptimConfig(start="gtsam"), sampler)
