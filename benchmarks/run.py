@@ -31,8 +31,10 @@ from bench_cases import METHODS, command_available, run_case  # noqa: E402
 from bench_datasets import DATASETS, PUBLISHED, REPO, Env, Skip  # noqa: E402
 from bench_report import add_derived, loop_closed_case, markdown, scaling_plot, warm_start_case  # noqa: E402
 
-ALL = list(METHODS)
 ABLATIONS = ["no consistency", "temporal batches", "L-Net poses"]
+#: the loss switches from the pose-graph start (3D data only: on planar data refine starts from the prepared poses)
+ABLATIONS_3D = ["+ BCE", "+ consistency", "point Chamfer", "paper losses", "prepared start"]
+ALL = [m for m in METHODS if m not in ABLATIONS_3D]
 BASELINES = ["gtsam", "g2o", "multiway"]
 
 #: set -> (dataset -> methods), epochs (None: the default config), per-case timeout (s)
@@ -62,6 +64,12 @@ SETS: dict[str, dict] = {
     "3d": {
         "cases": {name: ["dm2 refine", "gtsam", "g2o"]
                   for name in ("sim-3d-500", "sim-3d-2000", "redkitchen", "kitti00-6", "balm")},
+        "epochs": None,
+        "timeout": 3600,
+    },
+    "3d-ablations": {
+        "cases": {name: ["dm2 refine", *ABLATIONS_3D, "temporal batches", "gtsam"]
+                  for name in ("sim-3d-500", "balm")},
         "epochs": None,
         "timeout": 3600,
     },

@@ -19,7 +19,8 @@ DEFAULTS: dict = {
     "nproc": 1,
     "frames": {"max_points": 1024, "voxel": None},
     "warm_start": {"name": "poses", "options": {}},
-    #: "auto": loops for laser scans, loops3d for depth-camera sequences (prepare/pipeline.py resolve_auto)
+    #: "auto": loops for laser scans moving like a ground vehicle, loops3d for depth cameras and for scanners
+    #: that tilt or climb (prepare/pipeline.py resolve_auto)
     "place_recognition": {"name": "auto", "options": {}},
     "registration": {"name": "icp", "options": {}},
     "optimiser": asdict(OptimConfig()),

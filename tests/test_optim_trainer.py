@@ -81,7 +81,7 @@ def test_refine_lowers_ate_with_icp_pairwise(case, full_run):
     assert set(result.derived) == {"unit", "finest_cell", "free_margin", "chamfer_truncate",
                                    "step_translation", "step_rotation", "epochs", "drift", "lr_pose",
                                    "start_disagreement", "locally_accurate_start", "use_bce", "use_consistency",
-                                   "chamfer_metric", "pose_warmup", "pose_warmup_steps", "from_graph",
+                                   "chamfer_metric", "pose_warmup", "pose_warmup_steps", "polish",
                                    "points_per_frame"}
     assert result.selection == f"lowest epoch loss: epoch {result.best_epoch}"  # no map metric given
     assert result.derived["epochs"] == EPOCHS
@@ -289,12 +289,12 @@ def test_select_by_map_never_returns_a_blurrier_map_than_the_start(case):
 
 def test_loss_regime_from_the_pose_graph_start():
     cfg = OptimConfig()
-    graph3d = loss_regime(cfg, planar=False, from_graph=True)
+    graph3d = loss_regime(cfg, planar=False, polish=True)
     assert graph3d == {"use_bce": False, "use_consistency": False, "chamfer_metric": "plane", "pose_warmup": 1.0}
-    assert loss_regime(cfg, planar=True, from_graph=False) == {
+    assert loss_regime(cfg, planar=True, polish=False) == {
         "use_bce": True, "use_consistency": True, "chamfer_metric": "point", "pose_warmup": 0.0}
     explicit = OptimConfig(use_bce=True, use_consistency=True, chamfer_metric="point", pose_warmup=0.5)
-    assert loss_regime(explicit, planar=False, from_graph=True) == {
+    assert loss_regime(explicit, planar=False, polish=True) == {
         "use_bce": True, "use_consistency": True, "chamfer_metric": "point", "pose_warmup": 0.5}
     assert sampled_points(cfg, 1024, planar=False) == 1024 and sampled_points(cfg, 1024, planar=True) == 256
     assert sampled_points(OptimConfig(start="prepared"), 1024, planar=False) == 256
@@ -302,7 +302,7 @@ def test_loss_regime_from_the_pose_graph_start():
     scale = {"spacing": 0.4, "spacing_raw": 0.15, "voxel": 0.1, "range_median": 8.0}
     assert derive(cfg, scale, planar=False)["unit"] == pytest.approx(0.3)
     assert derive(cfg, scale, planar=True)["unit"] == pytest.approx(0.8)
-    assert derive(cfg, scale, planar=False, from_graph=True)["chamfer_truncate"] == pytest.approx(0.3)
+    assert derive(cfg, scale, planar=False)["chamfer_truncate"] == pytest.approx(3.0)
 
 
 def test_plane_chamfer_is_lowest_at_ground_truth():
@@ -314,6 +314,10 @@ def test_plane_chamfer_is_lowest_at_ground_truth():
     opt = Optimiser(frames, gt, topo, shell.pairwise_from(gt), small_config(chamfer_metric="plane",
                     points_per_frame=256), seed=0, device="cpu", progress=False)
     assert opt.normals is not None
+    # a locally accurate 3D start is polished: Chamfer along the normals only, truncated at one unit
+    d = opt.derived
+    assert d["polish"] and not d["use_bce"] and not d["use_consistency"] and d["pose_warmup"] == 1.0
+    assert d["chamfer_truncate"] == d["unit"]
     np.testing.assert_allclose(np.linalg.norm(opt.normals.numpy(), axis=-1), 1.0, atol=1e-5)
 
     def chamfer(poses):

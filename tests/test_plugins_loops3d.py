@@ -109,6 +109,22 @@ def test_auto_picks_loops3d_for_depth_cameras():
     assert resolve_auto({"name": "auto"}, camera=False)["name"] == "loops"
 
 
+def _path(tilt_deg: float, climb: float, n: int = 200) -> np.ndarray:
+    """A 20 m circle driven twice, the sensor swaying by ``tilt_deg`` and rising ``climb`` m per metre."""
+    s = np.linspace(0, 4 * np.pi, n)
+    v = np.column_stack([10 * np.cos(s), 10 * np.sin(s), climb * 10 * s,
+                         np.radians(tilt_deg) * np.sin(7 * s), np.radians(tilt_deg) * np.cos(5 * s), s])
+    return se3.from_xyz_euler(v)
+
+
+def test_auto_picks_by_the_motion():
+    assert resolve_auto({"name": "auto"}, False, _path(3.0, 0.0))["name"] == "loops"  # a car on a road
+    assert resolve_auto({"name": "auto"}, False, _path(35.0, 0.0))["name"] == "loops3d"  # hand-held
+    assert resolve_auto({"name": "auto"}, False, _path(3.0, 0.3))["name"] == "loops3d"  # a climbing drone
+    assert resolve_auto({"name": "auto"}, False, _path(35.0, 0.0), planar=True)["name"] == "loops"
+    assert resolve_auto({"name": "radius"}, False, _path(35.0, 0.0)) == {"name": "radius"}
+
+
 def test_loops3d_repairs_a_failed_front_end_step(two_laps):
     frames, truth, _ = two_laps
     jump = se3.from_xyz_euler(np.array([0.6, -0.4, 0.0, 0.0, 0.0, 0.05]))

@@ -48,7 +48,7 @@ class OptimConfig:
     #: loss weights: total = bce + alpha * chamfer + beta * consistency (lengths in units of ``unit``)
     alpha: float = 1.0
     beta: float = 1.0
-    #: None: on, except from the pose-graph start (see :func:`loss_regime`)
+    #: None: on, except when polishing a locally accurate 3D start (see :func:`loss_regime`)
     use_bce: bool | None = None
     use_chamfer: bool = True
     use_consistency: bool | None = None
@@ -75,7 +75,7 @@ class OptimConfig:
     #: x, y, yaw only; the graph all six); ACES 0.0363 from prepared, 0.0421 from graph
     start: str = "auto"
     #: epochs at the start in which the poses hold still while the occupancy field learns the map (an
-    #: untrained field pulls them anywhere); None: 1 from the pose-graph start, else 0
+    #: untrained field pulls them anywhere); None: 1 when polishing a locally accurate 3D start, else 0
     pose_warmup: float | None = None
     lr_field: float = 1e-2
     lr_network: float = 1e-3
@@ -109,28 +109,29 @@ def sampled_points(cfg: OptimConfig, frames_max_points: int, planar: bool) -> in
     return frames_max_points if not planar and cfg.start in ("auto", "graph") else 256
 
 
-def loss_regime(cfg: OptimConfig, planar: bool, from_graph: bool) -> dict:
-    """The losses where the config leaves them None. From the pose-graph solution (3D) the optimiser polishes:
-    the graph already satisfies the pairwise registrations, so the consistency loss only holds the poses
-    there, and the occupancy field's finest cell (memory-bound) is coarser than the corrections left, so
-    its BCE blurs them; the Chamfer distance along the surface normals sharpens the map. Measured from gtsam's
-    solution of the simulated 3D LiDAR 500 frames (0.0378 m): Chamfer only 0.0361, + BCE 0.0433, + consistency
-    no epoch sharper than the start; on the real LiDAR keyframes map entropy -4.2436: Chamfer only -4.2606,
-    + consistency -4.238 (never below the start), + BCE -4.2598."""
+def loss_regime(cfg: OptimConfig, planar: bool, polish: bool) -> dict:
+    """The losses where the config leaves them None. From a locally accurate 3D start (the pose-graph solution,
+    or poses that ``loops3d`` closed) the optimiser polishes: the start already satisfies the pairwise
+    registrations, so the consistency loss only holds the poses there, and the occupancy field's finest cell
+    (memory-bound) is coarser than the corrections left, so its BCE blurs them; the Chamfer distance along the
+    surface normals sharpens the map. Measured from gtsam's solution of the simulated 3D LiDAR 500 frames
+    (0.0378 m): Chamfer only 0.0361, + BCE 0.0433, + consistency no epoch sharper than the start; on the real
+    LiDAR keyframes (map entropy -4.2436): Chamfer only -4.2606, + consistency -4.238 (never below the start),
+    + BCE -4.2598; from their ``loops3d`` poses (-4.2653): all three losses never below the start, Chamfer
+    only -4.2750."""
     return {
-        "use_bce": cfg.use_bce if cfg.use_bce is not None else not from_graph,
-        "use_consistency": cfg.use_consistency if cfg.use_consistency is not None else not from_graph,
+        "use_bce": cfg.use_bce if cfg.use_bce is not None else not polish,
+        "use_consistency": cfg.use_consistency if cfg.use_consistency is not None else not polish,
         "chamfer_metric": cfg.chamfer_metric or ("point" if planar else "plane"),
-        "pose_warmup": cfg.pose_warmup if cfg.pose_warmup is not None else (1.0 if from_graph else 0.0),
+        "pose_warmup": cfg.pose_warmup if cfg.pose_warmup is not None else (1.0 if polish else 0.0),
     }
 
 
-def derive(cfg: OptimConfig, scale: dict[str, float], planar: bool = True, from_graph: bool = False) -> dict:
+def derive(cfg: OptimConfig, scale: dict[str, float], planar: bool = True) -> dict:
     """Fill the None lengths from the data's scale (Frames.scale). The unit is twice the point spacing: of the
     down-sampled frames in 2D; of the raw scans (at least the voxel) in 3D, where the frames are a subsample
-    (real LiDAR keyframes: 0.42 m between the 1,024 points of a frame, 0.17 m in the scans). From the pose-graph
-    start the Chamfer distance is truncated at one unit (the corrections left are small; a far nearest
-    point is another surface), else at ten."""
+    (real LiDAR keyframes: 0.42 m between the 1,024 points of a frame, 0.17 m in the scans). The Chamfer
+    distance is truncated at ten units (one when polishing a locally accurate 3D start, see the trainer)."""
     spacing = max(scale.get("spacing", 0.0), scale.get("voxel", 0.0), 1e-3)
     if not planar and scale.get("spacing_raw"):
         spacing = max(scale["spacing_raw"], scale.get("voxel", 0.0), 1e-3)
@@ -140,7 +141,7 @@ def derive(cfg: OptimConfig, scale: dict[str, float], planar: bool = True, from_
         "unit": unit,
         "finest_cell": cfg.finest_cell or unit,
         "free_margin": cfg.free_margin or unit,
-        "chamfer_truncate": cfg.chamfer_truncate or (1.0 if from_graph else 10.0) * unit,
+        "chamfer_truncate": cfg.chamfer_truncate or 10.0 * unit,
         "step_translation": step_t,
         "step_rotation": cfg.step_rotation or step_t / max(scale.get("range_median", 1.0), 1e-3),
     }

@@ -90,7 +90,7 @@ class Optimiser:
         """``metric``: accuracy against ground truth, shown and recorded per epoch, never used to choose;
         ``map_metric``: the map entropy of poses (lower = sharper), recorded per epoch and, with
         ``cfg.select == "map"``, what chooses the returned poses among the start and the epochs;
-        ``from_graph``: ``warm_start`` is the pose-graph solution (see ``config.loss_regime``);
+        ``from_graph``: ``warm_start`` is the pose-graph solution (locally accurate by construction);
         ``samples``: the points of :func:`sample_points` computed ahead (a memory-mapped array shared by the
         ranks); ``dist``: this process's rank when several optimise together (see ``distributed``)."""
         self.cfg = cfg
@@ -104,14 +104,19 @@ class Optimiser:
         self.device = resolve_device(device)
         if cfg.threads > 0 and self.device.type == "cpu":
             torch.set_num_threads(cfg.threads)
-        self.derived = derive(cfg, frames.scale, frames.planar, from_graph)
-        self.derived.update(loss_regime(cfg, frames.planar, from_graph), from_graph=from_graph)
+        self.derived = derive(cfg, frames.scale, frames.planar)
         spread = disagreement(warm_start, topology.groups, pairwise.relative, pairwise.valid,
                               frames.scale.get("range_median", 1.0))
         # loop-closed poses need no drift terms (they would undo the closures: sim-3d-5000, 0.95 m start, drifted
-        # to 40 m with them); other starts are judged by the measured disagreement
-        accurate = topology.loop_closed or locally_accurate(spread, self.derived["unit"], cfg.accurate_below)
+        # to 40 m with them); the pose-graph solution agrees with the registrations by construction; other
+        # starts are judged by the measured disagreement
+        accurate = (from_graph or topology.loop_closed
+                    or locally_accurate(spread, self.derived["unit"], cfg.accurate_below))
         self.derived.update(pose_regime(cfg, accurate), start_disagreement=spread, locally_accurate_start=accurate)
+        polish = accurate and not frames.planar
+        self.derived.update(loss_regime(cfg, frames.planar, polish), polish=polish)
+        if polish and cfg.chamfer_truncate is None:
+            self.derived["chamfer_truncate"] = self.derived["unit"]
         self.planar = frames.planar
         self.n = len(frames)
         torch.manual_seed(seed)

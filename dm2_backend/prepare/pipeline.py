@@ -50,13 +50,36 @@ def starting_poses(topology: Topology, warm: np.ndarray) -> np.ndarray:
     return topology.poses if topology.poses is not None else warm
 
 
-def resolve_auto(section: dict, camera: bool) -> dict:
-    """Place recognition ``auto``: ``loops`` (loop closure under large drift, matching bird's-eye views, as
-    suits laser scanners on ground robots and vehicles), ``loops3d`` (6-DoF loop closure) for depth-camera
-    sequences (a hand-held camera's frame has no vertical axis to look down)."""
+#: a ground vehicle's sensor stays within this angle of its mean up direction (road grades and camber are a few
+#: degrees); a hand-held, backpack or drone sensor tilts further (the real LiDAR keyframes: 95th percentile 31°)
+GROUND_MAX_TILT_DEG = 15.0
+#: ... and climbs less than this fraction of its path (ramps and hills)
+GROUND_MAX_CLIMB = 0.1
+
+
+def moves_like_a_ground_vehicle(poses: np.ndarray, planar: bool) -> bool:
+    """Whether the sensor keeps one axis up and its height along it (roll/pitch spread and vertical travel of
+    the warm start), as bird's-eye loop closure (``loops``) assumes."""
+    if planar or len(poses) < 2:
+        return True
+    up = poses[:, :3, 2]  # the sensor's z axis in the world
+    mean = up.mean(0)
+    mean /= max(np.linalg.norm(mean), 1e-12)
+    tilt = np.degrees(np.arccos(np.clip(up @ mean, -1.0, 1.0)))
+    height = poses[:, :3, 3] @ mean
+    path = float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
+    return bool(np.percentile(tilt, 95) <= GROUND_MAX_TILT_DEG and np.ptp(height) <= GROUND_MAX_CLIMB * max(path, 1e-9))
+
+
+def resolve_auto(section: dict, camera: bool, poses: np.ndarray | None = None, planar: bool = False) -> dict:
+    """Place recognition ``auto``: ``loops`` (loop closure under large drift, matching bird's-eye views) for
+    laser scanners that move like a ground vehicle; ``loops3d`` (6-DoF loop closure) for depth-camera sequences
+    (a hand-held camera's frame has no vertical axis to look down) and for scanners that tilt or climb (hand-held,
+    backpack, drone; see :func:`moves_like_a_ground_vehicle` on the warm start ``poses``)."""
     if section.get("name") != "auto":
         return section
-    return {"name": "loops3d" if camera else "loops", "options": dict(section.get("options") or {})}
+    ground = poses is None or moves_like_a_ground_vehicle(poses, planar)
+    return {"name": "loops3d" if camera or not ground else "loops", "options": dict(section.get("options") or {})}
 
 
 def default_cache_dir() -> Path:
@@ -158,7 +181,8 @@ def prepare(
         cache.put(name, {"poses": warm})
     timings["warm_start"] = time.perf_counter() - t
 
-    pr = cfg["place_recognition"] = resolve_auto(cfg["place_recognition"], "intrinsics" in scans.meta)
+    pr = cfg["place_recognition"] = resolve_auto(cfg["place_recognition"], "intrinsics" in scans.meta, warm,
+                                                 frames.planar)
     k_pr = _key(k_ws, pr)
     keys["place_recognition"] = name = f"topology-{k_pr}"
     t = time.perf_counter()
