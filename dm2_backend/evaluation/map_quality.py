@@ -54,9 +54,9 @@ class MapSettings:
 
     voxel: float | None = None
     radius: float | None = None
-    queries: int = 10_000
+    queries: int = 5_000
     #: at most this many map points in all (each scan's voxelised points are thinned evenly to fit)
-    max_points: int = 1_000_000
+    max_points: int = 500_000
     min_points: int | None = None  # default: 10 in 3D, 5 in 2D
     seed: int = 0
 

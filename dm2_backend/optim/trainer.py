@@ -112,8 +112,9 @@ class Optimiser:
         # starts are judged by the measured disagreement
         accurate = (from_graph or topology.loop_closed
                     or locally_accurate(spread, self.derived["unit"], cfg.accurate_below))
-        self.derived.update(pose_regime(cfg, accurate), start_disagreement=spread, locally_accurate_start=accurate)
         polish = accurate and not frames.planar
+        self.derived.update(pose_regime(cfg, accurate, polish), start_disagreement=spread,
+                            locally_accurate_start=accurate)
         self.derived.update(loss_regime(cfg, frames.planar, polish), polish=polish)
         if polish and cfg.chamfer_truncate is None:
             self.derived["chamfer_truncate"] = self.derived["unit"]
