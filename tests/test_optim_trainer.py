@@ -296,7 +296,8 @@ def test_loss_regime_from_the_pose_graph_start():
     explicit = OptimConfig(use_bce=True, use_consistency=True, chamfer_metric="point", pose_warmup=0.5)
     assert loss_regime(explicit, planar=False, polish=True) == {
         "use_bce": True, "use_consistency": True, "chamfer_metric": "point", "pose_warmup": 0.5}
-    assert sampled_points(cfg, 1024, planar=False) == 1024 and sampled_points(cfg, 1024, planar=True) == 256
+    assert sampled_points(cfg, 1024, planar=False) == 512 and sampled_points(cfg, 1024, planar=True) == 256
+    assert sampled_points(cfg, 300, planar=False) == 300
     assert sampled_points(OptimConfig(start="prepared"), 1024, planar=False) == 256
     # 3D: the unit follows the raw scans' spacing (the frames are a subsample), planar data the frames'
     scale = {"spacing": 0.4, "spacing_raw": 0.15, "voxel": 0.1, "range_median": 8.0}

@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
+from tqdm import tqdm
 
 from dm2_backend.errors import InputError
 from dm2_backend.scans import ScanSequence
@@ -82,9 +83,8 @@ class MapSampler:
         settings = settings or MapSettings()
         voxel, radius = derive(scans, settings)
         budget = max(1, settings.max_points // max(len(scans), 1))
-        clouds = []
-        for i in range(len(scans)):
-            clouds.append(_thin(voxelise(scans[i].points, voxel), budget))
+        clouds = [_thin(voxelise(scan.points, voxel), budget)
+                  for scan in tqdm(scans, total=len(scans), desc="map scans", disable=not progress, leave=False)]
         return cls(clouds, scans.planar, voxel, radius, settings)
 
     def world(self, poses: np.ndarray) -> np.ndarray:

@@ -13,7 +13,6 @@ import numpy as np
 from dm2_backend import __version__, config
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation.ape_rpe import evaluate_poses
-from dm2_backend.evaluation.map_quality import DEFINITION as MAP_DEFINITION
 from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.evaluation.paper_ate import paper_ate
 from dm2_backend.evaluation.relations import relations_error
@@ -113,9 +112,7 @@ def write_common(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final:
            if prep.topology.poses is not None else {}),
         **({"start_metrics": {**metrics_of(trajectory_of(start, inputs), inputs), **maps["start"]}}
            if start is not None else {}),
-        "map_quality": {"voxel_m": sampler.voxel, "radius_m": sampler.radius, "points": int(sampler.offsets[-1]),
-                        "queries": len(sampler.query_index), "min_points": sampler.min_points,
-                        "definition": MAP_DEFINITION},
+        "map_quality": sampler.settings_summary(),
         "timings": timings,
         "peak_rss_mb": outputs.peak_rss_mb(),
         "prepare": {
