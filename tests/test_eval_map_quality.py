@@ -41,6 +41,9 @@ def test_voxelise_averages_each_voxel():
     pts = np.array([[0.1, 0.1, 0.1], [0.3, 0.3, 0.3], [1.5, 0.0, 0.0]])
     out = voxelise(pts, 1.0)
     np.testing.assert_allclose(out[np.argsort(out[:, 0])], [[0.2, 0.2, 0.2], [1.5, 0.0, 0.0]])
+    # voxel indices too many for one integer: the row-wise path gives the same
+    far = np.array([[0.0, 0.0, 0.0], [2e-6, 0.0, 0.0], [1e7, 1e7, 1e7]])
+    np.testing.assert_allclose(voxelise(far, 1e-5), [[1e-6, 0.0, 0.0], [1e7, 1e7, 1e7]])
 
 
 def room_scans(n: int = 12, seed: int = 0) -> tuple[ScanSequence, np.ndarray]:
