@@ -41,7 +41,7 @@ METHODS: dict[str, Method] = {m.name: m for m in [
                                                      "chamfer_metric": "point"}},
            "3D ablation: BCE + Euclidean Chamfer + consistency (the paper) from the pose-graph start"),
     Method("prepared start", ["refine"], {"optimiser": {"start": "prepared"}},
-           "3D ablation: the paper's losses from the loop-closed poses (optimiser.start=prepared), as before"),
+           "3D ablation: from the prepared (loop-closed) poses instead of the pose graph (optimiser.start=prepared)"),
     Method("gtsam", ["baseline", "gtsam"], description="dm2 baseline gtsam (same preparation)"),
     Method("g2o", ["baseline", "g2o"], description="dm2 baseline g2o (same preparation)"),
     Method("multiway", ["baseline", "multiway"], description="dm2 baseline multiway (Open3D)"),
