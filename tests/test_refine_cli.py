@@ -239,6 +239,8 @@ def test_unknown_plugin(seq, tmp_path, option, group):
     ("optimizer:\n  epochs: 2\n", "unknown config sections: optimizer"),
     ("optimiser: {epochs: 2\n", "invalid YAML"),
     ("- 1\n- 2\n", "must be a mapping"),
+    ("optimiser: {select: best}\n", "optimiser.select must be one of map, loss"),
+    ("optimiser: {start: gtsam}\n", "optimiser.start must be one of auto, graph, prepared"),
 ])
 def test_bad_config(seq, tmp_path, text, message):
     path = tmp_path / "bad.yaml"

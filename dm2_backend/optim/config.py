@@ -4,6 +4,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
+#: options that take one of a few names (checked when the config is read, before any work)
+CHOICES = {"start": ("auto", "graph", "prepared"), "select": ("map", "loss"), "chamfer_metric": ("point", "plane"),
+           "batching": ("topology", "temporal", "random"), "pose_model": ("direct", "lnet"),
+           "consistency_kernel": ("cauchy", "none")}
+
 
 @dataclass
 class OptimConfig:
@@ -100,7 +105,12 @@ class OptimConfig:
         unknown = set(values or {}) - known
         if unknown:
             raise ValueError(f"unknown optimiser options: {', '.join(sorted(unknown))}")
-        return cls(**(values or {}))
+        cfg = cls(**(values or {}))
+        for name, allowed in CHOICES.items():
+            value = getattr(cfg, name)
+            if value is not None and value not in allowed:
+                raise ValueError(f"optimiser.{name} must be one of {', '.join(allowed)}, got {value!r}")
+        return cfg
 
 
 def sampled_points(cfg: OptimConfig, frames_max_points: int, planar: bool) -> int:
