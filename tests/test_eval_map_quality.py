@@ -88,6 +88,7 @@ def test_identical_maps_score_identically():
     sampler = MapSampler.from_scans(seq, MapSettings(queries=2000))
     a = sampler.evaluate(poses)
     assert sampler.evaluate(poses.copy()) == a
+    assert MapSampler.from_scans(seq, MapSettings(queries=2000)).evaluate(poses) == a  # built again: the same
     # the same map moved rigidly as a whole is the same map
     moved = se3.from_xyz_euler(np.array([3.0, -2.0, 1.0, 0.1, -0.2, 0.7])) @ poses
     b = sampler.evaluate(moved)

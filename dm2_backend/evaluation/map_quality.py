@@ -15,6 +15,7 @@ points, so the same points are sampled for every estimate and the numbers of two
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -76,6 +77,7 @@ class MapSampler:
         rng = np.random.default_rng(settings.seed)
         self.query_index = np.sort(rng.choice(total, min(settings.queries, total), replace=False))
         self.min_points = settings.min_points or (5 if planar else 10)
+        self._memo: dict[bytes, MapQuality] = {}
 
     @classmethod
     def from_scans(cls, scans: ScanSequence, settings: MapSettings | None = None, progress: bool = False
@@ -101,11 +103,14 @@ class MapSampler:
         return self.evaluate(poses).entropy
 
     def evaluate(self, poses: np.ndarray) -> MapQuality:
-        """MME and MPV of the map that ``poses`` make."""
-        pts = self.world(poses)
-        if self.planar:
-            pts = pts[:, :2]
-        return map_quality(pts, self.query_index, self.radius, self.min_points)
+        """MME and MPV of the map that ``poses`` make (remembered: a run scores its start and result twice)."""
+        poses = np.ascontiguousarray(poses, dtype=np.float64)
+        key = hashlib.sha1(poses.tobytes()).digest()
+        if key not in self._memo:
+            pts = self.world(poses)
+            self._memo[key] = map_quality(pts[:, :2] if self.planar else pts, self.query_index, self.radius,
+                                          self.min_points)
+        return self._memo[key]
 
 
 def voxelise(points: np.ndarray, voxel: float) -> np.ndarray:
