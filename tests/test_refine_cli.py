@@ -241,6 +241,9 @@ def test_unknown_plugin(seq, tmp_path, option, group):
     ("- 1\n- 2\n", "must be a mapping"),
     ("optimiser: {select: best}\n", "optimiser.select must be one of map, loss"),
     ("optimiser: {start: gtsam}\n", "optimiser.start must be one of auto, graph, prepared"),
+    ("optimiser: {epochs: three}\n", "optimiser.epochs must be int, got 'three'"),
+    ("optimiser: {epochs: 0}\n", "optimiser.epochs must be at least 1"),
+    ("optimiser: {lr_pose: fast}\n", "optimiser.lr_pose must be None or float"),
 ])
 def test_bad_config(seq, tmp_path, text, message):
     path = tmp_path / "bad.yaml"
@@ -249,3 +252,11 @@ def test_bad_config(seq, tmp_path, text, message):
                     "--out", str(tmp_path / "r"))
     one_error_line(result, str(path), message)
     assert not (tmp_path / "r").exists()  # nothing written before the config is known to be good
+
+
+@pytest.mark.parametrize("epochs", ["0", "-1"])
+def test_epochs_must_be_positive(seq, tmp_path, epochs):
+    result = invoke("--scans", str(seq / "velodyne"), "--poses", str(seq / "warm_start.txt"), "--epochs", epochs,
+                    "--out", str(tmp_path / "r"))
+    assert result.exit_code == 2 and "--epochs" in result.output
+    assert not (tmp_path / "r").exists()

@@ -12,7 +12,7 @@ import click
 @click.option("--out", "-o", type=click.Path(path_type=Path), default=None,
               help="Folder for the sample and the run (default: a temporary folder).")
 @click.option("--frames", type=int, default=300, show_default=True, help="Frames to simulate.")
-@click.option("--epochs", type=int, default=None, help="Optimisation epochs (default from the config).")
+@click.option("--epochs", type=click.IntRange(min=1), default=None, help="Optimisation epochs (default: the config)")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--quiet", "-q", is_flag=True)
 def command(out: Path | None, frames: int, epochs: int | None, seed: int, quiet: bool) -> None:

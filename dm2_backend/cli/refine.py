@@ -80,7 +80,7 @@ def prepare_run(kw: dict, overrides: dict):
 
 @click.command("refine")
 @run_options
-@click.option("--epochs", type=int, default=None, help="Optimisation epochs.")
+@click.option("--epochs", type=click.IntRange(min=1), default=None, help="Optimisation epochs (at least 1).")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None, help="Torch device.")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run in --out from its checkpoint.")
 @click.option("--nproc", type=click.IntRange(min=1), default=None,

@@ -106,11 +106,30 @@ class OptimConfig:
         if unknown:
             raise ValueError(f"unknown optimiser options: {', '.join(sorted(unknown))}")
         cfg = cls(**(values or {}))
+        for f in fields(cls):
+            _check_type(f.name, f.type, getattr(cfg, f.name))
+        if cfg.epochs < 1:
+            raise ValueError(f"optimiser.epochs must be at least 1, got {cfg.epochs}")
         for name, allowed in CHOICES.items():
             value = getattr(cfg, name)
             if value is not None and value not in allowed:
                 raise ValueError(f"optimiser.{name} must be one of {', '.join(allowed)}, got {value!r}")
         return cfg
+
+
+def _check_type(name: str, annotation: str, value) -> None:
+    """``value`` fits the field's annotation (``int``, ``float | None``, ...; an int passes for a float)."""
+    allowed = {t.strip() for t in str(annotation).split("|")}
+    if value is None:
+        ok = "None" in allowed
+    elif isinstance(value, bool):
+        ok = "bool" in allowed
+    elif isinstance(value, int):
+        ok = bool(allowed & {"int", "float"})
+    else:
+        ok = type(value).__name__ in allowed
+    if not ok:
+        raise ValueError(f"optimiser.{name} must be {' or '.join(sorted(allowed))}, got {value!r}")
 
 
 def sampled_points(cfg: OptimConfig, frames_max_points: int, planar: bool) -> int:
