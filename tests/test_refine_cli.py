@@ -260,3 +260,13 @@ def test_epochs_must_be_positive(seq, tmp_path, epochs):
                     "--out", str(tmp_path / "r"))
     assert result.exit_code == 2 and "--epochs" in result.output
     assert not (tmp_path / "r").exists()
+
+
+def test_cuda_without_a_device_is_one_line_before_any_work(seq, tmp_path, monkeypatch):
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    result = invoke("--scans", str(seq / "velodyne"), "--poses", str(seq / "warm_start.txt"), "--device", "cuda",
+                    "--out", str(tmp_path / "r"))
+    one_error_line(result, "--device cuda", "no CUDA device")
+    assert not (tmp_path / "r").exists()

@@ -16,6 +16,7 @@ from dm2_backend.cli.options import (
     times_option,
     topic_option,
 )
+from dm2_backend.errors import InputError
 from dm2_backend.pipeline.inputs import load_inputs
 from dm2_backend.prepare.pipeline import default_cache_dir
 
@@ -98,9 +99,21 @@ def command(epochs, device, resume, nproc, **kw) -> None:
     if nproc is not None:
         overrides["nproc"] = nproc
     inputs, cfg, cache = prepare_run(kw, overrides)
+    check_device(cfg["device"])
     report = refine(inputs, cfg, kw["out"], cache, resume=resume, progress=not kw["quiet"])
     if report is not None:  # None: a torchrun rank other than 0
         print_summary(report, kw["out"])
+
+
+def check_device(device: str) -> None:
+    """``cuda`` without a usable CUDA device is an input error before any work (not an assertion inside torch
+    after the preparation)."""
+    if device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise InputError(None, "--device cuda: no CUDA device is available to this torch build "
+                                   f"(torch {torch.__version__}); use --device auto or cpu")
 
 
 def print_summary(report: dict, out: Path) -> None:
