@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from dm2_backend.errors import InputError
+from dm2_backend.prepare.frames import point_spacing
 from dm2_backend.scans import ScanSequence
 from dm2_backend.trajectory import Trajectory, associate_by_time
 
@@ -151,12 +152,7 @@ def derive(scans: ScanSequence, settings: MapSettings, sample: int = 10) -> tupl
 
 def _spacing(points: np.ndarray, cap: int = 50_000) -> float:
     """Median nearest-neighbour distance within a scan (evenly thinned to ``cap`` points: an upper bound)."""
-    p = np.asarray(points, dtype=np.float64)[:: max(1, len(points) // cap)]
-    if len(p) < 2:
-        return 0.0
-    d, _ = cKDTree(p).query(p, k=2)
-    d = d[:, 1]
-    return float(np.median(d[d > 0])) if (d > 0).any() else 0.0
+    return point_spacing(np.asarray(points)[:: max(1, len(points) // cap)]) if len(points) >= 2 else 0.0
 
 
 def map_quality(points: np.ndarray, query_index: np.ndarray, radius: float, min_points: int) -> MapQuality:

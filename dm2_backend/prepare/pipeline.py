@@ -20,6 +20,7 @@ import numpy as np
 
 from dm2_backend import __version__
 from dm2_backend.errors import InputError
+from dm2_backend.plugins.common import path_length
 from dm2_backend.plugins.registry import load as load_plugin
 from dm2_backend.prepare import store
 from dm2_backend.prepare.types import Frames, Pairwise, Topology
@@ -67,7 +68,7 @@ def moves_like_a_ground_vehicle(poses: np.ndarray, planar: bool) -> bool:
     mean /= max(np.linalg.norm(mean), 1e-12)
     tilt = np.degrees(np.arccos(np.clip(up @ mean, -1.0, 1.0)))
     height = poses[:, :3, 3] @ mean
-    path = float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
+    path = float(path_length(poses)[-1])
     return bool(np.percentile(tilt, 95) <= GROUND_MAX_TILT_DEG and np.ptp(height) <= GROUND_MAX_CLIMB * max(path, 1e-9))
 
 
