@@ -236,14 +236,23 @@ def test_pose_regime_follows_start_accuracy():
     assert not locally_accurate(None, 0.4, 0.25)
 
 
+def lidar_case(frames: int, start_at_gt: bool = False) -> Case:
+    """A short simulated 16-beam LiDAR sequence; radius topology on the start (the warm start or the ground
+    truth) and exact pairwise relatives from the ground truth."""
+    lidar = LidarModel(beams=16, columns=360, max_range=40.0)
+    scans, gt, warm = simulate(SimSettings(frames=frames, planar=False, extent=20.0, lidar=lidar), progress=False)
+    start = gt if start_at_gt else warm
+    fr = frames_of(scans, planar=False)
+    topo = RadiusTopology().run(fr, start)
+    shell = Case(scans, gt, start, fr, topo, None)
+    return Case(scans, gt, start, fr, topo, shell.pairwise_from(gt))
+
+
 def test_3d_sequence_runs():
     """A short 3D LiDAR sequence: 3D occupancy grid, all six pose dimensions free."""
-    lidar = LidarModel(beams=16, columns=360, max_range=40.0)
-    scans, gt, warm = simulate(SimSettings(frames=16, planar=False, extent=20.0, lidar=lidar), progress=False)
-    frames = frames_of(scans, planar=False)
-    topo = RadiusTopology().run(frames, warm)
-    shell = Case(scans, gt, warm, frames, topo, None)
-    opt = Optimiser(frames, warm, topo, shell.pairwise_from(gt), small_config(epochs=1), seed=0, device="cpu",
+    c = lidar_case(16)
+    warm = c.warm
+    opt = Optimiser(c.frames, warm, c.topology, c.pairwise, small_config(epochs=1), seed=0, device="cpu",
                     progress=False)
     assert opt.field.dim == 3 and not opt.planar
     result = opt.run()
@@ -307,13 +316,10 @@ def test_loss_regime_from_the_pose_graph_start():
 
 
 def test_plane_chamfer_is_lowest_at_ground_truth():
-    lidar = LidarModel(beams=16, columns=360, max_range=40.0)
-    scans, gt, _ = simulate(SimSettings(frames=12, planar=False, extent=20.0, lidar=lidar), progress=False)
-    frames = frames_of(scans, planar=False)
-    topo = RadiusTopology().run(frames, gt)
-    shell = Case(scans, gt, gt, frames, topo, None)
-    opt = Optimiser(frames, gt, topo, shell.pairwise_from(gt), small_config(chamfer_metric="plane",
-                    points_per_frame=256), seed=0, device="cpu", progress=False)
+    c = lidar_case(12, start_at_gt=True)
+    gt = c.gt
+    opt = Optimiser(c.frames, gt, c.topology, c.pairwise, small_config(chamfer_metric="plane", points_per_frame=256),
+                    seed=0, device="cpu", progress=False)
     assert opt.normals is not None
     # a locally accurate 3D start is polished: Chamfer along the normals only, truncated at one unit
     d = opt.derived
