@@ -7,7 +7,8 @@ from pathlib import Path
 import click
 
 from dm2_backend.baselines.options import GRAPH_METHODS, KERNELS, METHODS, SolverOptions
-from dm2_backend.cli.refine import prepare_run, print_summary, run_options
+from dm2_backend.cli.refine import output_folder, prepare_run, print_summary, run_options
+from dm2_backend.pipeline.run_folder import run_folder
 
 path_type = click.Path(path_type=Path)
 _HELP = "\n".join(f"  {name:<9} {text}" for name, text in METHODS.items())
@@ -45,7 +46,8 @@ def command(method, graph_path, robust, robust_k, max_iterations, relative_tol, 
             raise click.UsageError(f"--graph works with {' and '.join(GRAPH_METHODS)}, not {method}")
         if kw["scans"] is not None:
             raise click.UsageError("give either --graph or --scans")
-        report = optimise_file(method, graph_path, kw["out"], options)
+        with run_folder(kw["out"], "baseline", force=kw["force"]):
+            report = optimise_file(method, graph_path, kw["out"], options)
         r = report
         click.echo(f"{r['nodes']} nodes, {r['edges']} edges: error {r['initial_error']:.6g} -> "
                    f"{r['final_error']:.6g} in {r['iterations']} iterations, "
@@ -60,5 +62,6 @@ def command(method, graph_path, robust, robust_k, max_iterations, relative_tol, 
     if method == "icp" and not kw["warm_start"]:
         overrides["warm_start"] = {"name": "icp"}
     inputs, cfg, cache = prepare_run(kw, overrides)
-    report = baseline(method, inputs, cfg, kw["out"], cache, options, progress=not kw["quiet"])
+    with output_folder(kw, "baseline", cfg, inputs):
+        report = baseline(method, inputs, cfg, kw["out"], cache, options, progress=not kw["quiet"])
     print_summary(report, kw["out"])

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
 from pathlib import Path
 
 import click
@@ -18,6 +20,7 @@ from dm2_backend.cli.options import (
 )
 from dm2_backend.errors import InputError
 from dm2_backend.pipeline.inputs import load_inputs
+from dm2_backend.pipeline.run_folder import digest, fingerprint, run_folder
 from dm2_backend.prepare.pipeline import default_cache_dir
 
 path_type = click.Path(path_type=Path)
@@ -34,6 +37,8 @@ def run_options(f=None, *, scans_required: bool = True):
                      help="Trajectory to refine (any format); optional when a warm-start plugin computes one "
                           "or the scan source carries odometry."),
         click.option("--out", "-o", type=path_type, required=True, help="Run folder to write."),
+        click.option("--force", is_flag=True,
+                     help="Write into a non-empty --out (a previous run's files there are replaced)."),
         click.option("--format", "scans_format", default=None, help="Scan source format (else detected)."),
         click.option("--poses-format", default=None, help="Trajectory format (detected otherwise)."),
         click.option("--config", "-c", "config_path", type=path_type, default=None, help="YAML config."),
@@ -100,9 +105,21 @@ def command(epochs, device, resume, nproc, **kw) -> None:
         overrides["nproc"] = nproc
     inputs, cfg, cache = prepare_run(kw, overrides)
     check_device(cfg["device"])
-    report = refine(inputs, cfg, kw["out"], cache, resume=resume, progress=not kw["quiet"])
+    with output_folder(kw, "refine", cfg, inputs, resume):
+        report = refine(inputs, cfg, kw["out"], cache, resume=resume, progress=not kw["quiet"])
     if report is not None:  # None: a torchrun rank other than 0
         print_summary(report, kw["out"])
+
+
+def output_folder(kw: dict, command: str, cfg: dict, inputs, resume: bool = False):
+    """The run folder rule (``pipeline/run_folder.py``) for ``--out``; torchrun ranks other than 0 write
+    nothing and skip it."""
+    if int(os.environ.get("RANK", "0")) != 0:
+        return contextlib.nullcontext()
+    fp = fingerprint(cfg, command=command, scans=kw["scans"] and Path(kw["scans"]).resolve(),
+                     frames=len(inputs.scans), poses=kw["poses"] and Path(kw["poses"]).resolve(),
+                     poses_content=digest(kw["poses"]))
+    return run_folder(kw["out"], command, force=kw["force"], resume=resume, fp=fp)
 
 
 def check_device(device: str) -> None:
@@ -123,6 +140,8 @@ def print_summary(report: dict, out: Path) -> None:
             click.echo(f"{key:<28} warm start {before[key]:10.4f}  ->  {report['method']} {after[key]:10.4f}")
     if "error" in after:
         click.echo(f"evaluation failed: {after['error']}", err=True)
+    if report.get("stopped"):
+        click.echo(f"warning: {report['stopped']}", err=True)
     t = report["timings"]
     mem = report["peak_rss_mb"]
     click.echo(f"{report['frames']} frames in {t['total']:.1f} s, peak memory {mem:.0f} MiB")

@@ -6,25 +6,7 @@ from pathlib import Path
 
 import click
 
-from dm2_backend.errors import InputError
-
-#: the files ``dm2 simulate`` writes (besides velodyne/*.bin); --force replaces only these
-WRITTEN = ("times.txt", "poses.txt", "warm_start.txt", "info.json", "README.txt")
-
-
-def _clear(out: Path, force: bool) -> None:
-    if not out.exists():
-        return
-    if not out.is_dir():
-        raise InputError(out, "exists and is not a folder")
-    if not any(out.iterdir()):
-        return
-    if not force:
-        raise InputError(out, "folder is not empty (give --force to overwrite a previous simulation)")
-    for path in (out / "velodyne").glob("*.bin"):
-        path.unlink()
-    for name in WRITTEN:
-        (out / name).unlink(missing_ok=True)
+from dm2_backend.pipeline.run_folder import run_folder
 
 
 @click.command("simulate")
@@ -84,10 +66,10 @@ def command(frames, out, seed, path_kind, laps, extent, rate, planar, beams, col
     settings = SimSettings(frames=frames, seed=seed, extent=extent, laps=laps, path=path_kind, rate_hz=rate,
                            planar=planar, lidar=lidar, yaw_bias=yaw_bias, yaw_sigma=yaw_noise,
                            trans_sigma=trans_noise)
-    _clear(out, force)
     kind = "planar laser" if planar else f"{beams}-beam LiDAR"
-    click.echo(f"simulating {frames} {kind} frames ({laps:g} laps of a {path_kind}, seed {seed}) into {out}")
-    info = generate(settings, out, progress=not quiet)
+    with run_folder(out, "simulate", force=force):
+        click.echo(f"simulating {frames} {kind} frames ({laps:g} laps of a {path_kind}, seed {seed}) into {out}")
+        info = generate(settings, out, progress=not quiet)
     ate = info["warm_start"]["ate_rmse_m"]
     click.echo(f"{info['frames']} frames, {info['points_per_frame']['mean']:.0f} points per frame, "
                f"{info['path_length_m']:.0f} m path; warm start ATE {ate:.2f} m; {info['seconds']:.1f} s")
