@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -13,6 +14,8 @@ from dm2_backend.formats import ReadOptions, open_scans, read_trajectory
 from dm2_backend.geometry import se3
 from dm2_backend.scans import ScanSequence, associate_scans
 from dm2_backend.trajectory import Trajectory, associate_by_time
+
+log = logging.getLogger(__name__)
 
 #: trajectories a scan source may carry that serve as the warm start when no --poses is given
 CARRIED_WARM_START = ("odometry",)
@@ -26,6 +29,12 @@ class RunInputs:
     given_path: Path | None
     gt: Trajectory | None = None
     relations: np.ndarray | None = None
+    #: the scans the ground truth has a pose for, in the order of ``gt`` (None: every scan)
+    gt_frames: np.ndarray | None = None
+
+    def at_gt(self, poses: np.ndarray) -> np.ndarray:
+        """The poses (one per scan) of the scans that have a ground-truth pose, in the order of ``gt``."""
+        return poses if self.gt_frames is None else poses[self.gt_frames]
 
 
 def looks_planar(scans: ScanSequence, given: Trajectory | None, sample: int = 5) -> bool:
@@ -62,20 +71,41 @@ def load_inputs(
     scans.planar = looks_planar(scans, given)
     if given is not None and scans.planar:
         given.planar = True
-    gt = None
+    gt, gt_frames = None, None
     if gt_path is not None:
         gt = read_trajectory(gt_path, gt_format, options)
-        gt = _gt_for_scans(gt, scans, gt_path, max_diff)
+        gt, gt_frames = gt_for_scans(gt, scans, gt_path, max_diff)
     relations = load_relations(relations_path) if relations_path is not None else None
-    return RunInputs(scans, given, fmt, poses_path, gt, relations)
+    return RunInputs(scans, given, fmt, poses_path, gt, relations, gt_frames)
 
 
-def _gt_for_scans(gt: Trajectory, scans: ScanSequence, path: Path, max_diff: float) -> Trajectory:
-    """Ground truth with one pose per scan: by timestamp when both have them, else by index."""
+#: the fewest scans ground truth must match to be evaluated
+MIN_MATCHED = 3
+
+
+def gt_for_scans(gt: Trajectory, scans: ScanSequence, path: Path, max_diff: float
+                 ) -> tuple[Trajectory, np.ndarray | None]:
+    """The ground-truth poses of the scans and which scans they belong to (None: all, in order).
+
+    With stamps on both sides, each scan is paired with the nearest ground-truth stamp within ``max_diff``
+    seconds, as evo associates (a 100 Hz ground truth for 10 Hz scans, a scan without ground truth nearby):
+    the metrics then cover the matched scans, and how many matched is logged. Without stamps, by index."""
     if scans.timestamps is not None and gt.timestamps is not None:
         i_scan, i_gt = associate_by_time(scans.timestamps, gt.timestamps, max_diff)
-        if len(i_scan) == len(scans):
-            return gt.subset(i_gt[np.argsort(i_scan)])
+        by_index = len(gt) == len(scans) and len(i_scan) < len(scans) / 2  # another time base, same frames
+        if len(i_scan) >= min(MIN_MATCHED, len(scans)) and not by_index:
+            order = np.argsort(i_scan)
+            if len(i_scan) == len(scans):
+                return gt.subset(i_gt[order]), None
+            log.warning("%s: ground truth for %d of %d scans (stamps within %g s); metrics over those scans",
+                        path, len(i_scan), len(scans), max_diff)
+            return gt.subset(i_gt[order]), i_scan[order]
+        if len(gt) != len(scans):
+            span = f"{gt.timestamps[0]:.3f}-{gt.timestamps[-1]:.3f} s"
+            raise InputError(path, f"no ground-truth stamp within {max_diff:g} s of the scans' stamps (ground "
+                                   f"truth {span}, scans {scans.timestamps[0]:.3f}-{scans.timestamps[-1]:.3f} s; "
+                                   "see --max-diff)")
     if len(gt) != len(scans):
-        raise InputError(path, f"ground truth has {len(gt)} poses for {len(scans)} scans")
-    return gt
+        raise InputError(path, f"ground truth has {len(gt)} poses for {len(scans)} scans and no stamps to match "
+                               "them by")
+    return gt, None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from functools import partial
 from typing import TYPE_CHECKING
 
@@ -27,11 +28,32 @@ def relations_mean(relations: np.ndarray, timestamps: np.ndarray, poses: np.ndar
     return relations_error(Trajectory(poses, timestamps, planar=True), relations).stats["trans_mean"]
 
 
-def live_metric(inputs: RunInputs, timestamps: np.ndarray | None) -> Callable[[np.ndarray], float] | None:
+def gt_ate(gt: np.ndarray, frames: np.ndarray | None, poses: np.ndarray) -> float:
+    """ATE of the scans that have ground truth (``frames``: their indices, None: all)."""
+    return ate_rmse(gt, poses if frames is None else poses[frames])
+
+
+#: the names of the per-epoch metrics: the keys of ``report.json``'s metrics they equal
+ATE_METRIC = "ape_trans_rmse_m"
+RELATIONS_METRIC = "relations_trans_mean_m"
+
+
+@dataclass(frozen=True)
+class LiveMetric:
+    """A per-epoch accuracy of poses and its name (recorded with each epoch as ``ate_metric``)."""
+
+    name: str
+    fn: Callable[[np.ndarray], float]
+
+    def __call__(self, poses: np.ndarray) -> float:
+        return self.fn(poses)
+
+
+def live_metric(inputs: RunInputs, timestamps: np.ndarray | None) -> LiveMetric | None:
     """Per-epoch accuracy for the progress bar: ATE against --gt, else the relations metric (picklable, for
     spawned ranks)."""
     if inputs.gt is not None:
-        return partial(ate_rmse, inputs.gt.poses)
+        return LiveMetric(ATE_METRIC, partial(gt_ate, inputs.gt.poses, inputs.gt_frames))
     if inputs.relations is not None and timestamps is not None:
-        return partial(relations_mean, inputs.relations, timestamps)
+        return LiveMetric(RELATIONS_METRIC, partial(relations_mean, inputs.relations, timestamps))
     return None

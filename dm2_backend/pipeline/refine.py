@@ -43,8 +43,9 @@ def _metrics(traj: Trajectory, inputs: RunInputs) -> dict[str, float]:
     est = EstimateReport(label="", path="")
     if inputs.gt is not None:
         gt = replace(inputs.gt, timestamps=None)
-        est.poses = evaluate_poses(gt, replace(traj, timestamps=None), align="se3")
-        est.paper = paper_ate(inputs.gt.poses, traj.poses)
+        matched = traj if inputs.gt_frames is None else traj.subset(inputs.gt_frames)
+        est.poses = evaluate_poses(gt, replace(matched, timestamps=None), align="se3")
+        est.paper = paper_ate(inputs.gt.poses, matched.poses)
     if inputs.relations is not None and traj.timestamps is not None:
         est.relations = relations_error(traj, inputs.relations)
     return run_metrics(est)
@@ -97,14 +98,16 @@ def write_common(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final:
     outputs.write_prior_files(out / "prior", prep.warm_start, prep.topology, prep.pairwise)
     per_frame = None
     if inputs.gt is not None:
-        per_frame = {"translation error": (paper_ate(inputs.gt.poses, final).trans_errors, "m")}
-    outputs.write_plots(out, {"warm start": prep.warm_start, method: final}, inputs.gt, per_frame, epochs)
+        per_frame = {"translation error": (paper_ate(inputs.gt.poses, inputs.at_gt(final)).trans_errors, "m")}
+    drawn = {"warm start": inputs.at_gt(prep.warm_start), method: inputs.at_gt(final)}  # where gt is known
+    outputs.write_plots(out, drawn, inputs.gt, per_frame, epochs)
     files += outputs.write_topology(out, prep.topology, final)
     report = {
         "method": method,
         "dm2_version": __version__,
         "frames": len(prep.frames),
         "planar": prep.frames.planar,
+        **({"ground_truth_scans": len(inputs.gt)} if inputs.gt is not None else {}),
         "metrics": {**metrics_of(final_traj, inputs), **maps["final"]},
         "warm_start_metrics": {**metrics_of(warm_traj, inputs), **maps["warm_start"]},
         **({"loop_closed_metrics": {**metrics_of(trajectory_of(prep.topology.poses, inputs), inputs),
