@@ -8,6 +8,8 @@ from dm2_backend.formats import (  # noqa: F401  (each module registers itself)
     euroc,
     g2o,
     kitti,
+    kitti_raw,
+    nclt,
     scan_folder,
     tum,
 )
