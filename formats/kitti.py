@@ -93,7 +93,40 @@ def read_kitti(path: str | Path, options: ReadOptions | None = None) -> Trajecto
     if options.calib:
         traj = traj.with_poses(camera_to_lidar(traj.poses, read_calib_tr(options.calib)))
         traj.meta["frame"] = "lidar"
+        traj.meta["calib"] = str(options.calib)
     return traj
+
+
+def find_calib(*places: Path | None) -> Path | None:
+    """The first ``calib.txt`` with a ``Tr`` line beside or in ``places`` (the poses file, the scan folder, its
+    parent: KITTI's ``sequences/00/calib.txt`` beside ``sequences/00/velodyne/``)."""
+    for place in places:
+        if place is None:
+            continue
+        place = Path(place)
+        for folder in ([place, place.parent] if place.is_dir() else [place.parent]):
+            candidate = folder / "calib.txt"
+            if candidate.is_file():
+                try:
+                    read_calib_tr(candidate)
+                except InputError:
+                    continue
+                return candidate
+    return None
+
+
+def looks_camera_frame(poses: np.ndarray) -> bool:
+    """Whether poses of a ground vehicle look like KITTI camera-frame poses (y down, z forward): the path
+    spreads most along z or least along y. LiDAR-frame poses spread along x and y and least along z."""
+    xyz = np.asarray(poses)[:, :3, 3]
+    if len(xyz) < 3:
+        return False
+    spread = xyz.std(axis=0)
+    if spread.max() <= 0:
+        return False
+    order = np.argsort(spread)
+    clear = spread[order[0]] < 0.3 * spread[order[1]]
+    return bool(order[-1] == 2 or (clear and order[0] == 1))
 
 
 def write_kitti(traj: Trajectory, path: str | Path, options: ReadOptions | None = None) -> None:
@@ -120,7 +153,8 @@ def sniff(path: Path) -> bool:
 FORMAT = trajectory_format(
     TrajectoryFormat(
         name="kitti",
-        description="KITTI odometry poses: 12 numbers a line (row-major 3x4), camera frame",
+        description="KITTI odometry poses: 12 numbers a line (row-major 3x4); KITTI's own are camera frame "
+                    "(--calib converts them)",
         read=read_kitti,
         write=write_kitti,
         suffixes=(".txt", ".kitti"),

@@ -19,6 +19,8 @@ from dm2_backend.cli.options import (
     topic_option,
 )
 from dm2_backend.errors import InputError
+from dm2_backend.formats import detect_trajectory_format
+from dm2_backend.formats.kitti import find_calib, looks_camera_frame
 from dm2_backend.pipeline.inputs import load_inputs
 from dm2_backend.pipeline.run_folder import digest, fingerprint, run_folder
 from dm2_backend.prepare.pipeline import default_cache_dir
@@ -67,10 +69,13 @@ def run_options(f=None, *, scans_required: bool = True):
 
 def prepare_run(kw: dict, overrides: dict):
     """Read the inputs and the effective config of a run from the shared options."""
-    options = read_options(kw["topic"], kw["times"], kw["calib"], kw["intrinsics"], kw["depth_scale"],
+    calib = kw["calib"] or kitti_calibration(kw)
+    options = read_options(kw["topic"], kw["times"], calib, kw["intrinsics"], kw["depth_scale"],
                            kw["duplicate_times"])
     inputs = load_inputs(kw["scans"], kw["scans_format"], kw["poses"], kw["poses_format"], options,
                          kw["gt"], kw["gt_format"], kw["relations"], kw["max_diff"])
+    if calib is None and not inputs.scans.planar:
+        warn_camera_frame(kw, inputs)
     for key, section in (("warm_start", "warm_start"), ("place_recognition", "place_recognition"),
                          ("registration", "registration")):
         if kw[key]:
@@ -92,7 +97,9 @@ def prepare_run(kw: dict, overrides: dict):
 @click.option("--nproc", type=click.IntRange(min=1), default=None,
               help="Optimise in N processes (torch.distributed: gloo on CPU, NCCL with one GPU each) "
                    "[default: config nproc, 1]. Under torchrun its processes are the ranks.")
-def command(epochs, device, resume, nproc, **kw) -> None:
+@click.option("--rerun", "rerun_path", type=path_type, default=None,
+              help="Also write a Rerun recording of the run (needs rerun-sdk; see `dm2 view`).")
+def command(epochs, device, resume, nproc, rerun_path, **kw) -> None:
     """Refine the poses of a scan sequence with DeepMapping2 and write a run folder."""
     from dm2_backend.pipeline.refine import refine
 
@@ -105,10 +112,17 @@ def command(epochs, device, resume, nproc, **kw) -> None:
         overrides["nproc"] = nproc
     inputs, cfg, cache = prepare_run(kw, overrides)
     check_device(cfg["device"])
+    if rerun_path is not None:
+        from dm2_backend.cli.view import check_rerun, recording
+
+        check_rerun()  # before the run, not after it
     with output_folder(kw, "refine", cfg, inputs, resume):
         report = refine(inputs, cfg, kw["out"], cache, resume=resume, progress=not kw["quiet"])
     if report is not None:  # None: a torchrun rank other than 0
         print_summary(report, kw["out"])
+        if rerun_path is not None:
+            recording(kw["out"], rerun_path, inputs.scans, inputs.gt)
+            click.echo(f"wrote {rerun_path}")
 
 
 def output_folder(kw: dict, command: str, cfg: dict, inputs, resume: bool = False):
@@ -120,6 +134,45 @@ def output_folder(kw: dict, command: str, cfg: dict, inputs, resume: bool = Fals
                      frames=len(inputs.scans), poses=kw["poses"] and Path(kw["poses"]).resolve(),
                      poses_content=digest(kw["poses"]))
     return run_folder(kw["out"], command, force=kw["force"], resume=resume, fp=fp)
+
+
+def _kitti_files(kw: dict) -> list[tuple[str, Path]]:
+    """The --poses / --gt files that are KITTI poses (given or detected format)."""
+    found = []
+    for opt, fmt in (("poses", kw["poses_format"]), ("gt", kw["gt_format"])):
+        path = kw[opt]
+        if path is None:
+            continue
+        try:
+            fmt = fmt or detect_trajectory_format(path)
+        except InputError:
+            continue  # the reader says what is wrong with it
+        if fmt == "kitti":
+            found.append((opt, Path(path)))
+    return found
+
+
+def kitti_calibration(kw: dict) -> Path | None:
+    """``calib.txt`` beside KITTI poses or the scans, announced, when no --calib is given."""
+    files = _kitti_files(kw)
+    if not files:
+        return None
+    calib = find_calib(*(path for _, path in files), kw["scans"])
+    if calib is not None:
+        click.echo(f"using {calib} (found beside the inputs): KITTI poses are camera frame and are converted to "
+                   "the LiDAR frame; outputs are written in the camera frame, LiDAR-frame copies as *_lidar_*",
+                   err=True)
+    return calib
+
+
+def warn_camera_frame(kw: dict, inputs) -> None:
+    """A warning when KITTI poses without calibration look like camera-frame poses applied to LiDAR scans."""
+    trajectories = {"poses": inputs.given, "gt": inputs.gt}
+    for opt, path in _kitti_files(kw):
+        traj = trajectories[opt]
+        if traj is not None and looks_camera_frame(traj.poses):
+            click.echo(f"warning: {path}: these KITTI poses look camera-frame (y down, z forward) but no calib.txt "
+                       "was given or found: they are used as LiDAR poses; give --calib calib.txt", err=True)
 
 
 def check_device(device: str) -> None:

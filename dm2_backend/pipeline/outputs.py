@@ -15,6 +15,7 @@ from dm2_backend.errors import InputError
 from dm2_backend.evaluation import plots, topology_log
 from dm2_backend.formats import TRAJECTORY_FORMATS, ReadOptions, write_trajectory
 from dm2_backend.formats.dm2_priors import write_priors
+from dm2_backend.formats.kitti import lidar_to_camera, read_calib_tr
 from dm2_backend.prepare.types import Frames, Pairwise, Topology
 from dm2_backend.trajectory import Trajectory
 
@@ -29,8 +30,17 @@ def peak_rss_mb() -> float:
 def write_trajectories(out: Path, traj: Trajectory, given_path: Path | None, given_format: str | None,
                        stem: str = "poses") -> list[str]:
     """``poses_tum.txt``, ``poses_kitti.txt``, ``poses.npy`` and, when the input format is writable, the
-    trajectory in that format (same file suffix as the input). Returns the files written."""
+    trajectory in that format (same file suffix as the input). Returns the files written.
+
+    When KITTI camera-frame poses came in through a calibration (``traj.meta["calib"]``), these files are in
+    the camera frame, as the input was, and ``{stem}_lidar_tum.txt`` / ``{stem}_lidar_kitti.txt`` hold the
+    LiDAR-frame poses the map is built from."""
     written = []
+    if traj.meta.get("calib"):
+        for fmt, name in (("tum", f"{stem}_lidar_tum.txt"), ("kitti", f"{stem}_lidar_kitti.txt")):
+            write_trajectory(traj, out / name, fmt)
+            written.append(name)
+        traj = traj.with_poses(lidar_to_camera(traj.poses, read_calib_tr(traj.meta["calib"])))
     for fmt, name in (("tum", f"{stem}_tum.txt"), ("kitti", f"{stem}_kitti.txt")):
         try:
             write_trajectory(traj, out / name, fmt)

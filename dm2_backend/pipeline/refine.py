@@ -17,6 +17,7 @@ from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.evaluation.paper_ate import paper_ate
 from dm2_backend.evaluation.relations import relations_error
 from dm2_backend.evaluation.report import EstimateReport, run_metrics
+from dm2_backend.maps.run_maps import write_run_maps
 from dm2_backend.optim import distributed
 from dm2_backend.optim.config import OptimConfig
 from dm2_backend.pipeline import outputs, parallel
@@ -60,9 +61,14 @@ def output_timestamps(inputs: RunInputs) -> np.ndarray:
 
 
 def trajectory_of(poses: np.ndarray, inputs: RunInputs) -> Trajectory:
+    """The run's poses as a trajectory for the writers: the output stamps, the CARMEN template, and the KITTI
+    calibration when camera-frame poses came in (outputs go back to that frame)."""
     meta = {}
     if inputs.given_format == "carmen":
         meta["template"] = inputs.scans.source
+    calib = next((t.meta["calib"] for t in (inputs.given, inputs.gt) if t is not None and t.meta.get("calib")), None)
+    if calib:
+        meta["calib"] = calib
     return Trajectory(poses, output_timestamps(inputs), planar=inputs.scans.planar, meta=meta)
 
 
@@ -95,6 +101,7 @@ def write_common(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final:
     files = outputs.write_trajectories(out, final_traj, inputs.given_path, inputs.given_format)
     files += outputs.write_trajectories(out, warm_traj, None, None, stem="warm_start")
     outputs.write_map(out / "map.ply", prep.frames, final, 2 * prep.frames.scale.get("spacing", 0.0))
+    files += write_run_maps(out, inputs.scans, final, prep.frames.planar)  # map.pgm/.yaml, octomap.bt, M-Net maps
     outputs.write_prior_files(out / "prior", prep.warm_start, prep.topology, prep.pairwise)
     per_frame = None
     if inputs.gt is not None:
