@@ -116,6 +116,42 @@ def test_align_modes_change_the_numbers(files, tmp_path):
     assert values["none"] > 3 > values["se3"] and values["sim3"] <= values["se3"] + 1e-9
 
 
+@pytest.mark.parametrize("evo_form, dm2_form", [
+    (["-a"], ["--align", "se3"]), (["-as"], ["--align", "sim3"]), ([], ["--align", "se3"]),
+])
+def test_evo_habits_positional_files_and_short_alignment_flags(files, tmp_path, evo_form, dm2_form):
+    """``dm2 eval GT EST EST2 -as`` (as ``evo_ape tum GT EST -as``) equals the --gt/--est/--align form, and
+    the alignment used is the first line printed."""
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    r1 = run("eval", files["gt"], files["est"], files["est2"], *evo_form, "--json", a)
+    r2 = run("eval", "--gt", files["gt"], "--est", files["est"], "--est", files["est2"], *dm2_form, "--json", b)
+    assert r1.exit_code == 0 and r2.exit_code == 0, r1.output + r2.output
+    ours, theirs = json.loads(a.read_text()), json.loads(b.read_text())
+    assert [e["metrics"] for e in ours["estimates"]] == [e["metrics"] for e in theirs["estimates"]]
+    assert len(ours["estimates"]) == 2
+    first = r1.output.splitlines()[0]
+    assert first.startswith("alignment: ") and ("Sim(3)" if evo_form == ["-as"] else "SE(3)") in first
+
+
+@pytest.mark.parametrize("args, text", [(["-s"], "-as"), (["-a", "--align", "none"], "contradicts")])
+def test_contradicting_alignment_flags(files, args, text):
+    r = run("eval", files["gt"], files["est"], *args)
+    assert r.exit_code == 2 and text in r.output
+
+
+def test_a_straight_path_warns_that_the_rotation_is_free(tmp_path):
+    n = 50
+    stamps = np.arange(n) * 0.1
+    wiggle = 1e-3 * np.sin(np.arange(n))  # a straight line within a millimetre (evo needs some spread)
+    gt = se3.make_poses(np.tile(np.eye(3), (n, 1, 1)), np.c_[np.arange(n) * 0.5, wiggle, wiggle[::-1]])
+    est = se3.make_poses(se3.euler_xyz_to_matrix(np.tile([0.0, 0.0, 0.02], (n, 1))), gt[:, :3, 3] + 0.01)
+    g, e = _write_tum(tmp_path / "gt.txt", stamps, gt), _write_tum(tmp_path / "est.txt", stamps, est)
+    r = run("eval", g, e, "-a")
+    assert r.exit_code == 0 and "nearly a straight line" in r.output and "rotation" in r.output
+    r = run("eval", g, e, "--align-origin")
+    assert "nearly a straight line" not in r.output  # no rotation is fitted
+
+
 @pytest.mark.parametrize("case", ["missing", "garbage"])
 def test_wrong_est_file_exits_2_with_one_line(files, tmp_path, case):
     bad = tmp_path / "nope.txt" if case == "missing" else files["garbage"]

@@ -76,9 +76,57 @@ def _plots(
     return written
 
 
+#: the alignment line printed above the table
+ALIGN_TEXT = {"se3": "SE(3) Umeyama, no scale (evo -a; dm2's default)", "sim3": "Sim(3) Umeyama (evo -as)",
+              "none": "none (evo's default)"}
+#: positions whose second principal spread is under this fraction of the first lie "on a line"
+LINE_RATIO = 0.02
+
+
+def _positional(files: tuple[Path, ...], gt_path: Path | None, est_paths: tuple[Path, ...]
+                ) -> tuple[Path | None, tuple[Path, ...]]:
+    """``dm2 eval GT EST...`` as ``evo_ape tum GT EST``: the first file is the ground truth unless --gt is
+    given, the others estimates (with any --est)."""
+    files = tuple(files)
+    if files and gt_path is None:
+        gt_path, files = files[0], files[1:]
+    est_paths = tuple(est_paths) + files
+    if not est_paths:
+        raise click.UsageError("give the estimates: dm2 eval GT EST [EST...] or --est EST")
+    return gt_path, est_paths
+
+
+def _alignment(align: str | None, align_flag: bool, scale_flag: bool, align_origin: bool) -> str:
+    if scale_flag and not align_flag:
+        raise click.UsageError("-s corrects the scale of an alignment: give -as (scale-only alignment is not "
+                               "supported)")
+    if align_flag:
+        flag = "sim3" if scale_flag else "se3"
+        if align not in (None, flag):
+            raise click.UsageError(f"-a{'s' if scale_flag else ''} contradicts --align {align}")
+        align = flag
+    if align_origin and align not in (None, "none"):
+        raise click.UsageError("--align-origin excludes --align se3/sim3 (as in evo)")
+    return align or ("none" if align_origin else "se3")
+
+
+def free_rotation_warning(positions: np.ndarray) -> str | None:
+    """A warning when the ground-truth positions lie nearly on a line (or a point): aligning them leaves the
+    rotation about that line free, so the aligned APE rotation says little."""
+    if len(positions) < 3:
+        return "fewer than 3 matched poses: the alignment is not determined"
+    spread = np.linalg.svd(positions - positions.mean(axis=0), compute_uv=False) / np.sqrt(len(positions))
+    if spread[0] == 0 or spread[1] < LINE_RATIO * spread[0]:
+        return (f"the ground-truth path is nearly a straight line ({spread[1]:.3g} m across, {spread[0]:.3g} m "
+                "along): the alignment leaves the rotation about it free and the APE rotation is not meaningful "
+                "(try --align-origin or --align none)")
+    return None
+
+
 @click.command("eval")
+@click.argument("files", nargs=-1, type=path_type)
 @click.option("--gt", "gt_path", type=path_type, default=None, help="Ground-truth trajectory.")
-@click.option("--est", "est_paths", type=path_type, multiple=True, required=True,
+@click.option("--est", "est_paths", type=path_type, multiple=True,
               help="Estimated trajectory (repeat for several).")
 @click.option("--gt-format", default=None, help="Format of --gt (detected when unambiguous).")
 @click.option("--est-format", default=None, help="Format of every --est (detected when unambiguous).")
@@ -97,6 +145,8 @@ def _plots(
 @click.option("--align", type=click.Choice(ALIGN_MODES), default=None,
               help="Alignment onto the ground truth [default: se3; none with --align-origin].")
 @click.option("--align-origin", is_flag=True, help="Align the first poses only (evo's --align_origin).")
+@click.option("-a", "align_flag", is_flag=True, help="SE(3) Umeyama alignment, as evo's -a (= --align se3).")
+@click.option("-s", "scale_flag", is_flag=True, help="With -a: also correct the scale, as evo's -as (= --align sim3).")
 @click.option("--max-diff", type=float, default=0.01, show_default=True,
               help="Max. seconds between associated stamps (association by index when a file has none).")
 @click.option("--delta", type=float, default=1.0, show_default=True, help="RPE pair distance.")
@@ -111,20 +161,20 @@ def _plots(
 @click.option("--save-evo", "evo_dir", type=path_type, default=None,
               help="Write evo result archives (.zip, readable by evo_res) into this folder.")
 @duplicate_times_option
-def command(gt_path, est_paths, gt_format, est_format, gt_topic, est_topic, gt_times, est_times,
-            scans_path, scans_format, relations_path, relations_max_dt, align, align_origin, max_diff, delta,
-            delta_unit, json_path, csv_path, md_path, plot_dir, run_report, evo_dir, duplicate_times) -> None:
+def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topic, gt_times, est_times,
+            scans_path, scans_format, relations_path, relations_max_dt, align, align_origin, align_flag, scale_flag,
+            max_diff, delta, delta_unit, json_path, csv_path, md_path, plot_dir, run_report, evo_dir,
+            duplicate_times) -> None:
     """Evaluate one or more estimated trajectories against a ground truth, relations and/or the map they make.
 
     APE and RPE (translation m, rotation deg) are computed with evo and equal evo_ape / evo_rpe;
     "paper ATE" is the DeepMapping2 paper's own definition; --relations adds the Freiburg relations metric;
     --scans the mean map entropy and plane variance (lower = sharper) of the scans at each estimate.
     """
+    gt_path, est_paths = _positional(files, gt_path, est_paths)
     if gt_path is None and relations_path is None and scans_path is None:
         raise click.UsageError("give --gt, --relations, --scans or several")
-    if align_origin and align not in (None, "none"):
-        raise click.UsageError("--align-origin excludes --align se3/sim3 (as in evo)")
-    align = align or ("none" if align_origin else "se3")
+    align = _alignment(align, align_flag, scale_flag, align_origin)
     _check_delta(delta, delta_unit)
     if max_diff < 0:
         raise click.BadParameter("must not be negative", param_hint="--max-diff")
@@ -166,6 +216,12 @@ def command(gt_path, est_paths, gt_format, est_format, gt_topic, est_topic, gt_t
             entry.map = estimate_map(sampler, scans, est, max_diff, source=path)
         report.estimates.append(entry)
 
+    click.echo(f"alignment: {ALIGN_TEXT[align] if not align_origin else 'first poses only (--align-origin)'}")
+    for entry in report.estimates:
+        if entry.poses is not None and align in ("se3", "sim3"):
+            warning = free_rotation_warning(np.array(entry.poses.ref.positions_xyz))
+            if warning:
+                click.echo(f"warning: {entry.label}: {warning}", err=True)
     click.echo(terminal_text(report))
     written = []
     if json_path:
