@@ -83,7 +83,7 @@ def run_case(method: Method, input_args: list[str], run_dir: Path, cache_dir: Pa
     """One case: returns status, metrics and timings from its report.json, wall time and peak RSS."""
     run_dir.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-m", "dm2_backend", *method.command, *input_args, "--out", str(run_dir / "run"),
-           "--cache-dir", str(cache_dir), "-q"]
+           "--cache-dir", str(cache_dir), "-q", "--force"]
     if method.config:
         cfg = run_dir / "config.yaml"
         cfg.write_text(yaml.safe_dump(method.config))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
@@ -43,6 +44,9 @@ class ScanSequence:
     source: str = ""
     trajectories: dict[str, Trajectory] = field(default_factory=dict)
     meta: dict = field(default_factory=dict)
+    #: how the scans were read: format, resolved path and every read option (set by ``formats.open_scans``);
+    #: with the files it names, it keys the preparation cache, so it must hold everything the reading used
+    read_spec: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return self.count
@@ -75,6 +79,7 @@ class ScanSequence:
             source=self.source,
             trajectories={k: v.subset(index) for k, v in self.trajectories.items() if len(v) == self.count},
             meta=dict(self.meta),
+            read_spec={**self.read_spec, "subset": hashlib.sha1(index.tobytes()).hexdigest()[:16]},
         )
 
 

@@ -136,12 +136,26 @@ def write_trajectory(
     spec.write(traj, path, options or ReadOptions())
 
 
+def read_spec(fmt: str, path: Path, options: ReadOptions) -> dict:
+    """Everything that determines what ``open_scans`` reads: the format, the resolved path and every option
+    (paths resolved; ``extra`` included), as JSON-ready values."""
+    def plain(value):
+        return str(Path(value).resolve()) if isinstance(value, Path) else value
+
+    spec = {"format": fmt, "path": str(Path(path).resolve())}
+    spec.update({k: plain(v) for k, v in vars(options).items() if k != "extra"})
+    spec["extra"] = {k: plain(v) for k, v in sorted(options.extra.items())}
+    return spec
+
+
 def open_scans(path: str | Path, fmt: str | None = None, options: ReadOptions | None = None) -> ScanSequence:
     path = Path(path)
     if not path.exists():
         raise InputError(path, "no such file or folder")
     name = fmt or detect_scan_source(path)
-    seq = _lookup(SCAN_SOURCES, name, "scan source", path).open(path, options or ReadOptions())
+    options = options or ReadOptions()
+    seq = _lookup(SCAN_SOURCES, name, "scan source", path).open(path, options)
+    seq.read_spec = read_spec(name, path, options)
     seq.meta.setdefault("format", name)
     return seq
 

@@ -89,9 +89,10 @@ def test_config_yaml_is_the_effective_config(seq, run):
     out = run[0]
     written = yaml.safe_load((out / "config.yaml").read_text())
     expected = config.load(seq / "config.yaml", {"optimiser": {"epochs": 2, "max_steps": 0}})
-    assert expected["place_recognition"]["name"] == "auto"
-    expected["place_recognition"]["name"] = "loops"  # auto, resolved for planar scans
-    assert written == expected
+    assert written == expected and written["place_recognition"]["name"] == "auto"  # as given, not mutated
+    resolved = yaml.safe_load((out / "resolved.yaml").read_text())
+    assert resolved["place_recognition"]["name"] == "loops"  # auto, resolved for planar scans
+    assert resolved["registration"] == written["registration"]
     assert written["seed"] == 3 and written["optimiser"]["epochs"] == 2
     assert written["optimiser"]["max_steps"] == 0  # an explicit --epochs lifts the step cap
     assert written["optimiser"]["points_per_frame"] == 64 and written["registration"]["name"] == "icp"

@@ -14,7 +14,7 @@ from dm2_backend.errors import InputError
 #: sub-command name -> module in dm2_backend.cli, imported only when the command is used (start-up stays fast)
 COMMANDS = {
     "info": "info", "convert": "convert", "refine": "refine", "baseline": "baseline", "demo": "demo",
-    "eval": "eval", "compare": "compare", "plugins": "plugins", "simulate": "simulate",
+    "eval": "eval", "compare": "compare", "plugins": "plugins", "simulate": "simulate", "cache": "cache",
 }
 
 

@@ -32,7 +32,8 @@ from dm2_backend.optim.distributed import Dist, init, rank_device, wait_group
 from dm2_backend.optim.trainer import Optimiser, OptimResult, sample_points
 from dm2_backend.pipeline.start import Start
 from dm2_backend.prepare import store
-from dm2_backend.prepare.pipeline import Prepared, _key, load_prepared, prepare
+from dm2_backend.prepare.cache_keys import code_fingerprint, step_key
+from dm2_backend.prepare.pipeline import Prepared, load_prepared, prepare
 
 
 @dataclass
@@ -93,7 +94,7 @@ def prepare_once(inputs, cfg: dict, ocfg: OptimConfig, sess: Session, progress: 
 def samples_entry(cache: Path, prep: Prepared, ocfg: OptimConfig, seed: int) -> str:
     """Cache entry of :func:`sample_points` for these frames (the same points the optimiser would draw)."""
     m = sampled_points(ocfg, prep.frames.max_points, prep.frames.planar)
-    name = f"samples-{_key(prep.keys['frames'], m, seed)}"
+    name = f"samples-{step_key(prep.keys['frames'], m, seed, code_fingerprint(sample_points))}"
     if store.get(cache, name) is None:
         store.put(cache, name, {"samples": sample_points(prep.frames, m, seed)})
     return name

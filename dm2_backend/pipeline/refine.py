@@ -96,6 +96,7 @@ def write_common(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final:
     stages = {"warm_start": prep.warm_start, "loop_closed": prep.topology.poses, "start": start, "final": final}
     maps = {name: map_metrics(sampler, poses) for name, poses in stages.items() if poses is not None}
     config.dump(cfg, out / "config.yaml")
+    config.dump(prep.resolved, out / "resolved.yaml")  # the plugins as run: ``auto`` resolved
     warm_traj = trajectory_of(prep.warm_start, inputs)
     final_traj = trajectory_of(final, inputs)
     files = outputs.write_trajectories(out, final_traj, inputs.given_path, inputs.given_format)

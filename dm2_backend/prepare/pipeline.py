@@ -1,6 +1,7 @@
 """Run the preparation steps (frames -> warm start -> topology -> pairwise), each cached on disk.
 
-Each step's cache key hashes its inputs' keys and its own plugin name and options, so a second run on the
+Each step's cache key hashes the key of the step before it, its own plugin name, options and code, and the
+first step's the input files and read options (:mod:`dm2_backend.prepare.cache_keys`), so a second run on the
 same data (``dm2 refine`` again, or ``dm2 baseline``) loads the results instead of recomputing them. Entries
 are folders of ``.npy`` arrays (:mod:`dm2_backend.prepare.store`); the frames' points and the pairwise
 relatives are memory-mapped, also right after a step computed them, so the processes of a distributed run
@@ -10,7 +11,6 @@ share their pages.
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import time
 from dataclasses import dataclass, field
@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend import __version__
 from dm2_backend.errors import InputError
 from dm2_backend.plugins.common import path_length
 from dm2_backend.plugins.registry import load as load_plugin
 from dm2_backend.prepare import store
+from dm2_backend.prepare.cache_keys import code_fingerprint, source_key, step_key
 from dm2_backend.prepare.types import Frames, Pairwise, Topology
 from dm2_backend.scans import ScanSequence
 from dm2_backend.trajectory import Trajectory
@@ -38,6 +38,8 @@ class Prepared:
     cached: dict[str, bool] = field(default_factory=dict)
     #: step -> name of its cache entry (see :func:`load_prepared`)
     keys: dict[str, str] = field(default_factory=dict)
+    #: the plugin sections as run, ``auto`` resolved (the caller's config is left as given)
+    resolved: dict[str, dict] = field(default_factory=dict)
 
     @property
     def initial(self) -> np.ndarray:
@@ -87,16 +89,9 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("DM2_CACHE_DIR", Path.home() / ".cache" / "dm2"))
 
 
-def _key(*parts) -> str:
-    """Cache key of a step; includes the dm2 version so an upgrade never reuses results of older code."""
-    blob = json.dumps([__version__, *parts], sort_keys=True, default=str).encode()
-    return hashlib.sha1(blob).hexdigest()[:16]
-
-
-def _source_key(scans: ScanSequence) -> list:
-    src = Path(scans.source) if scans.source else None
-    stat = src.stat() if src is not None and src.exists() else None
-    return [str(src.resolve()) if src else "", stat.st_mtime_ns if stat else 0, len(scans)]
+def _code(group: str, section: dict) -> str:
+    """The code fingerprint of the plugin a section names (its module and the dm2 modules it uses)."""
+    return code_fingerprint(load_plugin(group, section["name"]))
 
 
 def _plugin(group: str, section: dict, progress: bool = True):
@@ -152,7 +147,9 @@ def prepare(
     cached: dict[str, bool] = {}
     keys: dict[str, str] = {}
     fcfg = cfg["frames"]
-    k_frames = _key(_source_key(scans), fcfg, cfg["seed"], scans.planar)
+    from dm2_backend.prepare import frames as frames_module
+
+    k_frames = step_key(source_key(scans), fcfg, cfg["seed"], scans.planar, code_fingerprint(frames_module))
     keys["frames"] = name = f"frames-{k_frames}"
     t = time.perf_counter()
     hit = cache.get(name)
@@ -170,7 +167,7 @@ def prepare(
 
     ws = cfg["warm_start"]
     given_hash = hashlib.sha1(given.poses.tobytes()).hexdigest() if given is not None else ""
-    k_ws = _key(k_frames, ws, given_hash)
+    k_ws = step_key(k_frames, ws, given_hash, _code("dm2.warm_start", ws))
     keys["warm_start"] = name = f"warm-{k_ws}"
     t = time.perf_counter()
     hit = cache.get(name)
@@ -182,9 +179,8 @@ def prepare(
         cache.put(name, {"poses": warm})
     timings["warm_start"] = time.perf_counter() - t
 
-    pr = cfg["place_recognition"] = resolve_auto(cfg["place_recognition"], "intrinsics" in scans.meta, warm,
-                                                 frames.planar)
-    k_pr = _key(k_ws, pr)
+    pr = resolve_auto(cfg["place_recognition"], "intrinsics" in scans.meta, warm, frames.planar)
+    k_pr = step_key(k_ws, pr, _code("dm2.place_recognition", pr))
     keys["place_recognition"] = name = f"topology-{k_pr}"
     t = time.perf_counter()
     hit = cache.get(name)
@@ -199,7 +195,7 @@ def prepare(
     timings["place_recognition"] = time.perf_counter() - t
 
     reg = cfg["registration"]
-    keys["registration"] = name = f"pairwise-{_key(k_pr, reg)}"
+    keys["registration"] = name = f"pairwise-{step_key(k_pr, reg, _code('dm2.registration', reg))}"
     t = time.perf_counter()
     hit = cache.get(name)
     cached["registration"] = hit is not None
@@ -211,4 +207,5 @@ def prepare(
         )
     pair = store.pairwise_from(hit) if hit is not None else pair
     timings["registration"] = time.perf_counter() - t
-    return Prepared(frames, warm, topo, pair, timings, cached, keys)
+    resolved = {"warm_start": dict(ws), "place_recognition": dict(pr), "registration": dict(reg)}
+    return Prepared(frames, warm, topo, pair, timings, cached, keys, resolved)

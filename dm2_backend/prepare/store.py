@@ -10,12 +10,16 @@ private). The small per-frame arrays are read into memory.
 from __future__ import annotations
 
 import json
+import logging
+import shutil
 from pathlib import Path
 
 import numpy as np
 
 from dm2_backend.atomic import atomic_path
 from dm2_backend.prepare.types import Frames, Pairwise, Topology
+
+log = logging.getLogger(__name__)
 
 #: arrays opened memory-mapped, with their numpy mmap mode; the others are read into memory
 MAPPED = {"points": "r", "samples": "c", "relative": "c"}
@@ -33,7 +37,7 @@ def put(root: Path, name: str, arrays: dict[str, np.ndarray | list[np.ndarray]],
                 _save_pieces(tmp / f"{key}.npy", value)
             else:
                 np.save(tmp / f"{key}.npy", np.ascontiguousarray(value), allow_pickle=False)
-        (tmp / "meta.json").write_text(json.dumps(meta or {}, default=float))
+        (tmp / "meta.json").write_text(json.dumps({**(meta or {}), "arrays": sorted(arrays)}, default=float))
 
 
 def _save_pieces(path: Path, pieces: list[np.ndarray]) -> None:
@@ -60,12 +64,23 @@ def _load(path: Path) -> np.ndarray:
 
 
 def get(root: Path | None, name: str) -> tuple[dict[str, np.ndarray], dict] | None:
-    """The arrays and metadata of entry ``name``, or None when it is not in the cache."""
+    """The arrays and metadata of entry ``name``, or None when it is not in the cache. A damaged entry
+    (truncated or unreadable arrays, broken metadata, a missing array) is reported in one line, removed and
+    treated as missing, so the step is computed again."""
     folder = root / name if root is not None else None
     if folder is None or not (folder / "meta.json").is_file():
         return None
-    arrays = {p.stem: _load(p) for p in folder.glob("*.npy")}
-    return arrays, json.loads((folder / "meta.json").read_text())
+    try:
+        meta = json.loads((folder / "meta.json").read_text())
+        arrays = {p.stem: _load(p) for p in folder.glob("*.npy")}
+        missing = [key for key in meta.get("arrays", arrays) if key not in arrays]
+        if missing:
+            raise ValueError(f"missing {', '.join(missing)}")
+    except (OSError, ValueError, EOFError) as exc:  # json.JSONDecodeError is a ValueError
+        log.warning("cache entry %s is damaged (%s): computing it again", folder, str(exc).splitlines()[0][:120])
+        shutil.rmtree(folder, ignore_errors=True)
+        return None
+    return arrays, meta
 
 
 def put_frames(root: Path, name: str, frames: Frames) -> None:

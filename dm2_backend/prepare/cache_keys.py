@@ -1,0 +1,95 @@
+"""Cache keys of the preparation steps: everything that determines a step's result, and nothing else.
+
+A step's key hashes the key of the step before it, the step's plugin name and options, and the *code* that
+computes it (the plugin's module and every dm2 module it reaches, by source text). The first step's key also
+hashes the input itself: the scan source's read spec (format, path and every read option) and, for every file
+the reading depends on (the source, ``--times``, ``--calib``), its size and modification time, file by file
+through folders (overwriting scans in place does not change a folder's own mtime).
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import inspect
+import json
+import os
+import sys
+import types
+from pathlib import Path
+
+from dm2_backend import __version__
+from dm2_backend.scans import ScanSequence
+
+#: read-spec entries that name files whose content the reading depends on
+FILE_OPTIONS = ("path", "times", "calib")
+
+
+def step_key(*parts) -> str:
+    """A short hash of ``parts`` (JSON, sorted keys) and the dm2 version."""
+    blob = json.dumps([__version__, *parts], sort_keys=True, default=str).encode()
+    return hashlib.sha1(blob).hexdigest()[:16]
+
+
+def file_fingerprint(path: str | Path | None) -> list:
+    """``[size, mtime_ns]`` of a file; of a folder, a hash of every file under it (relative name, size,
+    mtime); ``[]`` when there is no such path."""
+    if not path:
+        return []
+    path = Path(path)
+    if path.is_file():
+        st = path.stat()
+        return [st.st_size, st.st_mtime_ns]
+    if not path.is_dir():
+        return []
+    h = hashlib.sha1()
+    for root, dirs, files in os.walk(path):
+        dirs.sort()
+        for name in sorted(files):
+            full = os.path.join(root, name)
+            try:
+                st = os.stat(full)
+            except OSError:
+                continue
+            h.update(f"{os.path.relpath(full, path)}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+    return [h.hexdigest()]
+
+
+def source_key(scans: ScanSequence) -> list:
+    """What the frames depend on: the read spec, the fingerprint of each file it names, and the scan count."""
+    spec = dict(scans.read_spec) or {"path": scans.source}
+    files = {name: file_fingerprint(spec.get(name)) for name in FILE_OPTIONS if spec.get(name)}
+    return [spec, files, len(scans)]
+
+
+def code_fingerprint(obj) -> str:
+    """A hash of the source of ``obj``'s module and of every dm2 module reachable from it through module-level
+    names: a changed plugin, or a changed helper it uses, gives new cache keys."""
+    module = inspect.getmodule(obj)
+    return _module_closure_hash(module.__name__) if module is not None else ""
+
+
+def module_closure(name: str) -> set[str]:
+    """The dm2 modules reachable from module ``name`` through its module-level names (itself included)."""
+    seen: set[str] = set()
+    todo = [name]
+    while todo:
+        current = todo.pop()
+        if current in seen or current not in sys.modules:
+            continue
+        seen.add(current)
+        for value in vars(sys.modules[current]).values():
+            ref = value.__name__ if isinstance(value, types.ModuleType) else getattr(value, "__module__", None)
+            if isinstance(ref, str) and ref.startswith("dm2_backend") and ref not in seen:
+                todo.append(ref)
+    return seen
+
+
+@functools.cache
+def _module_closure_hash(name: str) -> str:
+    h = hashlib.sha1()
+    for mod in sorted(module_closure(name)):
+        source = getattr(sys.modules[mod], "__file__", None)
+        if source and source.endswith(".py"):
+            h.update(mod.encode() + b"\0" + Path(source).read_bytes())
+    return h.hexdigest()[:16]
