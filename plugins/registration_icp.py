@@ -17,13 +17,13 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from tqdm import tqdm
 
 from dm2_backend.geometry import se3
 from dm2_backend.plugins.common import Cloud, Match, fine_distance, lengths, orthonormal, project_planar, resolve_method
 from dm2_backend.plugins.gates import check_alignment
 from dm2_backend.plugins.icp import register
 from dm2_backend.prepare.types import Frames, Pairwise, Topology
+from dm2_backend.progress import progress
 
 
 @dataclass
@@ -79,7 +79,7 @@ class IcpRegistration:
                 return m, check_alignment(self._clouds[b], self._clouds[a], m, fine, margin)
 
             jobs = pool.map(job, pairs)
-            bar = tqdm(jobs, total=len(pairs), desc="pairwise icp", disable=not self.progress, leave=False)
+            bar = progress(jobs, "pairwise icp", total=len(pairs), unit="pair", enabled=self.progress)
             results = list(bar)
         out = Pairwise(
             relative=np.tile(np.eye(4), (n, k, 1, 1)),

@@ -14,7 +14,6 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from tqdm import tqdm
 
 from dm2_backend.plugins import scan_context as sc
 from dm2_backend.plugins.common import (
@@ -31,6 +30,7 @@ from dm2_backend.plugins.gates import check_alignment, constraint
 from dm2_backend.plugins.icp import register
 from dm2_backend.plugins.topology_radius import check_k, check_poses
 from dm2_backend.prepare.types import Frames, Topology
+from dm2_backend.progress import progress
 
 
 @dataclass
@@ -108,7 +108,7 @@ class DescriptorTopology:
         clouds: dict[int, Cloud] = {}
         found: list[list[tuple[float, int]]] = [[] for _ in range(n)]
         done: set[tuple[int, int]] = set()
-        for i in tqdm(range(0, n, stride), desc="loop candidates", disable=not self.progress, leave=False):
+        for i in progress(range(0, n, stride), "loop candidates", unit="frame", enabled=self.progress):
             ok = (np.abs(path - path[i]) > gap) & (np.linalg.norm(pos - pos[i], axis=1) > radius)
             cand = np.flatnonzero(ok)
             if len(cand) == 0:

@@ -26,7 +26,6 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from tqdm import tqdm
 
 from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
@@ -47,6 +46,7 @@ from dm2_backend.plugins.icp import register
 from dm2_backend.plugins.loop_graph import Closure, KeyframeGraph, between, cycle_error
 from dm2_backend.plugins.topology_radius import check_k, check_poses
 from dm2_backend.prepare.types import Frames, Topology
+from dm2_backend.progress import progress
 
 
 @dataclass
@@ -150,7 +150,7 @@ class LoopsTopology:
         graph = KeyframeGraph(odo, odo_sigma, np.array([L["resolution"]] * 2 + [L["resolution"] / L["reach"]]))
         pending: list[Closure] = []
         last = 0.0
-        bar = tqdm(range(len(keys)), desc="loop closure", disable=not self.progress, leave=False)
+        bar = progress(range(len(keys)), "loop closure", unit="keyframe", enabled=self.progress)
         for b in bar:
             graph.extend(b)
             travelled = kpath[b] - last

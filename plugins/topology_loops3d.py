@@ -28,7 +28,6 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from tqdm import tqdm
 
 from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
@@ -48,6 +47,7 @@ from dm2_backend.plugins.icp import register
 from dm2_backend.plugins.loop_graph3d import Closure3, FrameGraph
 from dm2_backend.plugins.topology_radius import check_k, check_poses
 from dm2_backend.prepare.types import Frames, Topology
+from dm2_backend.progress import progress
 
 
 @dataclass
@@ -163,7 +163,7 @@ class Loops3dTopology:
         steps = se3.relative(poses[:-1], poses[1:])
         repaired = []
         target = Cloud(frames.points[0], False, 2.0 * fine)
-        for k in tqdm(range(len(steps)), desc="odometry check", disable=not self.progress, leave=False):
+        for k in progress(range(len(steps)), "odometry check", unit="step", enabled=self.progress):
             source = Cloud(frames.points[k + 1], False, 2.0 * fine)
             m = register(source, target, steps[k], (4.0 * fine, fine), "gicp")
             if np.isfinite(m.T).all() and np.linalg.norm(se3.relative(steps[k], m.T)[:3, 3]) > limit and \
@@ -186,7 +186,7 @@ class Loops3dTopology:
         kpath = path[keys]
         found: list[Closure3] = []
         last = 0.0
-        bar = tqdm(range(len(keys)), desc=f"loop closure 3d ({round_ + 1})", disable=not self.progress, leave=False)
+        bar = progress(range(len(keys)), f"loop closure 3d ({round_ + 1})", unit="keyframe", enabled=self.progress)
         for b in bar:
             window = min(L["max_window"], L["window"] + self.drift * (kpath[b] - last))
             for a, predicted in self._candidates(estimate, kpath, b, window):

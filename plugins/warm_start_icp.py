@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from tqdm import tqdm
 
 from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
@@ -29,6 +28,7 @@ from dm2_backend.plugins.common import (
 )
 from dm2_backend.plugins.icp import register
 from dm2_backend.prepare.types import Frames
+from dm2_backend.progress import progress
 from dm2_backend.trajectory import Trajectory
 
 
@@ -80,7 +80,7 @@ class IcpWarmStart:
         target = self._map(keyframes, frames.planar, voxel, fine)
         velocity = np.eye(4)
         self.rejected: list[int] = []
-        for i in tqdm(range(1, n), desc="icp warm start", disable=not self.progress, leave=False):
+        for i in progress(range(1, n), "icp warm start", unit="frame", enabled=self.progress):
             delta = increments[i - 1] if increments is not None else velocity
             predicted = poses[i - 1] @ delta
             source = Cloud(frames.points[i], frames.planar, 2.0 * fine)

@@ -7,11 +7,11 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from tqdm import tqdm
 
 from dm2_backend.errors import InputError
 from dm2_backend.plugins.common import lengths, project_planar
 from dm2_backend.prepare.types import Frames
+from dm2_backend.progress import progress
 from dm2_backend.trajectory import Trajectory
 
 
@@ -41,7 +41,7 @@ class KissWarmStart:
         odometry = KissICP(config=config)
         poses = np.tile(np.eye(4), (len(frames), 1, 1))
         empty = np.zeros(0)
-        for i, pts in enumerate(tqdm(frames.points, desc="kiss-icp", disable=not self.progress, leave=False)):
+        for i, pts in enumerate(progress(frames.points, "kiss-icp", unit="frame", enabled=self.progress)):
             odometry.register_frame(np.asarray(pts, dtype=np.float64), empty)
             poses[i] = odometry.last_pose
         if frames.planar:

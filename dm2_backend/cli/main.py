@@ -10,6 +10,7 @@ import click
 
 from dm2_backend import __version__
 from dm2_backend.errors import InputError
+from dm2_backend.progress import setup_logging
 
 #: sub-command name -> module in dm2_backend.cli, imported only when the command is used (start-up stays fast)
 COMMANDS = {
@@ -52,6 +53,7 @@ def cli(ctx: click.Context, debug: bool) -> None:
     """dm2: refine any SLAM trajectory with DeepMapping2."""
     ctx.ensure_object(dict)
     ctx.obj["debug"] = debug
+    setup_logging()  # stage lines and warnings on stderr, one line each (dm2_backend.progress)
 
 
 def main() -> None:

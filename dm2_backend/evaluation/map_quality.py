@@ -20,10 +20,10 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
-from tqdm import tqdm
 
 from dm2_backend.errors import InputError
 from dm2_backend.prepare.frames import point_spacing
+from dm2_backend.progress import progress as progress_of
 from dm2_backend.scans import ScanSequence
 from dm2_backend.trajectory import Trajectory, associate_by_time
 
@@ -87,7 +87,7 @@ class MapSampler:
         voxel, radius = derive(scans, settings)
         budget = max(1, settings.max_points // max(len(scans), 1))
         clouds = [_thin(voxelise(scan.points, voxel), budget)
-                  for scan in tqdm(scans, total=len(scans), desc="map scans", disable=not progress, leave=False)]
+                  for scan in progress_of(scans, "map scans", total=len(scans), unit="scan", enabled=progress)]
         return cls(clouds, scans.planar, voxel, radius, settings)
 
     def world(self, poses: np.ndarray) -> np.ndarray:

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import open3d as o3d
-from tqdm import tqdm
 
 from dm2_backend.prepare.types import Frames
+from dm2_backend.progress import progress as progress_of
 from dm2_backend.scans import ScanSequence
 
 
@@ -58,7 +58,7 @@ def load_frames(
     rng = np.random.default_rng(seed)
     points = [
         downsample(scan.points, voxel, max_points, rng)
-        for scan in tqdm(seq, total=len(seq), desc="load scans", disable=not progress, leave=False)
+        for scan in progress_of(seq, "load scans", total=len(seq), unit="scan", enabled=progress)
     ]
     sub = points[:: max(1, len(points) // 20)]
     scale["voxel"] = float(voxel)

@@ -11,13 +11,13 @@ from pathlib import Path
 
 import numpy as np
 from evo.core.geometry import umeyama_alignment
-from tqdm import tqdm
 
 from dm2_backend import __version__
 from dm2_backend.atomic import atomic_write
 from dm2_backend.formats.kitti import write_kitti
 from dm2_backend.formats.registry import ReadOptions
 from dm2_backend.formats.scan_folder import write_bin
+from dm2_backend.progress import progress as progress_of
 from dm2_backend.simulate.lidar import LidarModel, Raycaster
 from dm2_backend.simulate.path import centerline, drifting_odometry, street_path
 from dm2_backend.simulate.scene import make_scene
@@ -91,7 +91,7 @@ class Simulation:
 def simulate(s: SimSettings, progress: bool = True) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
     """Scans (sensor frame), ground-truth poses and drifting odometry poses (N,4,4), in memory."""
     sim = Simulation(s)
-    frames = tqdm(range(len(sim)), desc="simulate", disable=not progress, leave=False)
+    frames = progress_of(range(len(sim)), "simulate", unit="frame", enabled=progress)
     scans = [sim.scan(i)[0] for i in frames]
     return scans, sim.gt, sim.warm
 
@@ -124,7 +124,7 @@ def generate(s: SimSettings, out: Path, progress: bool = True) -> dict:
     counts = np.zeros(len(sim), dtype=np.int64)
     pending: deque[Future] = deque()
     with ThreadPoolExecutor(max_workers=1) as pool:
-        for i in tqdm(range(len(sim)), desc="simulate", disable=not progress, leave=False):
+        for i in progress_of(range(len(sim)), "simulate", unit="frame", enabled=progress):
             points, intensity = sim.scan(i)
             counts[i] = len(points)
             pending.append(pool.submit(write_bin, out / "velodyne" / f"{i:06d}.bin", points, intensity))
