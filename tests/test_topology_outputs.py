@@ -15,8 +15,6 @@ from dm2_backend.pipeline import outputs
 from dm2_backend.plugins.registry import load
 from dm2_backend.prepare.types import Topology
 
-PNG = b"\x89PNG\r\n\x1a\n"
-
 
 def fake_topology() -> Topology:
     log = [
@@ -69,7 +67,10 @@ def test_no_candidates(tmp_path):
     assert outputs.write_topology(tmp_path, topo, poses) == ["topology.json", "topology.png"]
     doc = json.loads((tmp_path / "topology.json").read_text())
     assert doc["counts"]["candidates"] == 0 and doc["plugin"] == "radius" and doc["candidates"] == []
-    assert (tmp_path / "topology.png").read_bytes()[:8] == PNG
+    assert (tmp_path / "topology.png").is_file()
+    ax = outputs.topology_plot(topo, poses).axes[0]
+    assert (ax.get_xlabel(), ax.get_ylabel()) == ("x [m]", "y [m]") and not ax.collections  # nothing to draw
+    np.testing.assert_array_equal(ax.lines[0].get_xdata(), poses[:, 0, 3])  # x on the horizontal axis
 
 
 @pytest.fixture(scope="module")
@@ -94,5 +95,8 @@ def test_written_files_match_the_loops_log(loops_topology, tmp_path):
     assert doc["counts"]["verified"] == sum(e["verified"] for e in entries)
     assert sum(doc["reasons"].values()) >= doc["counts"]["candidates"]
     assert doc["edges"]["loop"] == topo.edge_kind.count("loop") > 0
-    png = (tmp_path / "topology.png").read_bytes()
-    assert png[:8] == PNG and len(png) > 10_000
+    assert (tmp_path / "topology.png").is_file()
+    ax = outputs.topology_plot(topo, topo.poses).axes[0]
+    labels = [c.get_label() for c in ax.collections]
+    assert f"loop edges ({doc['edges']['loop']})" in labels
+    assert any(lb.startswith(f"accepted closures ({doc['counts']['accepted']})") for lb in labels)

@@ -67,8 +67,7 @@ def _plots(
         written.append(plots.plot_error_map(folder / f"errors_{safe_name(est.label)}.png", est.label,
                                             est.poses.est.positions_xyz, errors, gt_positions))
     if run_report is not None:
-        epochs = read_run_report(run_report).get("epochs", [])
-        out = plots.plot_error_vs_epoch(folder / "epochs.png", epochs)
+        out = plots.plot_run_epochs(folder / "epochs.png", read_run_report(run_report))
         if out is None:
             click.echo(f"note: {run_report}: no epoch has an 'ate' entry; no error-vs-epoch plot", err=True)
         else:

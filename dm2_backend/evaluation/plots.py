@@ -1,11 +1,18 @@
 """Evaluation plots (matplotlib, Agg canvas, no pyplot state), each written atomically.
 
-- trajectories overlaid, top view and side view;
-- per-frame translation and rotation APE coloured along the estimate (heat map);
+- trajectories overlaid, top view and (for 3D data) side view;
+- per-frame errors coloured along the estimate (heat map);
 - error versus epoch from a refine run's ``report.json`` ``epochs`` list;
 - the place recognition's closures and loop edges over the trajectory (``topology.png``).
-The "top" view uses the two axes along which the ground truth extends most, the "side" view the longest
-axis against the shortest (so camera-frame KITTI, y down, is drawn from above as well).
+
+One orientation in every plot, so that plots of one run can be laid side by side: the top view looks along
+the axis in which the trajectory extends least (z for LiDAR/world data, y for camera-frame KITTI) and draws
+the other two in their index order, the lower one to the right and the higher one up (x right, y up; or x
+right, z up), never mirrored, with equal scales on both axes. The side view draws the longer of the two
+top-view axes to the right and the least-extended axis up; data that stays in a plane gets no side view.
+
+Each ``plot_*`` function writes a file and returns its path; the ``*_figure`` function of the same plot
+returns the :class:`~matplotlib.figure.Figure` it draws (tests read axis labels, limits and data from it).
 """
 
 from __future__ import annotations
@@ -16,13 +23,26 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
 from dm2_backend.atomic import atomic_write
 
 AXES = "xyz"
+#: an axis whose extent is below this fraction of the largest extent (or 1 um) counts as flat: no side view
+FLAT = 1e-6
+
+#: the per-epoch metrics a refine run records (``epochs[i]["ate_metric"]``), named and with units as
+#: ``dm2 eval`` and ``report.json``'s metrics name them
+EPOCH_METRICS = {
+    "ape_trans_rmse_m": "APE trans RMSE, SE(3)-aligned [m]",
+    "relations_trans_mean_m": "relations trans mean [m]",
+}
+#: label of an epoch record without ``ate_metric`` (runs written before it was recorded)
+UNNAMED_METRIC = "accuracy (metric not recorded)"
 
 
-def _save(fig: Figure, path: str | Path) -> Path:
+def save(fig: Figure, path: str | Path) -> Path:
+    """Write ``fig`` to ``path`` (format from the suffix, atomically)."""
     path = Path(path)
     FigureCanvasAgg(fig)
     with atomic_write(path, "wb") as fh:
@@ -30,11 +50,17 @@ def _save(fig: Figure, path: str | Path) -> Path:
     return path
 
 
-def view_axes(positions: np.ndarray) -> tuple[tuple[int, int], tuple[int, int]]:
-    """Index pairs of the top view (two longest extents) and the side view (longest vs shortest)."""
-    extent = np.ptp(np.asarray(positions).reshape(-1, 3), axis=0)
-    order = np.argsort(-extent, kind="stable")
-    return (int(order[0]), int(order[1])), (int(order[0]), int(order[2]))
+def view_axes(positions: np.ndarray) -> tuple[tuple[int, int], tuple[int, int] | None]:
+    """Index pairs (horizontal, vertical) of the top view and of the side view (None for flat data).
+
+    Top view: the two axes other than the least-extended one, in index order (x right and y up when z is
+    the flat axis). Side view: the longer of those two right, the least-extended axis up."""
+    extent = np.ptp(np.asarray(positions, dtype=np.float64).reshape(-1, 3), axis=0) if len(positions) else np.zeros(3)
+    normal = 2 - int(np.argmin(extent[::-1]))  # on a tie z, then y: x right and y up where it can be
+    h, v = (a for a in range(3) if a != normal)
+    side_h = h if extent[h] >= extent[v] else v
+    flat = extent[normal] <= FLAT * max(float(extent.max()), 1.0)
+    return (h, v), (None if flat else (side_h, normal))
 
 
 def _setup(ax, axes: tuple[int, int], title: str) -> None:
@@ -45,73 +71,148 @@ def _setup(ax, axes: tuple[int, int], title: str) -> None:
     ax.grid(True, alpha=0.3)
 
 
-def plot_trajectories(path: str | Path, gt: np.ndarray | None, estimates: dict[str, np.ndarray]) -> Path:
-    """Ground-truth (dashed grey) and estimated positions (N,3), top and side views."""
-    basis = gt if gt is not None else next(iter(estimates.values()))
+def trajectory_figure(gt: np.ndarray | None, estimates: dict[str, np.ndarray], title: str = "") -> Figure:
+    """Ground-truth (dashed grey) and estimated positions (N,3): a top view and, for 3D data, a side view.
+    ``title`` (e.g. how the estimates were aligned) heads the figure."""
+    basis = gt if gt is not None else np.concatenate([np.asarray(p).reshape(-1, 3) for p in estimates.values()])
     top, side = view_axes(basis)
-    fig = Figure(figsize=(12, 5.5))
-    for ax, axes, title in ((fig.add_subplot(1, 2, 1), top, "top view"),
-                            (fig.add_subplot(1, 2, 2), side, "side view")):
+    views = [(top, "top view")] + ([(side, "side view")] if side is not None else [])
+    fig = Figure(figsize=(6.5 * len(views), 6))
+    for k, (axes, name) in enumerate(views):
+        ax = fig.add_subplot(1, len(views), k + 1)
         if gt is not None:
             ax.plot(gt[:, axes[0]], gt[:, axes[1]], "--", color="0.4", lw=1.2, label="ground truth")
         for label, p in estimates.items():
             ax.plot(p[:, axes[0]], p[:, axes[1]], lw=1.0, label=label)
-        _setup(ax, axes, title)
+        _setup(ax, axes, name)
         ax.legend(loc="best", fontsize=8)
-    return _save(fig, path)
+    if title:
+        fig.suptitle(title)
+    return fig
 
 
-def plot_error_map(
-    path: str | Path, label: str, positions: np.ndarray, errors: dict[str, tuple[np.ndarray, str]],
-    gt: np.ndarray | None = None,
-) -> Path:
-    """Per-frame errors (name -> (values, unit)) coloured along the top view of ``positions``."""
+def plot_trajectories(path: str | Path, gt: np.ndarray | None, estimates: dict[str, np.ndarray],
+                      title: str = "") -> Path:
+    """:func:`trajectory_figure`, written to ``path``."""
+    return save(trajectory_figure(gt, estimates, title), path)
+
+
+def error_map_figure(label: str, positions: np.ndarray, errors: dict[str, tuple[np.ndarray, str]],
+                     gt: np.ndarray | None = None, title: str = "") -> Figure:
+    """Per-frame errors (name -> (values, unit)) coloured along the top view of ``positions``; ``gt``
+    (drawn dashed) must be in the same frame as ``positions`` (e.g. the estimate after its alignment)."""
     top, _ = view_axes(gt if gt is not None else positions)
-    fig = Figure(figsize=(6.5 * len(errors), 5.5))
+    fig = Figure(figsize=(6.5 * len(errors), 6))
     for i, (name, (values, unit)) in enumerate(errors.items()):
         ax = fig.add_subplot(1, len(errors), i + 1)
         if gt is not None:
             ax.plot(gt[:, top[0]], gt[:, top[1]], "--", color="0.6", lw=0.8, label="ground truth")
         size = float(np.clip(4000.0 / max(len(values), 1), 4, 30))
         x, y = positions[:, top[0]], positions[:, top[1]]
-        sc = ax.scatter(x, y, c=values, s=size, cmap="jet", linewidths=0)
+        sc = ax.scatter(x, y, c=values, s=size, cmap="jet", linewidths=0, label=label)
         fig.colorbar(sc, ax=ax, label=f"{name} [{unit}]")
         _setup(ax, top, f"{label}: {name}")
-    return _save(fig, path)
+        if gt is not None:
+            ax.legend(loc="best", fontsize=8)
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+def plot_error_map(
+    path: str | Path, label: str, positions: np.ndarray, errors: dict[str, tuple[np.ndarray, str]],
+    gt: np.ndarray | None = None, title: str = "",
+) -> Path:
+    """:func:`error_map_figure`, written to ``path``."""
+    return save(error_map_figure(label, positions, errors, gt, title), path)
 
 
 def epoch_series(epochs: list) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """``name -> (epoch, value)`` from a run report's ``epochs``; entries without ``ate`` are skipped."""
+    """``name -> (epochs trained, value)`` from a run report's ``epochs``; entries without ``ate`` are skipped.
+
+    A record's ``epoch`` counts from 0 (the first epoch trained), so it is plotted at ``epoch + 1``: x is the
+    number of epochs trained and 0 is the start. ``name`` is the record's ``ate_metric`` (see
+    :data:`EPOCH_METRICS`) or, for an ``ate`` dict, its keys."""
     series: dict[str, tuple[list, list]] = {}
     for i, entry in enumerate(epochs):
         if not isinstance(entry, dict) or "ate" not in entry:
             continue
-        ep = entry.get("epoch", i + 1)
+        ep = entry.get("epoch", i)
+        if not isinstance(ep, (int, float)) or isinstance(ep, bool):
+            ep = i
         ate = entry["ate"]
-        values = ate if isinstance(ate, dict) else {"ate": ate}
+        values = ate if isinstance(ate, dict) else {str(entry.get("ate_metric") or "ate"): ate}
         for name, v in values.items():
             if isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v):
                 xs, ys = series.setdefault(name, ([], []))
-                xs.append(ep)
+                xs.append(ep + 1)
                 ys.append(float(v))
     return {k: (np.asarray(x, dtype=float), np.asarray(y)) for k, (x, y) in series.items()}
 
 
-def plot_error_vs_epoch(path: str | Path, epochs: list) -> Path | None:
-    """Error versus epoch; None (nothing written) when no epoch has an ``ate`` entry."""
+def metric_label(name: str) -> str:
+    """The axis label of a per-epoch metric (its ``dm2 eval`` name and unit)."""
+    if name in EPOCH_METRICS:
+        return EPOCH_METRICS[name]
+    return UNNAMED_METRIC if name == "ate" else name
+
+
+def epochs_figure(epochs: list, start: float | dict[str, float] | None = None) -> Figure | None:
+    """Error versus epochs trained, the start (``start``: its value, or name -> value) at epoch 0; None when
+    no epoch has an ``ate`` entry. The y-axis starts at 0, so a small change looks small; the relative
+    change from the start (or the first epoch) to the last epoch is written on the plot."""
     series = epoch_series(epochs)
     if not series:
         return None
-    fig = Figure(figsize=(7, 4.5))
+    fig = Figure(figsize=(7.5, 4.8))
     ax = fig.add_subplot(1, 1, 1)
+    notes, top = [], 0.0
     for name, (x, y) in series.items():
-        ax.plot(x, y, marker="o", ms=3, label=name)
-    ax.set_xlabel("epoch")
-    ax.set_ylabel("ATE")
-    ax.set_title("error vs epoch")
+        s = start.get(name) if isinstance(start, dict) else (start if len(series) == 1 else None)
+        if s is not None and np.isfinite(s):
+            x, y = np.concatenate([[0.0], x]), np.concatenate([[float(s)], y])
+        line, = ax.plot(x, y, marker="o", ms=3, label=metric_label(name))
+        if x[0] == 0:
+            ax.plot([0.0], [y[0]], "s", ms=7, color=line.get_color(), label="start")
+        first = "start" if x[0] == 0 else f"epoch {x[0]:.0f}"
+        if y[0] != 0:
+            notes.append(f"{first} {y[0]:.4g} -> epoch {x[-1]:.0f} {y[-1]:.4g} ({100 * (y[-1] / y[0] - 1):+.1f} %)")
+        top = max(top, float(np.max(y)))
+    ax.set_ylim(0.0, 1.1 * top if top > 0 else 1.0)
+    ax.set_xlim(-0.25, max(float(max(x.max() for x, _ in series.values())), 1.0) + 0.25)
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_xlabel("epochs trained (0 = start)")
+    names = list(series)
+    ax.set_ylabel(metric_label(names[0]) if len(names) == 1 else "error")
+    ax.set_title("error vs epoch" + ("\n" + "; ".join(notes) if notes else ""), fontsize=10)
     ax.grid(True, alpha=0.3)
-    ax.legend(loc="best")
-    return _save(fig, path)
+    ax.legend(loc="lower left")
+    return fig
+
+
+def plot_error_vs_epoch(path: str | Path, epochs: list, start: float | dict[str, float] | None = None
+                        ) -> Path | None:
+    """:func:`epochs_figure`, written to ``path``; None (nothing written) when it has nothing to draw."""
+    fig = epochs_figure(epochs, start)
+    return None if fig is None else save(fig, path)
+
+
+def run_start(report: dict) -> dict[str, float]:
+    """Per-epoch metric name -> its value at the optimiser's start, from a run's ``report.json``
+    (``start_metrics``; the metric named by the epoch records, else every metric of :data:`EPOCH_METRICS`)."""
+    start = report.get("start_metrics") or {}
+    epochs = report.get("epochs") or []
+    named = {e.get("ate_metric") for e in epochs if isinstance(e, dict) and e.get("ate_metric")}
+    out = {k: float(start[k]) for k in (named or EPOCH_METRICS)
+           if isinstance(start.get(k), (int, float)) and not isinstance(start.get(k), bool)}
+    if not named and len(out) == 1:  # records without a name: the run's only per-epoch metric
+        out["ate"] = next(iter(out.values()))
+    return out
+
+
+def plot_run_epochs(path: str | Path, report: dict) -> Path | None:
+    """The epoch plot of a run's ``report.json``, with the start from its ``start_metrics``."""
+    return plot_error_vs_epoch(path, report.get("epochs") or [], run_start(report))
 
 
 #: how each closure status is drawn on the topology plot: colour, line width, line style, opacity, label
@@ -131,30 +232,44 @@ def _segments(pos: np.ndarray, pairs: np.ndarray, limit: int) -> np.ndarray:
     return np.stack([pos[pairs[:, 0]], pos[pairs[:, 1]]], axis=1)
 
 
-def plot_topology(path: str | Path, positions: np.ndarray, closures: dict[str, np.ndarray],
-                  loop_edges: np.ndarray, title: str = "topology", limit: int = 3000) -> Path:
-    """Top view of the trajectory with the topology's loop edges (light) and the loop-closure candidates
-    (``status -> (M,2)`` frame pairs) drawn as lines between the two frames' positions."""
+#: loop edges of the topology (the optimiser's groups across a revisit): colour, line width, opacity
+LOOP_EDGE_STYLE = ("tab:purple", 1.0, 0.6)
+
+
+def topology_figure(positions: np.ndarray, closures: dict[str, np.ndarray], loop_edges: np.ndarray,
+                    title: str = "topology", limit: int = 3000) -> Figure:
+    """Top view of the trajectory (light, underneath) with the topology's loop edges and the loop-closure
+    candidates (``status -> (M,2)`` frame pairs) drawn as lines between the two frames' positions."""
     positions = np.asarray(positions)
-    top = (0, 1) if np.ptp(positions[:, 2]) < 1e-6 else view_axes(positions)[0]  # planar: x right, y up
+    top, _ = view_axes(positions)
     pos = positions[:, list(top)]
     fig = Figure(figsize=(9, 8))
     ax = fig.add_subplot(1, 1, 1)
-    ax.plot(pos[:, 0], pos[:, 1], color="tab:blue", lw=0.8, label="trajectory")
+    ax.plot(pos[:, 0], pos[:, 1], color="0.55", lw=0.8, zorder=1, label="trajectory")
     if len(loop_edges):
         drawn = f", {limit} drawn" if len(loop_edges) > limit else ""
-        ax.add_collection(LineCollection(_segments(pos, loop_edges, limit), colors="tab:purple", linewidths=0.4,
-                                         alpha=0.25, label=f"loop edges ({len(loop_edges)}{drawn})"))
+        colour, width, alpha = LOOP_EDGE_STYLE
+        seg = _segments(pos, loop_edges, limit)
+        ax.add_collection(LineCollection(seg, colors=colour, linewidths=width, alpha=alpha, zorder=2,
+                                         label=f"loop edges ({len(loop_edges)}{drawn})"))
+        # a revisit's edge joins two frames at about the same place: its ends show where the edges are
+        ax.scatter(seg[:, :, 0].ravel(), seg[:, :, 1].ravel(), s=5, color=colour, alpha=alpha, zorder=2)
     for status, (colour, width, style, alpha, label) in CLOSURE_STYLE.items():
         pairs = np.asarray(closures.get(status, np.zeros((0, 2))), dtype=int).reshape(-1, 2)
         if len(pairs):
             shown = f", {limit} drawn" if len(pairs) > limit else ""
             seg = _segments(pos, pairs, limit)
             ax.add_collection(LineCollection(seg, colors=colour, linewidths=width, linestyles=style, alpha=alpha,
-                                             label=f"{label} ({len(pairs)}{shown})"))
+                                             zorder=3, label=f"{label} ({len(pairs)}{shown})"))
             if status != "rejected":  # closures along a corridor lie on the trajectory: mark their ends
-                ax.scatter(seg[:, :, 0].ravel(), seg[:, :, 1].ravel(), s=8, color=colour, alpha=alpha, zorder=3)
-    ax.plot(pos[0, 0], pos[0, 1], "k^", ms=6, label="start")
+                ax.scatter(seg[:, :, 0].ravel(), seg[:, :, 1].ravel(), s=8, color=colour, alpha=alpha, zorder=4)
+    ax.plot(pos[0, 0], pos[0, 1], "k^", ms=6, zorder=5, label="start")
     _setup(ax, top, title)
     ax.legend(loc="best", fontsize=8)
-    return _save(fig, path)
+    return fig
+
+
+def plot_topology(path: str | Path, positions: np.ndarray, closures: dict[str, np.ndarray],
+                  loop_edges: np.ndarray, title: str = "topology", limit: int = 3000) -> Path:
+    """:func:`topology_figure`, written to ``path``."""
+    return save(topology_figure(positions, closures, loop_edges, title, limit), path)

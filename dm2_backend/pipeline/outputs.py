@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from evo.core.geometry import umeyama_alignment
+from matplotlib.figure import Figure
 
 from dm2_backend.atomic import atomic_path, atomic_write
 from dm2_backend.errors import InputError
@@ -80,28 +82,64 @@ def write_prior_files(folder: Path, warm: np.ndarray, topology: Topology, pairwi
     write_priors(folder, warm, topology.groups, pairwise.relative, pairwise.valid)
 
 
+def aligned_to(gt: np.ndarray, est: np.ndarray) -> np.ndarray:
+    """Positions ``est`` (N,3) after the rigid (SE(3), no scale) alignment onto ``gt`` (N,3) that ``dm2 eval``
+    applies by default and the per-frame errors of a run are measured after."""
+    R, t, _ = umeyama_alignment(np.asarray(est, np.float64).T, np.asarray(gt, np.float64).T, with_scale=False)
+    return est @ R.T + t
+
+
 def write_plots(out: Path, estimates: dict[str, np.ndarray], gt: Trajectory | None,
-                per_frame: dict[str, tuple[np.ndarray, str]] | None, epochs: list[dict] | None) -> None:
-    gt_pos = gt.positions if gt is not None else None
-    plots.plot_trajectories(out / "trajectory.png", gt_pos, {k: v[:, :3, 3] for k, v in estimates.items()})
+                per_frame: dict[str, tuple[np.ndarray, str]] | None, epochs: list[dict] | None,
+                start: float | dict[str, float] | None = None) -> dict[str, Figure]:
+    """``trajectory.png``, ``errors.png`` (with ``per_frame`` errors of the last estimate) and ``epochs.png``
+    (``start``: the per-epoch metric at the optimiser's start, drawn at epoch 0; see
+    :func:`plots.run_start`). Returns the figures by file name.
+
+    With ground truth of one pose per estimated pose, every estimate is drawn after its SE(3) alignment onto
+    the ground truth, so the ground-truth line and the estimates (and the per-frame errors, measured after
+    the same alignment) share one frame; with ground truth of another length it is left out rather than
+    drawn in a frame the estimates are not in."""
+    figures: dict[str, Figure] = {}
+    pos = {k: np.asarray(v)[:, :3, 3] for k, v in estimates.items()}
+    gt_pos, title = (gt.positions if gt is not None else None), ""
+    if gt_pos is not None:
+        if len(gt_pos) >= 3 and all(len(p) == len(gt_pos) for p in pos.values()):
+            pos = {k: aligned_to(gt_pos, p) for k, p in pos.items()}
+            title = "estimates aligned to the ground truth (SE(3))"
+        else:
+            title = f"ground truth ({len(gt_pos)} poses) not drawn: not one pose per estimated pose"
+            gt_pos = None
+    figures["trajectory.png"] = plots.trajectory_figure(gt_pos, pos, title)
     if per_frame:
         last = list(estimates)[-1]
-        plots.plot_error_map(out / "errors.png", last, estimates[last][:, :3, 3], per_frame, gt_pos)
+        figures["errors.png"] = plots.error_map_figure(last, pos[last], per_frame, gt_pos, title)
     if epochs:
-        plots.plot_error_vs_epoch(out / "epochs.png", epochs)
+        fig = plots.epochs_figure(epochs, start)
+        if fig is not None:
+            figures["epochs.png"] = fig
+    for name, fig in figures.items():
+        plots.save(fig, out / name)
+    return figures
 
 
-def write_topology(out: Path, topology: Topology, poses: np.ndarray) -> list[str]:
-    """``topology.json`` (the place recognition's log: summary, counts, reasons, every candidate) and
-    ``topology.png`` (closures and loop edges over the top view of ``poses``). Returns the files written."""
-    doc = topology_log.document(topology)
-    write_report(out / "topology.json", doc)
+def topology_plot(topology: Topology, poses: np.ndarray, doc: dict | None = None) -> Figure:
+    """The figure of ``topology.png``: closures and loop edges over the top view of ``poses``."""
+    doc = doc if doc is not None else topology_log.document(topology)
     edges, kinds = np.asarray(topology.edges, dtype=int).reshape(-1, 2), list(topology.edge_kind)
     loops = edges[np.array([k == "loop" for k in kinds], bool)] if len(kinds) == len(edges) else edges[:0]
     c = doc["counts"]
     title = (f"place recognition {doc['plugin'] or ''}: {c['accepted']} accepted, {c['dropped']} dropped, "
              f"{c['candidates']} candidates")
-    plots.plot_topology(out / "topology.png", poses[:, :3, 3], topology_log.pairs_by_status(doc), loops, title)
+    return plots.topology_figure(poses[:, :3, 3], topology_log.pairs_by_status(doc), loops, title)
+
+
+def write_topology(out: Path, topology: Topology, poses: np.ndarray) -> list[str]:
+    """``topology.json`` (the place recognition's log: summary, counts, reasons, every candidate) and
+    ``topology.png`` (:func:`topology_plot`). Returns the files written."""
+    doc = topology_log.document(topology)
+    write_report(out / "topology.json", doc)
+    plots.save(topology_plot(topology, poses, doc), out / "topology.png")
     return ["topology.json", "topology.png"]
 
 

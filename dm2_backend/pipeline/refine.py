@@ -12,6 +12,7 @@ import numpy as np
 
 from dm2_backend import __version__, config
 from dm2_backend.errors import InputError
+from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.ape_rpe import evaluate_poses
 from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.evaluation.paper_ate import paper_ate
@@ -108,7 +109,7 @@ def write_common(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final:
     if inputs.gt is not None:
         per_frame = {"translation error": (paper_ate(inputs.gt.poses, inputs.at_gt(final)).trans_errors, "m")}
     drawn = {"warm start": inputs.at_gt(prep.warm_start), method: inputs.at_gt(final)}  # where gt is known
-    outputs.write_plots(out, drawn, inputs.gt, per_frame, epochs)
+    outputs.write_plots(out, drawn, inputs.gt, per_frame, None)
     files += outputs.write_topology(out, prep.topology, final)
     report = {
         "method": method,
@@ -138,6 +139,7 @@ def write_common(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final:
     }
     if epochs is not None:
         report["epochs"] = epochs
+        plots.plot_run_epochs(out / "epochs.png", report)  # from the start (epoch 0) on
     outputs.write_report(out / "report.json", report)
     return report
 
