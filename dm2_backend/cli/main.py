@@ -15,7 +15,8 @@ from dm2_backend.progress import setup_logging
 #: sub-command name -> module in dm2_backend.cli, imported only when the command is used (start-up stays fast)
 COMMANDS = {
     "info": "info", "convert": "convert", "refine": "refine", "baseline": "baseline", "demo": "demo",
-    "eval": "eval", "compare": "compare", "plugins": "plugins", "simulate": "simulate", "cache": "cache",
+    "eval": "eval", "compare": "compare", "plugins": "plugins", "simulate": "simulate",
+    "map": "map", "view": "view", "cache": "cache",
 }
 
 

@@ -31,6 +31,9 @@ class GridOccupancy(nn.Module):
         super().__init__()
         lo = np.asarray(lo, dtype=np.float64)
         hi = np.asarray(hi, dtype=np.float64)
+        #: what rebuilds this module around a saved state_dict (dm2_backend.maps.mnet_export)
+        self.init_args = {"lo": lo.tolist(), "hi": hi.tolist(), "finest_cell": float(finest_cell), "levels": levels,
+                          "features": features, "max_cells": max_cells, "hidden": hidden, "coarsest": coarsest}
         self.dim = len(lo)
         span = np.maximum(hi - lo, 1e-6)
         self.register_buffer("lo", torch.tensor(lo, dtype=torch.float32))

@@ -1,0 +1,134 @@
+"""The trained M-Net after a run: saved as ``mnet.pt``, rebuilt, sampled on a grid, meshed by marching cubes.
+
+``mnet.pt`` (written by the optimiser at the end of ``dm2 refine``, next to ``checkpoint.pt``) holds only
+tensors and plain values, so it loads with ``torch.load(weights_only=True)``: the occupancy field's
+``state_dict``, its constructor arguments, and ``world_from_field``, the 4x4 transform from the field's
+coordinates to the world of the run's poses (the optimiser re-anchors its poses on the first frame's start
+pose; the field lives in the optimiser's own frame). ``trained`` is False when the run did not use the
+occupancy loss (``use_bce`` off when polishing a locally accurate 3D start): the field is then untrained and
+no M-Net map or mesh is made from it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dm2_backend.atomic import atomic_path, atomic_write
+from dm2_backend.errors import InputError
+from dm2_backend.optim.occupancy import GridOccupancy
+
+MNET = "mnet.pt"
+FORMAT = "dm2-mnet/1"
+
+
+def save_mnet(path: Path, field: GridOccupancy, world_from_field: np.ndarray, trained: bool = True) -> None:
+    state = {
+        "format": FORMAT,
+        "dim": int(field.dim),
+        "args": dict(field.init_args),
+        "state_dict": {k: v.detach().cpu().clone() for k, v in field.state_dict().items()},
+        "world_from_field": np.asarray(world_from_field, dtype=np.float64).tolist(),
+        "trained": bool(trained),
+    }
+    with atomic_write(path, "wb") as fh:
+        torch.save(state, fh)
+
+
+@dataclass
+class MNet:
+    """The occupancy field of a run, evaluated at world points."""
+
+    field: GridOccupancy
+    world_from_field: np.ndarray
+    trained: bool = True
+
+    @property
+    def dim(self) -> int:
+        return self.field.dim
+
+    @property
+    def finest_cell(self) -> float:
+        """Edge (m) of the finest feature grid's cells: the field's own resolution."""
+        span = self.field.span.cpu().numpy()
+        return float(span.max() / max(self.field.resolutions))
+
+    def logits(self, world: np.ndarray, chunk: int = 1 << 18) -> np.ndarray:
+        """Occupancy logits at world points (N, 2 or 3): ``> 0`` is occupied."""
+        world = np.asarray(world, dtype=np.float64)
+        if world.shape[-1] == 2:
+            world = np.concatenate([world, np.zeros((*world.shape[:-1], 1))], -1)
+        inv = np.linalg.inv(self.world_from_field)
+        local = world.reshape(-1, 3) @ inv[:3, :3].T + inv[:3, 3]
+        out = np.empty(len(local), np.float32)
+        with torch.no_grad():
+            for s in range(0, len(local), chunk):
+                x = torch.from_numpy(local[s : s + chunk, : self.dim].astype(np.float32))
+                out[s : s + chunk] = self.field(x).numpy()
+        return out.reshape(world.shape[:-1])
+
+    def probability(self, world: np.ndarray) -> np.ndarray:
+        return 1.0 / (1.0 + np.exp(-self.logits(world).astype(np.float64)))
+
+
+def load_mnet(path: Path) -> MNet:
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except (OSError, RuntimeError, EOFError) as exc:
+        raise InputError(path, f"cannot read the M-Net: {exc}") from exc
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        raise InputError(path, f"not a dm2 M-Net file ({FORMAT})")
+    field = GridOccupancy(**state["args"])
+    field.load_state_dict(state["state_dict"])
+    field.eval()
+    return MNet(field, np.asarray(state["world_from_field"], dtype=np.float64), bool(state["trained"]))
+
+
+def sample_grid(mnet: MNet, centers: np.ndarray) -> np.ndarray:
+    """Occupancy probability at the cell centres (H, W, 2) of a 2D grid."""
+    return mnet.probability(centers)
+
+
+def mesh(mnet: MNet, points: np.ndarray, cell: float | None = None, max_samples: int = 1 << 22,
+         near: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The M-Net's decision surface (logit 0) by marching cubes over the bounding box of the map ``points``
+    (K, 3 world). The lattice step is the field's finest cell, coarsened until the box holds at most
+    ``max_samples`` lattice points. The field is only trained where the scans saw, so only cubes within
+    ``near`` lattice steps of a map point are meshed (and only their corners evaluated). Returns vertices
+    (V, 3) in world coordinates, triangles (F, 3), vertex normals and the step."""
+    from scipy.ndimage import binary_dilation
+    from skimage.measure import marching_cubes
+
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    step = float(cell or mnet.finest_cell)
+    lo, hi = points.min(0), points.max(0)
+    while np.prod(np.ceil((hi - lo) / step) + 2 * near + 2) > max_samples:
+        step *= 1.25
+    lo = lo - (near + 1) * step
+    dims = (np.ceil((hi + (near + 1) * step - lo) / step) + 1).astype(int)
+    occupied = np.zeros(dims, bool)
+    occupied[tuple(np.clip(np.round((points - lo) / step).astype(np.int64), 0, dims - 1).T)] = True
+    mask = binary_dilation(occupied, iterations=near)
+    evaluate = binary_dilation(mask, structure=np.ones((3, 3, 3), bool))  # every corner of a masked cube
+    volume = np.full(dims, 10.0, np.float32)  # never a corner of a meshed cube
+    where = np.argwhere(evaluate)
+    volume[tuple(where.T)] = np.clip(mnet.logits(lo + where * step), -10, 10)
+    if not (volume[mask].min() < 0 < volume[mask].max()):
+        raise ValueError("the M-Net's occupancy does not cross 0.5 near the map")
+    verts, faces, normals, _ = marching_cubes(volume, level=0.0, spacing=(step, step, step), mask=mask)
+    return verts + lo, faces.astype(np.int64), normals, step
+
+
+def write_ply(path: Path, verts: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None) -> None:
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(verts, np.float64)),
+                                  o3d.utility.Vector3iVector(np.asarray(faces, np.int32)))
+    if normals is not None:
+        m.vertex_normals = o3d.utility.Vector3dVector(np.asarray(normals, np.float64))
+    with atomic_path(path) as tmp:
+        if not o3d.io.write_triangle_mesh(str(tmp), m):
+            raise OSError(f"open3d could not write {path}")
