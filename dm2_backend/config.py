@@ -8,6 +8,7 @@ from pathlib import Path
 
 import yaml
 
+from dm2_backend import config_schema
 from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError
 from dm2_backend.optim.config import OptimConfig
@@ -60,13 +61,10 @@ def load(path: str | Path | None, overrides: dict | None = None) -> dict:
             raise InputError(path, f"unknown config sections: {', '.join(sorted(unknown))}")
         cfg = merge(cfg, user)
     cfg = merge(cfg, overrides or {})
-    nproc = cfg.get("nproc")
-    if isinstance(nproc, bool) or not isinstance(nproc, int) or nproc < 1:
-        raise InputError(path, f"nproc must be a whole number of processes (1 or more), not {nproc!r}")
     try:
-        OptimConfig.from_dict(cfg["optimiser"])
-    except (TypeError, ValueError) as exc:
-        raise InputError(path, str(exc)) from exc
+        config_schema.validate(cfg)
+    except config_schema.ConfigError as exc:
+        raise InputError(path, str(exc)) from None
     return cfg
 
 

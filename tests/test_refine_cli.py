@@ -245,6 +245,14 @@ def test_unknown_plugin(seq, tmp_path, option, group):
     ("optimiser: {epochs: three}\n", "optimiser.epochs must be int, got 'three'"),
     ("optimiser: {epochs: 0}\n", "optimiser.epochs must be at least 1"),
     ("optimiser: {lr_pose: fast}\n", "optimiser.lr_pose must be None or float"),
+    ("seed: abc\n", "seed: Input should be a valid integer"),
+    ("device: gpu\n", "device: auto, cpu, cuda or cuda:N"),
+    ("nproc: 0\n", "nproc: Input should be greater than 0"),
+    ("frames: {max_points: many}\n", "frames.max_points: Input should be a valid integer"),
+    ("frames: {voxle: 0.1}\n", "frames.voxle: Extra inputs are not permitted"),
+    ("registration: icp\n", "registration: Input should be a valid dictionary"),
+    ("place_recognition: {name: loops, options: {bogus: 1}}\n", "loops has no option 'bogus'"),
+    ("registration: {name: icp, options: {max_distance: far}}\n", "registration.options.max_distance: Input should"),
 ])
 def test_bad_config(seq, tmp_path, text, message):
     path = tmp_path / "bad.yaml"
