@@ -23,6 +23,8 @@ class SmallGicpRegistration(IcpRegistration):
     """Options as ``icp``; ``method`` is a small_gicp registration type (GICP, VGICP, ICP, PLANE_ICP)."""
 
     name: ClassVar[str] = "small-gicp"
+    #: the optional package this plugin needs and the extra that installs it (``dm2 plugins`` reports it)
+    requires: ClassVar[tuple[str, str]] = ("small_gicp", "dm2[gicp]")
 
     method: str = "GICP"
 

@@ -20,6 +20,8 @@ class KissWarmStart:
     """Options; None means derived from the data (``Frames.scale``)."""
 
     name: ClassVar[str] = "kiss-icp"
+    #: the optional package this plugin needs and the extra that installs it (``dm2 plugins`` reports it)
+    requires: ClassVar[tuple[str, str]] = ("kiss_icp", "dm2[kiss]")
 
     #: points farther than this are ignored (m); default 1.5x the 90th-percentile range
     max_range: float | None = None
