@@ -16,7 +16,7 @@ from optim_cases import one_thread, planar_case
 
 from dm2_backend.cli.main import cli
 from dm2_backend.errors import InputError
-from dm2_backend.pipeline.run_folder import CHECKPOINT, LOCK, MARKER, open_folder, run_folder
+from dm2_backend.pipeline.run_folder import CHECKPOINT, LOCK, MARKER, adding_to, open_folder, run_folder
 from dm2_backend.simulate.sequence import write_sequence
 
 SMALL = {"seed": 3, "frames": {"max_points": 128},
@@ -183,3 +183,16 @@ def test_an_interrupted_run_keeps_its_folder_for_resume(tmp_path):
     assert CHECKPOINT in json.loads((out / MARKER).read_text())["files"]
     with pytest.raises(InputError, match="not empty"):
         open_folder(out, "refine")
+
+
+def test_files_added_to_a_finished_run_are_listed_and_locked(tmp_path):
+    out = tmp_path / "run"
+    with run_folder(out, "refine"):
+        (out / "report.json").write_text("{}")
+    with adding_to(out):
+        (out / "map.pgm").write_bytes(b"P5")
+        with pytest.raises(InputError, match="another dm2 run"):
+            open_folder(out, "refine", force=True)
+    assert {"report.json", "map.pgm"} <= set(json.loads((out / MARKER).read_text())["files"])
+    open_folder(out, "baseline", force=True).release()  # --force now replaces both
+    assert not (out / "map.pgm").exists() and not (out / "report.json").exists()

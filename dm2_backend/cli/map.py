@@ -98,9 +98,11 @@ def command(run, quiet, **kw) -> None:
     casting), mnet_map.pgm/.yaml (the trained M-Net on the same cells), octomap.bt (3D, needs pyoctomap) and
     mnet_mesh.ply (3D: the M-Net's decision surface, needs scikit-image), and maps.json."""
     from dm2_backend.maps.run_maps import write_run_maps
+    from dm2_backend.pipeline.run_folder import adding_to
 
     scans = run_scans(run, kw)
     traj = run_trajectory(run)
     echo = None if quiet else (lambda msg: click.echo(msg, err=True))
-    files = write_run_maps(run, scans, traj.poses, scans.planar, progress=not quiet, strict=True, echo=echo)
+    with adding_to(run):
+        files = write_run_maps(run, scans, traj.poses, scans.planar, progress=not quiet, strict=True, echo=echo)
     click.echo(f"wrote {', '.join(files)} in {run}")

@@ -48,10 +48,7 @@ class RunFolder:
         there before (what ``--force`` may remove later)."""
         if files is None:
             files = sorted((set(_entries(self.path)) - self.before - {LOCK, MARKER}) | set(self.inherited))
-        doc = {"command": self.command, "fingerprint": self.fingerprint, "files": files}
-        tmp = self.path / f".tmp-{os.getpid()}-{MARKER}"
-        tmp.write_text(json.dumps(doc, indent=2, default=str))
-        os.replace(tmp, self.path / MARKER)
+        _write_marker(self.path, {"command": self.command, "fingerprint": self.fingerprint, "files": files})
 
     def discard(self) -> None:
         """Remove what this run created (the folder itself if it made it)."""
@@ -140,6 +137,24 @@ def run_folder(out: Path, command: str, *, force: bool = False, resume: bool = F
         folder.release()
 
 
+@contextlib.contextmanager
+def adding_to(out: Path) -> Iterator[None]:
+    """Write more files into a finished run folder (``dm2 map``, ``dm2 view``): the folder is locked meanwhile,
+    and the files that appear are added to its marker, so a later ``--force`` replaces them with the rest."""
+    out = Path(out)
+    lock = _take_lock(out)
+    before = _entries(out)
+    try:
+        yield
+    finally:
+        previous = _read_marker(out)
+        if previous is not None:
+            new = _entries(out) - before - {LOCK, MARKER}
+            _write_marker(out, {**previous, "files": sorted(set(previous.get("files", [])) | new)})
+        (out / LOCK).unlink(missing_ok=True)
+        lock.close()
+
+
 def _take_lock(out: Path):
     try:
         fh = open(out / LOCK, "a+")  # noqa: SIM115 (held until release)
@@ -205,6 +220,12 @@ def digest(path: Path | None) -> str | None:
     with open(path, "rb") as fh:
         h.update(fh.read(1 << 20))
     return f"{Path(path).stat().st_size}:{h.hexdigest()[:12]}"
+
+
+def _write_marker(out: Path, doc: dict) -> None:
+    tmp = out / f".tmp-{os.getpid()}-{MARKER}"
+    tmp.write_text(json.dumps(doc, indent=2, default=str))
+    os.replace(tmp, out / MARKER)
 
 
 def _read_marker(out: Path) -> dict | None:
