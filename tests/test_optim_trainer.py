@@ -82,7 +82,7 @@ def test_refine_lowers_ate_with_icp_pairwise(case, full_run):
                                    "step_translation", "step_rotation", "epochs", "drift", "lr_pose",
                                    "start_disagreement", "locally_accurate_start", "use_bce", "use_consistency",
                                    "chamfer_metric", "pose_warmup", "pose_warmup_steps", "polish",
-                                   "points_per_frame"}
+                                   "points_per_frame", "max_disagreement"}
     assert result.selection == f"lowest epoch loss: epoch {result.best_epoch}"  # no map metric given
     assert result.derived["epochs"] == EPOCHS
     # a drifting warm start (not loop-closed, registrations disagree with it): drift terms, full pose steps
@@ -341,3 +341,21 @@ def test_plane_chamfer_is_lowest_at_ground_truth():
         value = chamfer(gt @ se3.from_xyz_euler(noise))
         assert value > previous
         previous = value
+
+
+@pytest.mark.parametrize("select", ["loss", "map"])
+def test_a_diverging_run_returns_its_start_not_a_scattered_map(case, select):
+    """Learning rate 1e6: the poses fly apart without a non-finite loss. Scattered frames no longer overlap, so
+    both the loss and a local map metric can look better than the start; the registrations tell."""
+    from dm2_backend.evaluation.map_quality import MapSampler, MapSettings
+
+    voxel = case.frames.scale["spacing"]
+    sampler = MapSampler(list(case.frames.points), True, voxel, 3 * voxel, MapSettings()) if select == "map" else None
+    opt = Optimiser(case.frames, case.warm, case.topology, case.pairwise,
+                    small_config(epochs=2, lr_pose=1e6, select=select), seed=0, device="cpu", progress=False,
+                    map_metric=None if sampler is None else sampler.entropy)
+    result = opt.run()
+    assert all("rejected" in row for row in result.history)
+    assert min(row["disagreement"] for row in result.history) > 10 * opt.derived["start_disagreement"]
+    assert result.best_epoch == -1 and "diverged" in result.stopped
+    np.testing.assert_allclose(result.poses, case.warm, atol=1e-9)

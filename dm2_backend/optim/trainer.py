@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import pickle
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -11,10 +12,11 @@ from pathlib import Path
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
-from tqdm import tqdm
 
 from dm2_backend.atomic import atomic_write
+from dm2_backend.errors import InputError, one_line
 from dm2_backend.geometry import se3_torch
+from dm2_backend.maps.mnet_export import MNET, save_mnet
 from dm2_backend.optim import distributed, losses
 from dm2_backend.optim.batching import make_groups
 from dm2_backend.optim.config import OptimConfig, derive, loss_regime, pose_regime, sampled_points
@@ -22,8 +24,42 @@ from dm2_backend.optim.occupancy import GridOccupancy
 from dm2_backend.optim.pose_model import PoseModel
 from dm2_backend.optim.regime import disagreement, locally_accurate
 from dm2_backend.prepare.types import Frames, Pairwise, Topology
+from dm2_backend.progress import progress
 
 CHECKPOINT = "checkpoint.pt"
+
+
+def plain_state(value):
+    """``value`` with numpy arrays as CPU tensors and numpy scalars / tuples as plain Python values: what
+    ``torch.load(weights_only=True)`` accepts."""
+    if isinstance(value, dict):
+        return {k: plain_state(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [plain_state(v) for v in value]
+    if isinstance(value, tuple):
+        return tuple(plain_state(v) for v in value)
+    if isinstance(value, np.ndarray):
+        return torch.from_numpy(np.ascontiguousarray(value))
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def load_checkpoint(path: Path, device) -> dict:
+    """A checkpoint written by :meth:`Optimiser._save`, loaded with ``weights_only=True`` (a file handed to
+    ``--resume`` cannot run code); ``best["poses"]`` back as a numpy array. An unreadable or foreign file is an
+    :class:`InputError` naming it."""
+    try:
+        state = torch.load(path, map_location=device, weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError, AttributeError) as exc:
+        raise InputError(path, f"not a dm2 checkpoint, or a damaged one ({one_line(str(exc))[:200]})") from None
+    if not isinstance(state, dict) or not isinstance(state.get("best"), dict) or "poses" not in state["best"]:
+        raise InputError(path, "not a dm2 checkpoint (no best poses)")
+    poses = state["best"]["poses"]
+    state["best"]["poses"] = poses.cpu().numpy() if isinstance(poses, torch.Tensor) else np.asarray(poses)
+    return state
 
 
 @dataclass
@@ -132,6 +168,10 @@ class Optimiser:
         elif self.derived["chamfer_metric"] != "point":
             raise ValueError(f"unknown chamfer_metric {self.derived['chamfer_metric']!r} (point or plane)")
         self.topo_groups = topology.groups
+        self._pairs = (topology.groups, pairwise.relative, pairwise.valid, frames.scale.get("range_median", 1.0))
+        # an epoch whose poses disagree with the registrations far more than the start did has diverged (a scattered
+        # map can look sharp to the map metric: no two frames overlap any more); it is never selected
+        self.derived["max_disagreement"] = None if spread is None else max(4.0 * spread, self.derived["unit"])
         self.groups = make_groups(cfg.batching, topology.groups, seed)
         self.relative = torch.from_numpy(pairwise.relative).to(self.device)
         self.valid = torch.from_numpy(pairwise.valid & (topology.groups >= 0)).to(self.device)
@@ -269,11 +309,21 @@ class Optimiser:
         return T0 @ np.linalg.inv(T[0]) @ T
 
     def _state(self, epoch: int, best: dict, history: list[dict]) -> dict:
+        """The checkpoint: tensors and plain Python values only (arrays as tensors, numpy scalars as floats),
+        so that it loads with ``torch.load(weights_only=True)``, which runs no code from the file."""
         return {
             "epoch": epoch, "model": self.model.state_dict(), "field": self.field.state_dict(),
-            "optim": self.optim.state_dict(), "sched": self.sched.state_dict(), "best": best,
-            "history": history, "config": asdict(self.cfg), "seed": self.seed,
+            "optim": self.optim.state_dict(), "sched": self.sched.state_dict(), "best": plain_state(best),
+            "history": plain_state(history), "config": plain_state(asdict(self.cfg)), "seed": int(self.seed),
         }
+
+    def _save_mnet(self, path: Path) -> None:
+        """The occupancy field for the maps (``dm2_backend.maps``), with the transform from its frame to the
+        world of :meth:`poses` (re-anchored on the first frame)."""
+        with torch.no_grad():
+            first = self.model()[0].cpu().numpy()
+        gauge = self.model.T0[0].cpu().numpy() @ np.linalg.inv(first)
+        save_mnet(path, self.field, gauge, trained=bool(self.derived["use_bce"]))
 
     def _save(self, path: Path, state: dict) -> None:
         with atomic_write(path, "wb") as fh:
@@ -292,7 +342,7 @@ class Optimiser:
         ckpt = checkpoint_dir / CHECKPOINT if checkpoint_dir else None
         state = None
         if resume and lead and ckpt is not None and ckpt.exists():
-            state = torch.load(ckpt, map_location="cpu" if dist.enabled else self.device, weights_only=False)
+            state = load_checkpoint(ckpt, "cpu" if dist.enabled else self.device)
         if resume and dist.enabled:
             state = distributed.broadcast(state)
         if state is not None:
@@ -303,7 +353,7 @@ class Optimiser:
             best, history, start = state["best"], state["history"], state["epoch"] + 1
         ddp = distributed.data_parallel(self) if dist.enabled else None
         stopped = None
-        bar = tqdm(range(start, self.epochs), desc="refine", disable=not (self.progress and lead), unit="epoch")
+        bar = progress(range(start, self.epochs), "refine", unit="epoch", enabled=self.progress and lead)
         for epoch in bar:
             t0 = time.perf_counter()
             rng = np.random.default_rng([self.seed, epoch])
@@ -338,19 +388,40 @@ class Optimiser:
             poses = self.poses()
             if self.metric is not None and lead:
                 row["ate"] = float(self.metric(poses))
-            if self.map_metric is not None and lead:
+                if getattr(self.metric, "name", None):  # which metric "ate" is (pipeline.live.LiveMetric)
+                    row["ate_metric"] = self.metric.name
+            spread, limit = disagreement(poses, *self._pairs), self.derived["max_disagreement"]
+            row["disagreement"] = spread
+            diverged = spread is not None and limit is not None and spread > limit
+            if diverged:
+                row["rejected"] = f"disagrees with the registrations ({spread:.3g} m > {limit:.3g} m)"
+            elif self.map_metric is not None and lead:
                 row["map_entropy"] = float(self.map_metric(poses))
             history.append(row)
-            if (row["map_entropy"] < best["map"]) if by_map and lead else (row["loss"] < best["loss"]):
+            if diverged:
+                pass
+            elif (row["map_entropy"] < best["map"]) if by_map and lead else (row["loss"] < best["loss"]):
                 best = {**best, "loss": row["loss"], "epoch": epoch, "poses": poses,
                         **({"map": row["map_entropy"]} if by_map and lead else {})}
-            bar.set_postfix({k: f"{row[k]:.4g}" for k in ("loss", "ate", "map_entropy") if k in row})
+            bar.set_postfix(**{k: f"{row[k]:.4g}" for k in ("loss", "ate", "map_entropy") if k in row})
             if ckpt is not None and lead:
                 self._save(ckpt, self._state(epoch, best, history))
-        return OptimResult(best["poses"], best["epoch"], history, self.derived, stopped, _selection(best, by_map))
+        rejected = sum("rejected" in row for row in history)
+        if rejected and best["epoch"] < 0:
+            stopped = stopped or (f"diverged: all {rejected} epochs disagreed with the registrations "
+                                  f"(limit {self.derived['max_disagreement']:.3g} m); returned the start")
+        if ckpt is not None and lead:
+            self._save_mnet(checkpoint_dir / MNET)
+        return OptimResult(best["poses"], best["epoch"], history, self.derived, stopped,
+                           _selection(best, by_map, rejected))
 
 
-def _selection(best: dict, by_map: bool) -> str:
+def _selection(best: dict, by_map: bool, rejected: int = 0) -> str:
+    note = f"; {rejected} diverged epochs rejected" if rejected else ""
+    return _chosen(best, by_map) + note
+
+
+def _chosen(best: dict, by_map: bool) -> str:
     if not by_map:
         return f"lowest epoch loss: epoch {best['epoch']}" if best["epoch"] >= 0 else "the start (no epoch ran)"
     if best["epoch"] < 0:
