@@ -29,6 +29,11 @@ class Scan:
         return len(self.points)
 
 
+#: the kinds of sensor a scan sequence comes from (``ScanSequence.sensor``)
+LASER_2D, LIDAR, DEPTH_CAMERA = "laser2d", "lidar", "depth"
+SENSORS = (LASER_2D, LIDAR, DEPTH_CAMERA)
+
+
 @dataclass
 class ScanSequence:
     """N scans loaded on demand by ``loader(i)``.
@@ -47,6 +52,8 @@ class ScanSequence:
     #: how the scans were read: format, resolved path and every read option (set by ``formats.open_scans``);
     #: with the files it names, it keys the preparation cache, so it must hold everything the reading used
     read_spec: dict = field(default_factory=dict)
+    #: the sensor kind, one of :data:`SENSORS` (set by the reader or ``formats.open_scans``; "" if unknown)
+    sensor: str = ""
 
     def __len__(self) -> int:
         return self.count
@@ -80,6 +87,7 @@ class ScanSequence:
             trajectories={k: v.subset(index) for k, v in self.trajectories.items() if len(v) == self.count},
             meta=dict(self.meta),
             read_spec={**self.read_spec, "subset": hashlib.sha1(index.tobytes()).hexdigest()[:16]},
+            sensor=self.sensor,
         )
 
 

@@ -37,7 +37,7 @@ from dm2_backend.formats.registry import (
     scan_source,
     trajectory_format,
 )
-from dm2_backend.scans import Scan, ScanSequence
+from dm2_backend.scans import DEPTH_CAMERA, Scan, ScanSequence
 from dm2_backend.trajectory import Trajectory, associate_by_time, validate_poses
 
 SEVEN_SCENES_INTRINSICS = (585.0, 585.0, 320.0, 240.0)
@@ -291,7 +291,7 @@ def describe(path: Path) -> list[tuple[str, str]]:
 
 
 _DESCRIPTION = "depth image sequence (7-Scenes or TUM RGB-D layout), back-projected to camera-frame points"
-scan_source(ScanSource("depth", _DESCRIPTION, open_depth, ("/",), sniff, describe))
+scan_source(ScanSource("depth", _DESCRIPTION, open_depth, ("/",), sniff, describe, sensor=DEPTH_CAMERA))
 trajectory_format(TrajectoryFormat(
     "depth", "reference poses of a depth image sequence folder (7-Scenes pose files / TUM groundtruth.txt)",
     read_reference, None, ("/",), sniff, describe,

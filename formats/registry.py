@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dm2_backend.errors import InputError
-from dm2_backend.scans import ScanSequence
+from dm2_backend.scans import LASER_2D, LIDAR, ScanSequence
 from dm2_backend.trajectory import Trajectory
 
 
@@ -52,6 +52,9 @@ class ScanSource:
     suffixes: tuple[str, ...] = ()
     sniff: Callable[[Path], bool] | None = None
     describe: Callable[[Path], list[tuple[str, str]]] | None = None
+    #: the sensor its scans come from when the source knows (``ScanSequence.sensor``); None: decided from the
+    #: scans (``laser2d`` when planar, else ``lidar``)
+    sensor: str | None = None
 
 
 TRAJECTORY_FORMATS: dict[str, TrajectoryFormat] = {}
@@ -154,8 +157,10 @@ def open_scans(path: str | Path, fmt: str | None = None, options: ReadOptions | 
         raise InputError(path, "no such file or folder")
     name = fmt or detect_scan_source(path)
     options = options or ReadOptions()
-    seq = _lookup(SCAN_SOURCES, name, "scan source", path).open(path, options)
+    spec = _lookup(SCAN_SOURCES, name, "scan source", path)
+    seq = spec.open(path, options)
     seq.read_spec = read_spec(name, path, options)
+    seq.sensor = seq.sensor or spec.sensor or (LASER_2D if seq.planar else LIDAR)
     seq.meta.setdefault("format", name)
     return seq
 

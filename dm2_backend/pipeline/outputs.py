@@ -15,7 +15,7 @@ from matplotlib.figure import Figure
 from dm2_backend.atomic import atomic_path, atomic_write
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import plots, topology_log
-from dm2_backend.formats import TRAJECTORY_FORMATS, ReadOptions, write_trajectory
+from dm2_backend.formats import TRAJECTORY_FORMATS, write_trajectory
 from dm2_backend.formats.dm2_priors import write_priors
 from dm2_backend.formats.kitti import lidar_to_camera, read_calib_tr
 from dm2_backend.prepare.types import Frames, Pairwise, Topology
@@ -56,9 +56,8 @@ def write_trajectories(out: Path, traj: Trajectory, given_path: Path | None, giv
     if spec is not None and spec.write is not None and given_format not in ("tum", "kitti"):
         suffix = "".join(given_path.suffixes) if given_path is not None and given_path.is_file() else ""
         name = f"{stem}_{given_format}{suffix or spec.suffixes[0]}"
-        options = ReadOptions(extra={"template": traj.meta.get("template")} if traj.meta.get("template") else {})
         try:
-            write_trajectory(traj, out / name, given_format, options)
+            write_trajectory(traj, out / name, given_format)
             written.append(name)
         except InputError as exc:
             log.warning("skipped %s: %s", name, exc.message)

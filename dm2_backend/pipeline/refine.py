@@ -66,7 +66,7 @@ def trajectory_of(poses: np.ndarray, inputs: RunInputs) -> Trajectory:
     calibration when camera-frame poses came in (outputs go back to that frame)."""
     meta = {}
     if inputs.given_format == "carmen":
-        meta["template"] = inputs.scans.source
+        meta["carmen_template"] = inputs.scans.source  # the CARMEN writer rewrites the log's own poses
     calib = next((t.meta["calib"] for t in (inputs.given, inputs.gt) if t is not None and t.meta.get("calib")), None)
     if calib:
         meta["calib"] = calib

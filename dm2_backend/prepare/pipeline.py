@@ -24,7 +24,7 @@ from dm2_backend.plugins.registry import load as load_plugin
 from dm2_backend.prepare import store
 from dm2_backend.prepare.cache_keys import code_fingerprint, source_key, step_key
 from dm2_backend.prepare.types import Frames, Pairwise, Topology
-from dm2_backend.scans import ScanSequence
+from dm2_backend.scans import DEPTH_CAMERA, ScanSequence
 from dm2_backend.trajectory import Trajectory
 
 
@@ -179,7 +179,7 @@ def prepare(
         cache.put(name, {"poses": warm})
     timings["warm_start"] = time.perf_counter() - t
 
-    pr = resolve_auto(cfg["place_recognition"], "intrinsics" in scans.meta, warm, frames.planar)
+    pr = resolve_auto(cfg["place_recognition"], scans.sensor == DEPTH_CAMERA, warm, frames.planar)
     k_pr = step_key(k_ws, pr, _code("dm2.place_recognition", pr))
     keys["place_recognition"] = name = f"topology-{k_pr}"
     t = time.perf_counter()
