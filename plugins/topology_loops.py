@@ -286,6 +286,7 @@ class LoopsTopology:
         rows = loop_rows(corrected[:, :3, 3], path_length(corrected), L["radius"], L["min_path_gap"], self.k, limit)
         topo = assemble(rows, self.k, self.temporal_fill, log)
         topo.poses = corrected if log[0].get("closures") else None  # loop-closed only when a loop was closed
+        topo.loop_closed = topo.poses is not None
         return topo
 
 

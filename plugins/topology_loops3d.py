@@ -293,6 +293,7 @@ class Loops3dTopology:
         topo = assemble(rows, self.k, self.temporal_fill, log)
         # corrected only when a loop was closed or a failed step repaired
         topo.poses = corrected if log[0].get("closures") or log[0].get("repaired_steps") else None
+        topo.loop_closed = topo.poses is not None and bool(log[0].get("closures"))
         # (Topology.loop_closed tells the two apart: the optimiser treats only loop-closed starts as accurate)
         return topo
 

@@ -145,3 +145,12 @@ def test_cache_info_and_clear(seq, tmp_path):
     assert bad.exit_code == 2 and "--older-than" in bad.output
     gone = CliRunner().invoke(cli, ["cache", "clear", "--cache-dir", str(cache)])
     assert gone.exit_code == 0 and "removed 4 entries" in gone.output and not any(cache.iterdir())
+
+
+def test_loop_closed_is_a_field_that_survives_the_cache(seq, tmp_path):
+    cache = tmp_path / "cache"
+    cfg = config.load(None, {"frames": {"max_points": 128}, "place_recognition": {"name": "loops"}})
+    fresh = run(seq, cache, cfg).topology
+    cached = run(seq, cache, cfg).topology
+    assert fresh.loop_closed == (fresh.poses is not None and fresh.log[0]["closures"] > 0)
+    assert cached.loop_closed == fresh.loop_closed

@@ -40,15 +40,13 @@ class Topology:
     #: loop-closed poses (N,4,4) when the place recognition corrected the warm start; registration starts
     #: from their relative poses, and the optimiser and baselines from them
     poses: np.ndarray | None = None
+    #: ``poses`` closed at least one loop (not only repaired the start): the optimiser then treats them as
+    #: accurate; set by the place recognition that made them
+    loop_closed: bool = False
 
     @property
     def k(self) -> int:
         return self.groups.shape[1]
-
-    @property
-    def loop_closed(self) -> bool:
-        """The corrected poses closed at least one loop (not only repaired the start)."""
-        return self.poses is not None and bool(self.log and self.log[0].get("closures"))
 
 
 @dataclass
