@@ -210,6 +210,7 @@ def test_cli_gtsam_lowers_ate(sequence, tmp_path):
     assert ate < 0.2 * warm_ate, (ate, warm_ate)
     b = report["baseline"]
     assert b["final_error"] < b["initial_error"] and b["nodes"] == 150 and b["loop_edges"] > 0
+    assert "graph.g2o" in report["files"]  # listed by the one report writer, not patched in afterwards
     for name in ("poses_kitti.txt", "poses.npy", "map.ply", "graph.g2o", "warm_start.npy", "trajectory.png"):
         assert (tmp_path / "gtsam" / name).exists(), name
     # graph.g2o is the graph solved: gtsam.readG2o + the same prior gives the same errors

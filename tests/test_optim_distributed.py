@@ -22,7 +22,7 @@ from dm2_backend.optim.distributed import Dist, shard
 from dm2_backend.optim.trainer import CHECKPOINT, sample_points
 from dm2_backend.pipeline import parallel
 from dm2_backend.pipeline.inputs import load_inputs
-from dm2_backend.pipeline.refine import map_entropy, map_sampler
+from dm2_backend.pipeline.run_writer import map_entropy, map_sampler
 from dm2_backend.pipeline.start import choose_start
 from dm2_backend.prepare import store
 from dm2_backend.prepare.pipeline import load_prepared

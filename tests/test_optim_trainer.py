@@ -15,7 +15,7 @@ from dm2_backend.optim.batching import make_groups, random_groups, temporal_grou
 from dm2_backend.optim.config import OptimConfig, derive, loss_regime, pose_regime, sampled_points
 from dm2_backend.optim.regime import disagreement, locally_accurate
 from dm2_backend.optim.trainer import CHECKPOINT, Optimiser, OptimResult
-from dm2_backend.pipeline.refine import ate_rmse
+from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.plugins.topology_radius import RadiusTopology
 from dm2_backend.simulate.lidar import LidarModel
 from dm2_backend.simulate.sequence import SimSettings, simulate

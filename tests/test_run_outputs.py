@@ -9,7 +9,7 @@ from shared_helpers import DATA, need
 from dm2_backend.formats import ReadOptions, read_trajectory
 from dm2_backend.pipeline import outputs
 from dm2_backend.pipeline.inputs import load_inputs
-from dm2_backend.pipeline.refine import trajectory_of
+from dm2_backend.pipeline.run_writer import trajectory_of
 
 
 def test_a_carmen_run_writes_its_poses_into_a_copy_of_the_log(tmp_path):

@@ -20,7 +20,8 @@ from dm2_backend.formats import write_trajectory
 from dm2_backend.formats.g2o import PoseGraph, read_g2o, write_g2o
 from dm2_backend.pipeline import outputs
 from dm2_backend.pipeline.inputs import RunInputs
-from dm2_backend.pipeline.refine import write_common
+from dm2_backend.pipeline.run_report import RunReport
+from dm2_backend.pipeline.run_writer import write_run
 from dm2_backend.prepare.pipeline import prepare
 from dm2_backend.trajectory import Trajectory
 
@@ -36,7 +37,7 @@ def solve(method: str, graph: PoseGraph, options: SolverOptions) -> GraphResult:
 
 
 def baseline(method: str, inputs: RunInputs, cfg: dict, out: Path, cache_dir: Path | None,
-             options: SolverOptions, progress: bool = True) -> dict:
+             options: SolverOptions, progress: bool = True) -> RunReport:
     """Prepare (cached, shared with ``dm2 refine``), run the baseline, write the run folder."""
     if method not in METHODS:
         raise InputError(None, f"unknown baseline {method!r}; choices: {', '.join(METHODS)}")
@@ -63,11 +64,8 @@ def baseline(method: str, inputs: RunInputs, cfg: dict, out: Path, cache_dir: Pa
     timings = dict(prep.timings)
     timings["optimise"] = time.perf_counter() - t_opt
     timings["total"] = time.perf_counter() - t_start
-    report = write_common(out, cfg, inputs, prep, final, method, timings, extra)
-    if method in GRAPH_SOLVERS:
-        report["files"].append("graph.g2o")
-        outputs.write_report(out / "report.json", report)
-    return report
+    return write_run(out, cfg, inputs, prep, final, method, timings, extra,
+                     files=["graph.g2o"] if method in GRAPH_SOLVERS else None)
 
 
 def optimise_file(method: str, path: Path, out: Path, options: SolverOptions) -> dict:

@@ -23,6 +23,7 @@ from dm2_backend.formats import detect_trajectory_format
 from dm2_backend.formats.kitti import find_calib, looks_camera_frame
 from dm2_backend.pipeline.inputs import load_inputs
 from dm2_backend.pipeline.run_folder import digest, fingerprint, run_folder
+from dm2_backend.pipeline.run_report import RunReport
 from dm2_backend.prepare.pipeline import default_cache_dir
 
 path_type = click.Path(path_type=Path)
@@ -48,7 +49,9 @@ def run_options(f=None, *, scans_required: bool = True):
         click.option("--gt-format", default=None),
         click.option("--relations", type=path_type, default=None,
                      help="Freiburg relations file: live relations metric and metrics."),
-        click.option("--warm-start", default=None, help="Warm-start plugin (default: poses; icp without).") ,
+        click.option("--warm-start", default=None,
+                     help="Warm-start plugin (default: poses; icp without --poses, fusing the odometry a 2D "
+                          "scan source carries)."),
         click.option("--place-recognition", default=None,
                      help="Place-recognition plugin (default auto: loops for laser scans, loops3d for depth cameras)."),
         click.option("--registration", default=None, help="Pairwise registration plugin (default icp)."),
@@ -83,7 +86,10 @@ def prepare_run(kw: dict, overrides: dict):
     if kw["seed"] is not None:
         overrides["seed"] = kw["seed"]
     cfg = config.load(kw["config_path"], overrides)
-    if not kw["warm_start"] and inputs.given is None and cfg["warm_start"]["name"] == "poses":
+    carried = kw["poses"] is None and inputs.given is not None and inputs.scans.planar  # e.g. CARMEN odometry
+    if not kw["warm_start"] and (inputs.given is None or carried) and cfg["warm_start"]["name"] == "poses":
+        # no trajectory: scan matching; wheel odometry carried by planar scans: fused with scan matching
+        # (the icp warm start never takes a degenerate match over the odometry)
         cfg["warm_start"] = {"name": "icp", "options": {}}
     cache = None if kw["no_cache"] else (kw["cache_dir"] or default_cache_dir())
     return inputs, cfg, cache
@@ -186,16 +192,16 @@ def check_device(device: str) -> None:
                                    f"(torch {torch.__version__}); use --device auto or cpu")
 
 
-def print_summary(report: dict, out: Path) -> None:
-    before, after = report.get("warm_start_metrics", {}), report.get("metrics", {})
+def print_summary(report: RunReport, out: Path) -> None:
+    before, after = report.warm_start_metrics, report.metrics
     for key in after:
         if key in before and key != "error":
-            click.echo(f"{key:<28} warm start {before[key]:10.4f}  ->  {report['method']} {after[key]:10.4f}")
+            click.echo(f"{key:<28} warm start {before[key]:10.4f}  ->  {report.method} {after[key]:10.4f}")
     if "error" in after:
         click.echo(f"evaluation failed: {after['error']}", err=True)
-    if report.get("stopped"):
-        click.echo(f"warning: {report['stopped']}", err=True)
-    t = report["timings"]
-    mem = report["peak_rss_mb"]
-    click.echo(f"{report['frames']} frames in {t['total']:.1f} s, peak memory {mem:.0f} MiB")
+    if report.details.get("stopped"):
+        click.echo(f"warning: {report.details['stopped']}", err=True)
+    t = report.timings
+    mem = report.peak_rss_mb
+    click.echo(f"{report.frames} frames in {t['total']:.1f} s, peak memory {mem:.0f} MiB")
     click.echo(f"wrote {out}")

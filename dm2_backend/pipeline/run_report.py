@@ -1,0 +1,75 @@
+"""``report.json`` of a run folder as a typed record with one writer (refine and baseline alike)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dm2_backend import __version__
+from dm2_backend.atomic import atomic_write
+from dm2_backend.prepare.pipeline import Prepared
+
+
+@dataclass
+class PrepareSummary:
+    """What the preparation did: which steps came from the cache, the data's scale, the topology's size."""
+
+    cached: dict[str, bool]
+    scale: dict[str, float]
+    topology_edges: int
+    pairs: int
+    pairs_valid: int
+
+    @classmethod
+    def of(cls, prep: Prepared) -> PrepareSummary:
+        return cls(cached=dict(prep.cached), scale=dict(prep.frames.scale),
+                   topology_edges=int(len(prep.topology.edges)), pairs=int((prep.topology.groups >= 0).sum()),
+                   pairs_valid=int(prep.pairwise.valid.sum()))
+
+
+@dataclass
+class RunReport:
+    """A run's results. Metrics are keyed as ``dm2 eval`` names them (``ape_trans_rmse_m``, ``map_entropy``,
+    ...) for each stage: the warm start, the loop-closed poses (when the place recognition made them), the
+    optimiser's start (refine) and the result. ``details`` holds the method's own entries (refine: best epoch,
+    selection, derived settings, device; baseline: the solver's summary), written at the top level."""
+
+    method: str
+    frames: int
+    planar: bool
+    metrics: dict[str, float]
+    warm_start_metrics: dict[str, float]
+    map_quality: dict
+    timings: dict[str, float]
+    peak_rss_mb: float
+    prepare: PrepareSummary
+    files: list[str]
+    ground_truth_scans: int | None = None
+    loop_closed_metrics: dict[str, float] | None = None
+    start_metrics: dict[str, float] | None = None
+    epochs: list[dict] | None = None
+    details: dict = field(default_factory=dict)
+    dm2_version: str = __version__
+
+    def to_dict(self) -> dict:
+        """The ``report.json`` document: the fields (unset optional ones left out) and ``details`` flattened."""
+        doc = {k: v for k, v in asdict(self).items() if k != "details" and v is not None}
+        clash = set(doc) & set(self.details)
+        if clash:
+            raise ValueError(f"report details shadow report fields: {', '.join(sorted(clash))}")
+        return {**doc, **self.details}
+
+    def write(self, path: Path) -> None:
+        with atomic_write(path) as fh:
+            json.dump(self.to_dict(), fh, indent=2, default=_json_default)
+
+
+def _json_default(v):
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    return str(v)

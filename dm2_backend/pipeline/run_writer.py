@@ -1,0 +1,139 @@
+"""The run folder that ``refine`` and ``baseline`` both write: trajectories in several formats (in the input's
+frame), the maps, the DeepMapping2 priors, plots, ``config.yaml`` / ``resolved.yaml`` and ``report.json``."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from dm2_backend import config
+from dm2_backend.errors import InputError
+from dm2_backend.evaluation import plots
+from dm2_backend.evaluation.ape_rpe import evaluate_poses
+from dm2_backend.evaluation.map_quality import MapSampler
+from dm2_backend.evaluation.paper_ate import paper_ate
+from dm2_backend.evaluation.relations import relations_error
+from dm2_backend.evaluation.report import EstimateReport, run_metrics
+from dm2_backend.maps.run_maps import write_run_maps
+from dm2_backend.pipeline import outputs
+from dm2_backend.pipeline.inputs import RunInputs
+from dm2_backend.pipeline.run_report import PrepareSummary, RunReport
+from dm2_backend.prepare.pipeline import Prepared
+from dm2_backend.trajectory import Trajectory
+
+log = logging.getLogger(__name__)
+
+
+def metrics_of(traj: Trajectory, inputs: RunInputs) -> dict[str, float]:
+    """Accuracy of ``traj`` against the ground truth / relations given to the run (empty without). An
+    evaluation that fails is recorded as ``{"error": ...}`` so the run's outputs are still written."""
+    try:
+        return _metrics(traj, inputs)
+    except InputError as exc:
+        log.warning("evaluation failed: %s", exc.message)
+        return {"error": exc.message}
+
+
+def _metrics(traj: Trajectory, inputs: RunInputs) -> dict[str, float]:
+    est = EstimateReport(label="", path="")
+    if inputs.gt is not None:
+        gt = replace(inputs.gt, timestamps=None)
+        matched = traj if inputs.gt_frames is None else traj.subset(inputs.gt_frames)
+        est.poses = evaluate_poses(gt, replace(matched, timestamps=None), align="se3")
+        est.paper = paper_ate(inputs.gt.poses, matched.poses)
+    if inputs.relations is not None and traj.timestamps is not None:
+        est.relations = relations_error(traj, inputs.relations)
+    return run_metrics(est)
+
+
+def output_timestamps(inputs: RunInputs) -> np.ndarray:
+    if inputs.scans.timestamps is not None:
+        return inputs.scans.timestamps
+    if inputs.given is not None and inputs.given.timestamps is not None:
+        return inputs.given.timestamps
+    return np.arange(len(inputs.scans), dtype=np.float64)
+
+
+def trajectory_of(poses: np.ndarray, inputs: RunInputs) -> Trajectory:
+    """The run's poses as a trajectory for the writers: the output stamps, the CARMEN template, and the KITTI
+    calibration when camera-frame poses came in (outputs go back to that frame)."""
+    meta = {}
+    if inputs.given_format == "carmen":
+        meta["carmen_template"] = inputs.scans.source  # the CARMEN writer rewrites the log's own poses
+    calib = next((t.meta["calib"] for t in (inputs.given, inputs.gt) if t is not None and t.meta.get("calib")), None)
+    if calib:
+        meta["calib"] = calib
+    return Trajectory(poses, output_timestamps(inputs), planar=inputs.scans.planar, meta=meta)
+
+
+def map_sampler(inputs: RunInputs, progress: bool = False) -> MapSampler:
+    """The scans voxelised once for the map metrics of every pose set of the run."""
+    return MapSampler.from_scans(inputs.scans, progress=progress)
+
+
+def map_entropy(sampler: MapSampler | None) -> Callable[[np.ndarray], float] | None:
+    return None if sampler is None else sampler.entropy
+
+
+def map_metrics(sampler: MapSampler, poses: np.ndarray) -> dict[str, float]:
+    q = sampler.evaluate(poses)
+    return {"map_entropy": q.entropy, "map_plane_variance_m2": q.plane_variance}
+
+
+def write_run(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final: np.ndarray, method: str,
+              timings: dict, details: dict | None = None, epochs: list[dict] | None = None,
+              sampler: MapSampler | None = None, start: np.ndarray | None = None,
+              files: list[str] | None = None) -> RunReport:
+    """The run folder of ``refine`` and ``baseline``: trajectories, maps, priors, plots and ``report.json``
+    (written once). ``details``: the method's own report entries; ``sampler``: the scans prepared for the map
+    metrics (made here when None); ``start``: where the optimiser started; ``files``: files the method wrote."""
+    out.mkdir(parents=True, exist_ok=True)
+    sampler = sampler or map_sampler(inputs)
+    stages = {"warm_start": prep.warm_start, "loop_closed": prep.topology.poses, "start": start, "final": final}
+    maps = {name: map_metrics(sampler, poses) for name, poses in stages.items() if poses is not None}
+    config.dump(cfg, out / "config.yaml")
+    config.dump(prep.resolved, out / "resolved.yaml")  # the plugins as run: ``auto`` resolved
+    warm_traj = trajectory_of(prep.warm_start, inputs)
+    final_traj = trajectory_of(final, inputs)
+    written = outputs.write_trajectories(out, final_traj, inputs.given_path, inputs.given_format)
+    written += outputs.write_trajectories(out, warm_traj, None, None, stem="warm_start")
+    outputs.write_map(out / "map.ply", prep.frames, final, 2 * prep.frames.scale.get("spacing", 0.0))
+    written += write_run_maps(out, inputs.scans, final, prep.frames.planar)  # map.pgm/.yaml, octomap.bt, M-Net maps
+    outputs.write_prior_files(out / "prior", prep.warm_start, prep.topology, prep.pairwise)
+    per_frame = None
+    if inputs.gt is not None:
+        per_frame = {"translation error": (paper_ate(inputs.gt.poses, inputs.at_gt(final)).trans_errors, "m")}
+    drawn = {"warm start": inputs.at_gt(prep.warm_start), method: inputs.at_gt(final)}  # where gt is known
+    outputs.write_plots(out, drawn, inputs.gt, per_frame, None)
+    written += outputs.write_topology(out, prep.topology, final)
+    if prep.warm_report:  # e.g. the icp warm start's source of every step (scan match or odometry) and why
+        outputs.write_report(out / "warm_start.json", prep.warm_report)
+        written.append("warm_start.json")
+    report = RunReport(
+        method=method,
+        frames=len(prep.frames),
+        planar=prep.frames.planar,
+        ground_truth_scans=len(inputs.gt) if inputs.gt is not None else None,
+        metrics={**metrics_of(final_traj, inputs), **maps["final"]},
+        warm_start_metrics={**metrics_of(warm_traj, inputs), **maps["warm_start"]},
+        loop_closed_metrics=None if prep.topology.poses is None else {
+            **metrics_of(trajectory_of(prep.topology.poses, inputs), inputs), **maps["loop_closed"]},
+        start_metrics=None if start is None else {**metrics_of(trajectory_of(start, inputs), inputs),
+                                                  **maps["start"]},
+        map_quality=sampler.settings_summary(),
+        timings=timings,
+        peak_rss_mb=outputs.peak_rss_mb(),
+        prepare=PrepareSummary.of(prep),
+        files=written + list(files or []),
+        epochs=epochs,
+        details={**(details or {}), **({"warm_start": {k: v for k, v in prep.warm_report.items() if k != "per_step"}}
+                                        if prep.warm_report else {})},
+    )
+    if epochs is not None:
+        plots.plot_run_epochs(out / "epochs.png", report.to_dict())  # from the start (epoch 0) on
+    report.write(out / "report.json")
+    return report
