@@ -10,12 +10,11 @@ import numpy as np
 from dm2_backend.cli.options import duplicate_times_option
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import plots
-from dm2_backend.evaluation.ape_rpe import ALIGN_MODES, DELTA_UNITS, evaluate_poses
-from dm2_backend.evaluation.map_quality import MapSampler, estimate_map
-from dm2_backend.evaluation.paper_ate import paper_ate
-from dm2_backend.evaluation.relations import MAX_DT, load_relations, relations_error
+from dm2_backend.evaluation.ape_rpe import ALIGN_MODES, DELTA_UNITS
+from dm2_backend.evaluation.evaluate import EvalOptions, evaluate
+from dm2_backend.evaluation.map_quality import MapSampler
+from dm2_backend.evaluation.relations import MAX_DT, load_relations
 from dm2_backend.evaluation.report import (
-    EstimateReport,
     EvalReport,
     read_run_report,
     safe_name,
@@ -198,22 +197,14 @@ def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topi
         map=None if sampler is None else {"scans_path": str(scans_path), **sampler.settings_summary()},
     )
     est_options = ReadOptions(topic=est_topic, times=est_times, extra=dup)
+    options = EvalOptions(align=align, align_origin=align_origin, max_diff=max_diff, delta=delta,
+                          delta_unit=delta_unit, relations_max_dt=relations_max_dt)
     for path, label in zip(est_paths, _labels(est_paths), strict=True):
         est = read_trajectory(path, est_format, est_options)
         if len(est) == 0:
             raise InputError(path, "no poses")
-        entry = EstimateReport(label=label, path=str(path), positions=est.positions)
-        if gt is not None:
-            entry.poses = evaluate_poses(gt, est, align=align, align_origin=align_origin, max_diff=max_diff,
-                                         delta=delta, delta_unit=delta_unit, names=("ground truth", label),
-                                         source=path)
-            if entry.poses.n_matched >= 3:
-                entry.paper = paper_ate(np.array(entry.poses.ref.poses_se3), entry.poses.est_raw)
-        if relations is not None:
-            entry.relations = relations_error(est, relations, max_dt=relations_max_dt, source=path)
-        if sampler is not None:
-            entry.map = estimate_map(sampler, scans, est, max_diff, source=path)
-        report.estimates.append(entry)
+        report.estimates.append(evaluate(est, label, path, gt=gt, relations=relations, sampler=sampler, scans=scans,
+                                         options=options))
 
     click.echo(f"alignment: {ALIGN_TEXT[align] if not align_origin else 'first poses only (--align-origin)'}")
     for entry in report.estimates:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -13,11 +12,10 @@ import numpy as np
 from dm2_backend import config
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import plots
-from dm2_backend.evaluation.ape_rpe import evaluate_poses
+from dm2_backend.evaluation.evaluate import EvalOptions, evaluate
 from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.evaluation.paper_ate import paper_ate
-from dm2_backend.evaluation.relations import relations_error
-from dm2_backend.evaluation.report import EstimateReport, run_metrics
+from dm2_backend.evaluation.report import run_metrics
 from dm2_backend.maps.run_maps import write_run_maps
 from dm2_backend.pipeline import outputs
 from dm2_backend.pipeline.inputs import RunInputs
@@ -39,15 +37,9 @@ def metrics_of(traj: Trajectory, inputs: RunInputs) -> dict[str, float]:
 
 
 def _metrics(traj: Trajectory, inputs: RunInputs) -> dict[str, float]:
-    est = EstimateReport(label="", path="")
-    if inputs.gt is not None:
-        gt = replace(inputs.gt, timestamps=None)
-        matched = traj if inputs.gt_frames is None else traj.subset(inputs.gt_frames)
-        est.poses = evaluate_poses(gt, replace(matched, timestamps=None), align="se3")
-        est.paper = paper_ate(inputs.gt.poses, matched.poses)
-    if inputs.relations is not None and traj.timestamps is not None:
-        est.relations = relations_error(traj, inputs.relations)
-    return run_metrics(est)
+    # the run's ground truth is already one pose per scan (or per listed scan): paired by index
+    return run_metrics(evaluate(traj, gt=inputs.gt, relations=inputs.relations, gt_frames=inputs.gt_frames,
+                                options=EvalOptions(by_index=True)))
 
 
 def output_timestamps(inputs: RunInputs) -> np.ndarray:
