@@ -23,14 +23,19 @@ def register(
     method: str = "point-to-plane",
     iterations: int = 30,
     prior_weight: float = 0.0,
+    prior_info: np.ndarray | None = None,
+    tolerance: float = 1e-6,
 ) -> Match:
     """Coarse-to-fine ICP of ``source`` onto ``target`` from ``init``, one pass per correspondence
     distance; fitness and rmse are those of the last (finest) distance. ``prior_weight`` (planar
-    point-to-line only) keeps unconstrained directions, e.g. along a corridor, at ``init``."""
+    point-to-line only) keeps unconstrained directions, e.g. along a corridor, at ``init``; ``prior_info``
+    (planar point-to-line only) is a full (3, 3) prior information on (x, y, yaw) about ``init``;
+    ``tolerance`` (3D): a pass stops when fitness and inlier rmse change by less than this fraction."""
     if source.planar:
         if method == "point-to-point":
             return _icp_o3d_planar(source, target, init, distances, iterations)
-        return icp_2d(source.xy, target, init, distances, iterations, prior_weight=prior_weight)
+        return icp_2d(source.xy, target, init, distances, iterations, prior_weight=prior_weight,
+                      prior_info=prior_info)
     T = np.asarray(init, dtype=np.float64)
     source.ensure(method, "source")
     target.ensure(method, "target")
@@ -40,7 +45,7 @@ def register(
         estimation = reg.TransformationEstimationPointToPoint()
     else:
         estimation = reg.TransformationEstimationPointToPlane()
-    criteria = reg.ICPConvergenceCriteria(1e-6, 1e-6, iterations)
+    criteria = reg.ICPConvergenceCriteria(tolerance, tolerance, iterations)
     fn = reg.registration_generalized_icp if method == "gicp" else reg.registration_icp
     result = None
     for d in distances:
@@ -94,14 +99,17 @@ def icp_2d(
     iterations: int = 30,
     tol: float = 1e-3,
     prior_weight: float = 0.0,
+    prior_info: np.ndarray | None = None,
 ) -> Match:
     """2D point-to-line ICP (Gauss-Newton on x, y, yaw) of points onto a planar :class:`Cloud`.
 
     With ``prior_weight`` w > 0 the cost adds ``w * M * |t - t_init|^2`` (M correspondences, t the
     translation): negligible where the scan constrains the pose, decisive along directions it does
-    not (a featureless corridor)."""
+    not (a featureless corridor). ``prior_info`` (3, 3) adds ``e^T prior_info e`` with e = (x, y, yaw) - init,
+    in the units of the point-to-line cost (m^2 per correspondence): e.g. odometry's information scaled by the
+    residual variance, or a strong weight along one direction to hold it at ``init``."""
     x, y, yaw = se3.to_xy_yaw(init)
-    x0, y0 = x, y
+    x0, y0, yaw0 = x, y, yaw
     fitness, rmse = 0.0, float("inf")
     for pass_, d in enumerate(distances):
         # stop when an update moves points by less than tol * d (10x looser before the last pass)
@@ -126,6 +134,10 @@ def icp_2d(
                 rp = np.array([x - x0, y - y0])
                 w = prior_weight * len(J)
                 H, g = H + w * Jp.T @ Jp, g + w * Jp.T @ rp
+            if prior_info is not None:
+                Jq = np.array([[1.0, 0.0, centre[1] - y], [0.0, 1.0, x - centre[0]], [0.0, 0.0, 1.0]])
+                rq = np.array([x - x0, y - y0, se3.wrap_angle(yaw - yaw0)])
+                H, g = H + Jq.T @ prior_info @ Jq, g + Jq.T @ prior_info @ rq
             dx, dy, dth = _solve3(H, -g)
             # update p' = R(dth) (p - centre) + centre + (dx, dy)
             cd, sd = np.cos(dth), np.sin(dth)
@@ -136,3 +148,54 @@ def icp_2d(
                 break
         fitness, rmse = ok.mean(), float(np.sqrt(np.mean(dist[ok] ** 2)))
     return Match(planar_pose(x, y, se3.wrap_angle(yaw)), float(fitness), rmse)
+
+
+def information_2d(source_xy: np.ndarray, target: Cloud, T: np.ndarray, distance: float) -> dict:
+    """How well the point-to-line match of ``source_xy`` at ``T`` pins down each direction (the degeneracy
+    test of a scan match), from the Gauss-Newton information J^T J over the correspondences within
+    ``distance``, per correspondence:
+
+    - ``fitness``, ``rmse``: the fraction of points with a correspondence and their rms distance;
+    - ``weak``, ``weak_axis``: the smallest eigenvalue of the translation block (the mean ``n n^T`` of the
+      normals, between 0 and 1/2: near 0 along a featureless corridor) and its unit direction (world frame);
+    - ``yaw``: the yaw information left once translation is free (the Schur complement, m^2: the mean squared
+      lever arm of the normals' moments; near 0 inside a round room);
+    - ``info``: the (3, 3) information on (x, y, yaw) (yaw about the world origin at ``T``, as ``icp_2d``'s
+      prior), summed over the correspondences (divide by the residual variance for a covariance).
+    """
+    x, y, yaw = se3.to_xy_yaw(T)
+    c, s = np.cos(yaw), np.sin(yaw)
+    p = source_xy @ np.array([[c, s], [-s, c]]) + (x, y)
+    dist, idx = target.tree.query(p, distance_upper_bound=distance)
+    ok = np.isfinite(dist)
+    out = {"fitness": float(ok.mean()) if len(ok) else 0.0, "rmse": float("inf"), "weak": 0.0,
+           "weak_axis": np.array([1.0, 0.0]), "yaw": 0.0, "info": np.zeros((3, 3)), "count": int(ok.sum())}
+    if ok.sum() < 3:
+        return out
+    p, n = p[ok], target.normals[idx[ok]]
+    # about the sensor position (x, y): the same parametrisation as the prior of icp_2d
+    J = np.column_stack([n, n[:, 1] * (p[:, 0] - x) - n[:, 0] * (p[:, 1] - y)])
+    H = J.T @ J
+    m = len(J)
+    w, v = np.linalg.eigh(H[:2, :2] / m)
+    schur = H[2, 2] - H[2, :2] @ np.linalg.solve(H[:2, :2] + 1e-9 * np.eye(2), H[:2, 2])
+    # the prior of icp_2d uses yaw about the sensor too, so info is consistent with it
+    out.update(rmse=float(np.sqrt(np.mean(dist[ok] ** 2))), weak=float(w[0]), weak_axis=v[:, 0],
+               yaw=float(schur / m), info=H)
+    return out
+
+
+def slide_loss(source_xy: np.ndarray, target: Cloud, T: np.ndarray, step: np.ndarray, distance: float) -> float:
+    """How much of the scan leaves the map when the match ``T`` slides by ``step`` = (dx, dy, dyaw) (world
+    frame; yaw about the sensor), either way: the smaller increase, over the two directions, of the mean
+    truncated point-to-point cost ``min(d, distance)^2 / distance^2``. About the fraction of points whose
+    structure pins the match in that direction (0 along a featureless corridor, whatever the normals say)."""
+    def cost(dx: float, dy: float, dyaw: float) -> float:
+        x, y, yaw = se3.to_xy_yaw(T)
+        c, s = np.cos(yaw + dyaw), np.sin(yaw + dyaw)
+        p = source_xy @ np.array([[c, s], [-s, c]]) + (x + dx, y + dy)
+        d, _ = target.tree.query(p, distance_upper_bound=distance)
+        return float(np.mean(np.minimum(d, distance) ** 2)) / distance**2
+
+    base = cost(0.0, 0.0, 0.0)
+    return min(cost(*step) - base, cost(*(-np.asarray(step))) - base)

@@ -4,10 +4,28 @@ for planar scans), predicted by constant velocity or by the given trajectory's i
 Each frame is registered onto a local map: the points of the last ``window`` keyframes in the world
 frame, voxel-down-sampled. The prediction T_{i-1} @ delta (delta: the last increment, or the given
 trajectory's) starts a coarse-to-fine ICP; T_i is its result (projected to x, y, yaw for planar data),
-or the prediction when the fitness is too low."""
+or the prediction when the fitness is too low.
+
+With ``fuse: auto``, planar scans with a given trajectory (wheel odometry: CARMEN logs) fuse the two per step: the
+odometry increment is the initial guess and a prior, and each scan match passes a degeneracy test before
+it replaces the odometry (:meth:`IcpWarmStart._fused_step`):
+
+- overlap: at least ``min_fitness`` of the scan's points within the fine distance of the map;
+- conditioning: the weakest translation direction of the point-to-line information (the smallest
+  eigenvalue of the mean ``n n^T``, 0 along a featureless corridor, 1/2 when walls face every way) and the
+  yaw information left once translation is free; a direction below ``min_constraint`` is taken from the
+  odometry (the ICP is re-run with that direction held at the prediction) and the others from the scan;
+- agreement: a match that departs from the odometry increment by more than the gate (``gate`` robust
+  standard deviations of the recent scan-vs-odometry differences, at least one fine distance / its angle
+  at the median range) is kept only when it fits the map clearly better than the prediction (an odometry
+  glitch); otherwise the odometry increment is used (a scan-matching failure).
+
+``report`` (after ``run``) holds the counts and a per-step record (source and reason), which the run folder
+writes as ``warm_start.json``."""
 
 from __future__ import annotations
 
+import logging
 from collections import deque
 from dataclasses import dataclass
 from typing import ClassVar
@@ -26,10 +44,12 @@ from dm2_backend.plugins.common import (
     rotation_angle,
     voxel_cloud,
 )
-from dm2_backend.plugins.icp import register
+from dm2_backend.plugins.icp import information_2d, register, slide_loss
 from dm2_backend.prepare.types import Frames
 from dm2_backend.progress import progress
 from dm2_backend.trajectory import Trajectory
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -59,6 +79,18 @@ class IcpWarmStart:
     #: (planar) weight of the prediction against the scan, per correspondence: keeps the motion along
     #: directions the scan does not constrain (corridors)
     prior_weight: float = 0.01
+    #: planar scans with a given trajectory: fuse scan matching with its increments and test each match
+    #: for degeneracy ("auto": when the given increments are the prediction; "off": plain ICP as above)
+    fuse: str = "off"
+    #: (fuse) a direction (the weakest translation direction of the match's information, or yaw) comes from
+    #: the odometry when sliding the match one fine distance along it (a turn moving points at the median
+    #: range as far) moves less than this share of the scan off the map
+    min_constraint: float = 0.1
+    #: (fuse) a match departing from the odometry by more than this many robust standard deviations of the
+    #: recent scan-vs-odometry differences must fit the map clearly better than the prediction to be kept
+    gate: float = 6.0
+    #: (fuse) "clearly better": at least this much more of the scan within the fine distance of the map
+    better_fitness: float = 0.1
     progress: bool = True
 
     def run(self, frames: Frames, given: Trajectory | None) -> np.ndarray:
@@ -80,28 +112,189 @@ class IcpWarmStart:
         target = self._map(keyframes, frames.planar, voxel, fine)
         velocity = np.eye(4)
         self.rejected: list[int] = []
+        fuse = self._fusing(frames, increments, method)
+        if fuse:
+            self._start_fusion(n, fine, scale["range_median"])
         for i in progress(range(1, n), "icp warm start", unit="frame", enabled=self.progress):
             delta = increments[i - 1] if increments is not None else velocity
             predicted = poses[i - 1] @ delta
             source = Cloud(frames.points[i], frames.planar, 2.0 * fine)
-            match = register(source, target, predicted, distances, method, self.iterations, self.prior_weight)
-            if increments is None and match.fitness < self.retry_fitness:
-                # constant velocity may overshoot a stop: also try standing still, keep it if clearly better
-                still = register(source, target, poses[i - 1], distances, method, self.iterations, self.prior_weight)
-                if still.fitness > match.fitness + 0.1:
-                    match = still
-            if match.fitness >= self.min_fitness and np.isfinite(match.T).all():
-                poses[i] = project_planar(match.T) if frames.planar else orthonormal(match.T)
+            if fuse:
+                poses[i] = self._fused_step(i, source, target, poses[i - 1], predicted, distances)
             else:
-                poses[i] = predicted
-                self.rejected.append(i)
+                poses[i] = self._plain_step(i, source, target, poses[i - 1], predicted, distances, method,
+                                            frames.planar, increments is None)
             velocity = se3.relative(poses[i - 1], poses[i])
             moved = se3.relative(last_key, poses[i])
             if np.linalg.norm(moved[:3, 3]) > kf_dist or rotation_angle(moved[:3, :3]) > kf_angle:
                 keyframes.append(se3.transform_points(poses[i], source.points))
                 last_key = poses[i]
                 target = self._map(keyframes, frames.planar, voxel, fine)
+        self.report = self._fusion_report(poses) if fuse else {"fused": False, "rejected": len(self.rejected)}
+        if fuse:
+            log.info("icp warm start: %s of %d steps from the scan match, %s; %s", self.report["sources"]["scan"],
+                     n - 1, ", ".join(f"{v} {k}" for k, v in list(self.report["sources"].items())[1:]),
+                     ", ".join(f"{k}: {v}" for k, v in self.report["reasons"].items()) or "no fallback")
         return poses
+
+    def _plain_step(self, i, source, target, previous, predicted, distances, method, planar, velocity) -> np.ndarray:
+        """Pose of frame i: the ICP result from the prediction, or the prediction when the fitness is too low."""
+        match = register(source, target, predicted, distances, method, self.iterations, self.prior_weight)
+        if velocity and match.fitness < self.retry_fitness:
+            # constant velocity may overshoot a stop: also try standing still, keep it if clearly better
+            still = register(source, target, previous, distances, method, self.iterations, self.prior_weight)
+            if still.fitness > match.fitness + 0.1:
+                match = still
+        if match.fitness >= self.min_fitness and np.isfinite(match.T).all():
+            return project_planar(match.T) if planar else orthonormal(match.T)
+        self.rejected.append(i)
+        return predicted
+
+    # ------------------------------------------------------------------ fusion with odometry (planar)
+    SOURCES: ClassVar[tuple[str, ...]] = ("scan", "scan across, odometry along", "scan, odometry yaw", "odometry")
+
+    def _fusing(self, frames: Frames, increments: np.ndarray | None, method: str) -> bool:
+        if self.fuse not in ("auto", "off"):
+            raise InputError(None, f"icp warm start: unknown fuse {self.fuse!r} (auto, off)")
+        if not 0 < self.min_constraint < 0.5 or not self.gate > 0:
+            raise InputError(None, "icp warm start: min_constraint must lie in (0, 0.5) and gate be positive")
+        return self.fuse == "auto" and increments is not None and frames.planar and method != "point-to-point"
+
+    def _start_fusion(self, n: int, fine: float, range_median: float) -> None:
+        self._fine, self._reach = fine, max(range_median, fine)
+        self._source = np.zeros(n, dtype=np.int8)  # index into SOURCES; frame 0 is the given start
+        self._reason: dict[int, str] = {}
+        self._cols = {k: np.full(n, np.nan) for k in ("fitness", "constraint", "yaw_constraint", "dt", "dyaw")}
+        self._recent_t: deque[float] = deque(maxlen=200)  # scan-vs-odometry differences of accepted steps
+        self._recent_r: deque[float] = deque(maxlen=200)
+
+    def _gates(self) -> tuple[float, float]:
+        """Translation (m) and yaw (rad) gates: ``gate`` robust sigmas of the recent differences between the
+        accepted scan matches and the odometry, at least a fine distance (and its angle at the median range)."""
+        floor_t, floor_r = self._fine, self._fine / self._reach
+        if len(self._recent_t) < 20:
+            return 2.0 * floor_t, 2.0 * floor_r
+        st = 1.4826 * float(np.median(self._recent_t))
+        sr = 1.4826 * float(np.median(self._recent_r))
+        return max(floor_t, self.gate * st), max(floor_r, self.gate * sr)
+
+    def _odometry_weights(self, rmse: float) -> tuple[float, float]:
+        """The odometry's information on one translation direction and on yaw, in the units of the point-to-line
+        cost (residual variance / odometry variance): the odometry's per-step sigmas are the robust spread of
+        the recent differences between accepted scan matches and the odometry (at least a tenth of a fine
+        distance, and its angle at the median range); the residual sigma is the match's rmse (at least a
+        tenth of a fine distance)."""
+        floor = 0.1 * self._fine
+        if len(self._recent_t) >= 20:
+            st = 1.4826 * float(np.median(self._recent_t))
+            sr = 1.4826 * float(np.median(self._recent_r))
+        else:
+            st, sr = self._fine, self._fine / self._reach
+        st, sr = max(st, floor), max(sr, floor / self._reach)
+        var = max(rmse, floor) ** 2 if np.isfinite(rmse) else self._fine**2
+        return var / st**2, var / sr**2
+
+    def _fused_step(self, i: int, source: Cloud, target: Cloud, previous: np.ndarray, predicted: np.ndarray,
+                    distances) -> np.ndarray:
+        """Pose of frame i: the scan match, the scan match with its degenerate directions from the odometry,
+        or the odometry increment, with the source and reason recorded."""
+        fine = distances[-1]
+        xy = source.xy
+        match = register(source, target, predicted, distances, "point-to-plane", self.iterations, self.prior_weight)
+        T = project_planar(match.T) if np.isfinite(match.T).all() else predicted
+        info = information_2d(xy, target, T, fine)
+        cols = self._cols
+        if not np.isfinite(match.T).all() or info["fitness"] < self.min_fitness:
+            cols["fitness"][i] = info["fitness"]
+            return self._use_odometry(i, predicted, f"overlap {info['fitness']:.2f} < {self.min_fitness:.2f}")
+        # slide the match one fine distance along the weakest translation direction (and turn it so that points
+        # at the median range move as far): the share of the scan that leaves the map says whether the scan
+        # holds that direction, measured on the points themselves rather than on their (noisy) normals
+        along = slide_loss(xy, target, T, np.array([*(fine * info["weak_axis"]), 0.0]), fine)
+        turn = slide_loss(xy, target, T, np.array([0.0, 0.0, fine / self._reach]), fine)
+        for key, value in (("fitness", info["fitness"]), ("constraint", along), ("yaw_constraint", turn)):
+            cols[key][i] = value
+        # both tests must agree: noisy normals make the information pessimistic near walls seen at a graze, and
+        # the slide test alone is pessimistic where a few points (a door frame) hold the scan firmly
+        weak_t = along < self.min_constraint and info["weak"] < self.min_constraint
+        weak_r = turn < self.min_constraint and info["yaw"] < (self.min_constraint * self._reach) ** 2
+        if weak_t and weak_r:
+            return self._use_odometry(i, predicted, "degenerate in translation and yaw")
+        source_kind = 0
+        if weak_t or weak_r:
+            # hold the degenerate direction at the odometry's prediction, match the others
+            hold = np.zeros((3, 3))
+            w_t, w_r = self._odometry_weights(info["rmse"])
+            if weak_t:
+                v = info["weak_axis"]
+                hold[:2, :2] = w_t * np.outer(v, v)
+                source_kind = 1
+            if weak_r:
+                hold[2, 2] = w_r
+                source_kind = 2 if not weak_t else source_kind
+            match = register(source, target, predicted, distances, "point-to-plane", self.iterations, 0.0,
+                             prior_info=hold)
+            if not np.isfinite(match.T).all():
+                return self._use_odometry(i, predicted, "ICP diverged")
+            T = project_planar(match.T)
+            info = information_2d(xy, target, T, fine)
+            if info["fitness"] < self.min_fitness:
+                return self._use_odometry(i, predicted, f"overlap {info['fitness']:.2f} < {self.min_fitness:.2f}")
+        # agreement with the odometry increment
+        d = se3.to_xy_yaw(se3.relative(predicted, T))
+        dt, dr = float(np.hypot(d[0], d[1])), abs(float(d[2]))
+        cols["dt"][i], cols["dyaw"][i] = dt, dr
+        gate_t, gate_r = self._gates()
+        if dt > gate_t or dr > gate_r:
+            at_odometry = information_2d(xy, target, predicted, fine)["fitness"]
+            if info["fitness"] < at_odometry + self.better_fitness:
+                return self._use_odometry(
+                    i, predicted, f"disagrees with the odometry ({dt:.3f} m, {np.degrees(dr):.2f} deg; gate "
+                    f"{gate_t:.3f} m, {np.degrees(gate_r):.2f} deg) without fitting clearly better (overlap "
+                    f"{info['fitness']:.2f} vs {at_odometry:.2f})")
+            self._reason[i] = (f"odometry glitch: {dt:.3f} m, {np.degrees(dr):.2f} deg off, the scan fits better "
+                               f"(overlap {info['fitness']:.2f} vs {at_odometry:.2f})")
+        else:
+            self._recent_t.append(dt)
+            self._recent_r.append(dr)
+        if source_kind == 1:
+            self._reason.setdefault(i, f"translation degenerate (slide cost {cols['constraint'][i]:.3f} < "
+                                       f"{self.min_constraint}): along {np.round(info['weak_axis'], 2).tolist()} "
+                                       "from the odometry")
+        elif source_kind == 2:
+            self._reason.setdefault(i, f"yaw degenerate (turn cost {cols['yaw_constraint'][i]:.3f} < "
+                                       f"{self.min_constraint}): yaw from the odometry")
+        self._source[i] = source_kind
+        return T
+
+    def _use_odometry(self, i: int, predicted: np.ndarray, reason: str) -> np.ndarray:
+        self._source[i] = 3
+        self._reason[i] = reason
+        self.rejected.append(i)
+        return predicted
+
+    def _fusion_report(self, poses: np.ndarray) -> dict:
+        src = self._source[1:]
+        counts = {name: int((src == k).sum()) for k, name in enumerate(self.SOURCES)}
+        kinds = {}
+        for r in self._reason.values():
+            key = r.split(" (")[0].split(":")[0]
+            kinds[key] = kinds.get(key, 0) + 1
+        r = lambda a: [None if not np.isfinite(v) else round(float(v), 4) for v in a]  # noqa: E731
+        return {
+            "fused": True,
+            "steps": int(len(src)),
+            "sources": counts,
+            "reasons": dict(sorted(kinds.items(), key=lambda kv: -kv[1])),
+            "settings": {"min_fitness": self.min_fitness, "min_constraint": self.min_constraint,
+                         "gate": self.gate, "better_fitness": self.better_fitness,
+                         "fine_distance_m": round(self._fine, 4), "range_median_m": round(self._reach, 4)},
+            "per_step": {
+                "source": [self.SOURCES[k] for k in self._source.tolist()],
+                "reason": [self._reason.get(i, "") for i in range(len(self._source))],
+                **{k: r(v) for k, v in self._cols.items()},
+            },
+        }
 
     def _increments(self, frames: Frames, given: Trajectory | None) -> np.ndarray | None:
         if self.prior not in ("auto", "velocity", "given"):

@@ -86,10 +86,7 @@ def prepare_run(kw: dict, overrides: dict):
     if kw["seed"] is not None:
         overrides["seed"] = kw["seed"]
     cfg = config.load(kw["config_path"], overrides)
-    carried = kw["poses"] is None and inputs.given is not None and inputs.scans.planar  # e.g. CARMEN odometry
-    if not kw["warm_start"] and (inputs.given is None or carried) and cfg["warm_start"]["name"] == "poses":
-        # no trajectory: scan matching; wheel odometry carried by planar scans: fused with scan matching
-        # (the icp warm start never takes a degenerate match over the odometry)
+    if not kw["warm_start"] and inputs.given is None and cfg["warm_start"]["name"] == "poses":
         cfg["warm_start"] = {"name": "icp", "options": {}}
     cache = None if kw["no_cache"] else (kw["cache_dir"] or default_cache_dir())
     return inputs, cfg, cache

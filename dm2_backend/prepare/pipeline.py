@@ -40,6 +40,9 @@ class Prepared:
     keys: dict[str, str] = field(default_factory=dict)
     #: the plugin sections as run, ``auto`` resolved (the caller's config is left as given)
     resolved: dict[str, dict] = field(default_factory=dict)
+    #: what the warm-start plugin reported about its run (its ``report`` attribute; e.g. the ``icp`` warm
+    #: start's per-step sources), None when it reports nothing
+    warm_report: dict | None = None
 
     @property
     def initial(self) -> np.ndarray:
@@ -131,7 +134,8 @@ def load_prepared(cache_dir: Path, keys: dict[str, str]) -> Prepared:
         raise FileNotFoundError(f"preparation cache {cache_dir} lacks {', '.join(missing)}")
     frames = store.frames_from(*hits["frames"])
     return Prepared(frames, hits["warm_start"][0]["poses"], store.topology_from(hits["place_recognition"]),
-                    store.pairwise_from(hits["registration"]), cached=dict.fromkeys(keys, True), keys=dict(keys))
+                    store.pairwise_from(hits["registration"]), cached=dict.fromkeys(keys, True), keys=dict(keys),
+                    warm_report=hits["warm_start"][1].get("report"))
 
 
 def prepare(
@@ -173,10 +177,12 @@ def prepare(
     hit = cache.get(name)
     cached["warm_start"] = hit is not None
     if hit is not None:
-        warm = hit[0]["poses"]
+        warm, warm_report = hit[0]["poses"], hit[1].get("report")
     else:
-        warm = _plugin("dm2.warm_start", ws, progress).run(frames, given)
-        cache.put(name, {"poses": warm})
+        plugin = _plugin("dm2.warm_start", ws, progress)
+        warm = plugin.run(frames, given)
+        warm_report = getattr(plugin, "report", None)
+        cache.put(name, {"poses": warm}, {"report": warm_report} if warm_report else None)
     timings["warm_start"] = time.perf_counter() - t
 
     pr = resolve_auto(cfg["place_recognition"], scans.sensor == DEPTH_CAMERA, warm, frames.planar)
@@ -208,4 +214,4 @@ def prepare(
     pair = store.pairwise_from(hit) if hit is not None else pair
     timings["registration"] = time.perf_counter() - t
     resolved = {"warm_start": dict(ws), "place_recognition": dict(pr), "registration": dict(reg)}
-    return Prepared(frames, warm, topo, pair, timings, cached, keys, resolved)
+    return Prepared(frames, warm, topo, pair, timings, cached, keys, resolved, warm_report)
