@@ -52,6 +52,14 @@ def thin(xy: np.ndarray, cell: float, limit: int, rng: np.random.Generator) -> n
     return xy
 
 
+def origins(poses: np.ndarray, path: np.ndarray, key: int, half_length: float) -> np.ndarray:
+    """(F, 2) sensor positions of the scans of frame ``key``'s submap (see :func:`submap`), in its frame: where
+    that visit could see from."""
+    lo, hi = np.searchsorted(path, [path[key] - half_length, path[key] + half_length], side="left")
+    rel = se3.inverse(poses[key]) @ poses[lo : min(hi + 1, len(poses))]
+    return rel[:, :2, 3].astype(np.float64)
+
+
 def submap(frames: Frames, poses: np.ndarray, path: np.ndarray, key: int, half_length: float,
            cell: float) -> np.ndarray:
     """Bird's-eye points of the scans within ``half_length`` of path around frame ``key``, in its frame."""

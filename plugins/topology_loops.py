@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
@@ -41,7 +42,7 @@ from dm2_backend.plugins.common import (
     path_length,
     planar_pose,
 )
-from dm2_backend.plugins.gates import constraint, coverage, free_space
+from dm2_backend.plugins.gates import constraint, free_space
 from dm2_backend.plugins.icp import register
 from dm2_backend.plugins.loop_graph import Closure, KeyframeGraph, between, cycle_error
 from dm2_backend.plugins.topology_radius import check_k, check_poses
@@ -85,6 +86,10 @@ class LoopsTopology:
     min_fitness: float = 0.5
     min_constraint: float = 0.1
     max_free_space: float = 0.1
+    #: overlap gate over the points in sight of the other visit (within ``reach`` of one of its scan positions)
+    #: instead of over whole submaps; off by default: on ACES it restores the recall lost on the fused warm start
+    #: (96.6 % vs 60.9 %) but its extra closures at the start of the log measure 0.20-0.23 m off (precision 95.5 %)
+    overlap_in_sight: bool = False
     #: cycle check between two closures: translation (m; default 4 cells) + this fraction of their span
     cycle_tolerance: float | None = None
     cycle_drift: float = 0.05
@@ -141,6 +146,7 @@ class LoopsTopology:
         path = path_length(poses)
         self._maps = [kf.submap(frames, poses, path, int(f), L["submap_half_length"], L["resolution"] / 2)
                       for f in keys]
+        self._origins = [kf.origins(poses, path, int(f), L["submap_half_length"]) for f in keys]
         self._keys, self._frames = keys, frames
         odo = se3.to_xy_yaw(poses[keys])
         kpath = path[keys]
@@ -247,9 +253,11 @@ class LoopsTopology:
     def _gates(self, a: int, b: int, m: Match, entry: dict) -> list[str]:
         src, tgt = self._clouds
         res = self._lengths["resolution"]
-        overlap = min(m.fitness, coverage(tgt, src, se3.inverse(m.T), res)[0])
+        visible, whole = self._overlap(a, b, m.T)
+        overlap = visible if self.overlap_in_sight else whole
         c = constraint(src, tgt, m.T, res)
-        entry.update(overlap=round(overlap, 4), constraint=round(c, 4))
+        entry.update(overlap=round(overlap, 4), overlap_in_sight=round(visible, 4), overlap_whole=round(whole, 4),
+                     constraint=round(c, 4))
         reasons = []
         if overlap < self.min_fitness:
             reasons.append(f"overlap {overlap:.2f} < {self.min_fitness:.2f}")
@@ -265,6 +273,27 @@ class LoopsTopology:
             if free > self.max_free_space:
                 reasons.append(f"free space {free:.2f} > {self.max_free_space:.2f} (walls where the other saw none)")
         return reasons
+
+    def _overlap(self, a: int, b: int, T: np.ndarray) -> tuple[float, float]:
+        """Overlap of the two submaps at ``T`` (b's frame in a's): the smaller, over the two directions, of the
+        share of one submap's points within a cell of the other's, counted only over the points that lie within
+        sensor reach (``reach``: the 90th-percentile range) of a scan position of the other visit, since the
+        rest was out of its sight: two visits that share a stretch and then part ways see each other's far ends
+        only from one side. Also the share over all points (both directions, the plain overlap)."""
+        src, tgt = self._clouds
+        L = self._lengths
+        res, reach = L["resolution"], L["reach"]
+        inv = se3.inverse(T)
+        out, whole = [], []
+        for moving, fixed, M, seen_from in ((src, tgt, T, self._origins[a]), (tgt, src, inv, self._origins[b])):
+            c, s = M[0, 0], M[1, 0]
+            p = moving.xy @ np.array([[c, s], [-s, c]]) + M[:2, 3]
+            hit = np.isfinite(fixed.tree.query(p, distance_upper_bound=res)[0])
+            near = cKDTree(seen_from).query(p, distance_upper_bound=reach)[0] < reach
+            whole.append(float(hit.mean()) if len(hit) else 0.0)
+            # at least a tenth of the points must be in sight, else the plain share
+            out.append(float(hit[near].mean()) if near.sum() >= max(10, 0.1 * len(p)) else whole[-1])
+        return min(out), min(whole)
 
     def _consistent(self, new: Closure, others: list[Closure], odo: np.ndarray, kpath: np.ndarray) -> list[Closure]:
         """The closures (``new`` excluded) that agree with ``new`` around a cycle; empty if none."""

@@ -105,3 +105,15 @@ def test_fusion_options_checked(corridor):
     plain = IcpWarmStart(fuse="off", progress=False)
     plain.run(frames, Trajectory(odometry))
     assert plain.report == {"fused": False, "rejected": len(plain.rejected)}
+
+
+def test_degraded_odometry_never_beats_the_fused_warm_start():
+    """The corridor ring with poor wheel odometry (5x the yaw noise, a yaw bias of 0.6 degrees per step, 10 %
+    translation noise): the scans hold every direction they constrain and the odometry only the slide along
+    the corridors, so the warm start stays far better than the odometry (here 29.6 m vs 0.37 m ATE)."""
+    scans, truth, odometry = corridor_sequence(yaw_sigma=0.02, yaw_bias=0.01, trans_sigma=0.1)
+    ws = IcpWarmStart(fuse="auto", progress=False)
+    poses = ws.run(frames_from(scans, planar=True), Trajectory(odometry))
+    assert ate(odometry, truth) > 10.0
+    assert ate(poses, truth) < 0.05 * ate(odometry, truth) and ate(poses, truth) < 1.0
+    assert ws.report["sources"]["scan across, odometry along"] > 0.3 * ws.report["steps"]
