@@ -19,9 +19,9 @@ from typing import ClassVar
 import numpy as np
 
 from dm2_backend.geometry import se3
-from dm2_backend.plugins.common import Cloud, Match, fine_distance, lengths, orthonormal, project_planar, resolve_method
-from dm2_backend.plugins.gates import check_alignment
-from dm2_backend.plugins.icp import register
+from dm2_backend.algorithms.common import Cloud, Match, fine_distance, lengths, orthonormal, project_planar, resolve_method
+from dm2_backend.algorithms.gates import check_alignment
+from dm2_backend.algorithms.icp import register
 from dm2_backend.prepare.types import Frames, Pairwise, Topology
 from dm2_backend.progress import progress
 

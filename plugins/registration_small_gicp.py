@@ -10,8 +10,8 @@ from typing import ClassVar
 import numpy as np
 
 from dm2_backend.errors import InputError
-from dm2_backend.plugins.common import Cloud, Match, lengths, project_planar
-from dm2_backend.plugins.gates import coverage
+from dm2_backend.algorithms.common import Cloud, Match, lengths, project_planar
+from dm2_backend.algorithms.gates import coverage
 from dm2_backend.plugins.registration_icp import IcpRegistration
 from dm2_backend.prepare.types import Frames
 

@@ -15,8 +15,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from dm2_backend.plugins import scan_context as sc
-from dm2_backend.plugins.common import (
+from dm2_backend.algorithms import scan_context as sc
+from dm2_backend.algorithms.common import (
     Cloud,
     assemble,
     fine_distance,
@@ -26,9 +26,9 @@ from dm2_backend.plugins.common import (
     radius_neighbours,
     resolve_method,
 )
-from dm2_backend.plugins.gates import check_alignment, constraint
-from dm2_backend.plugins.icp import register
-from dm2_backend.plugins.topology_radius import check_k, check_poses
+from dm2_backend.algorithms.gates import check_alignment, constraint
+from dm2_backend.algorithms.icp import register
+from dm2_backend.algorithms.topology import check_k, check_poses
 from dm2_backend.prepare.types import Frames, Topology
 from dm2_backend.progress import progress
 

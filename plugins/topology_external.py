@@ -12,9 +12,9 @@ from typing import ClassVar
 import numpy as np
 from scipy.spatial import cKDTree
 
+from dm2_backend.algorithms.common import assemble
+from dm2_backend.algorithms.topology import check_k, check_poses
 from dm2_backend.errors import InputError
-from dm2_backend.plugins.common import assemble
-from dm2_backend.plugins.topology_radius import check_k, check_poses
 from dm2_backend.prepare.types import Frames, Topology
 
 

@@ -28,11 +28,9 @@ from typing import ClassVar
 import numpy as np
 from scipy.spatial import cKDTree
 
-from dm2_backend.errors import InputError
-from dm2_backend.geometry import se3
-from dm2_backend.plugins import correlative as cm
-from dm2_backend.plugins import keyframes as kf
-from dm2_backend.plugins.common import (
+from dm2_backend.algorithms import correlative as cm
+from dm2_backend.algorithms import keyframes as kf
+from dm2_backend.algorithms.common import (
     Cloud,
     Match,
     assemble,
@@ -42,10 +40,12 @@ from dm2_backend.plugins.common import (
     path_length,
     planar_pose,
 )
-from dm2_backend.plugins.gates import constraint, free_space
-from dm2_backend.plugins.icp import register
-from dm2_backend.plugins.loop_graph import Closure, KeyframeGraph, between, cycle_error
-from dm2_backend.plugins.topology_radius import check_k, check_poses
+from dm2_backend.algorithms.gates import constraint, free_space
+from dm2_backend.algorithms.icp import register
+from dm2_backend.algorithms.loop_graph import Closure, KeyframeGraph, between, cycle_error
+from dm2_backend.algorithms.topology import check_k, check_poses
+from dm2_backend.errors import InputError
+from dm2_backend.geometry import se3
 from dm2_backend.prepare.types import Frames, Topology
 from dm2_backend.progress import progress
 

@@ -29,9 +29,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from dm2_backend.errors import InputError
-from dm2_backend.geometry import se3
-from dm2_backend.plugins.common import (
+from dm2_backend.algorithms.common import (
     Cloud,
     assemble,
     fine_distance,
@@ -42,10 +40,12 @@ from dm2_backend.plugins.common import (
     rotation_angle,
     voxel_cloud,
 )
-from dm2_backend.plugins.gates import constraint, coverage
-from dm2_backend.plugins.icp import register
-from dm2_backend.plugins.loop_graph3d import Closure3, FrameGraph
-from dm2_backend.plugins.topology_radius import check_k, check_poses
+from dm2_backend.algorithms.gates import constraint, coverage
+from dm2_backend.algorithms.icp import register
+from dm2_backend.algorithms.loop_graph3d import Closure3, FrameGraph
+from dm2_backend.algorithms.topology import check_k, check_poses
+from dm2_backend.errors import InputError
+from dm2_backend.geometry import se3
 from dm2_backend.prepare.types import Frames, Topology
 from dm2_backend.progress import progress
 

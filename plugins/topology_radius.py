@@ -8,14 +8,9 @@ from typing import ClassVar
 
 import numpy as np
 
-from dm2_backend.errors import InputError
-from dm2_backend.plugins.common import assemble, lengths, radius_neighbours
+from dm2_backend.algorithms.common import assemble, radius_neighbours
+from dm2_backend.algorithms.topology import check_k, check_poses, default_radius
 from dm2_backend.prepare.types import Frames, Topology
-
-
-def default_radius(frames: Frames) -> float:
-    """Half the median range: frames this close share most of their view."""
-    return 0.5 * lengths(frames)["range_median"]
 
 
 @dataclass
@@ -37,13 +32,3 @@ class RadiusTopology:
         topo = assemble([[(j, "radius") for j in row] for row in near], self.k, self.temporal_fill)
         topo.log.append({"plugin": self.name, "radius": radius, "k": self.k})
         return topo
-
-
-def check_k(k: int) -> None:
-    if k < 1:
-        raise InputError(None, f"place recognition: k must be at least 1, got {k}")
-
-
-def check_poses(frames: Frames, poses: np.ndarray) -> None:
-    if poses.shape != (len(frames), 4, 4):
-        raise InputError(None, f"place recognition: {poses.shape[0]} poses for {len(frames)} frames")

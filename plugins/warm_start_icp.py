@@ -32,9 +32,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from dm2_backend.errors import InputError
-from dm2_backend.geometry import se3
-from dm2_backend.plugins.common import (
+from dm2_backend.algorithms.common import (
     Cloud,
     fine_distance,
     lengths,
@@ -44,7 +42,9 @@ from dm2_backend.plugins.common import (
     rotation_angle,
     voxel_cloud,
 )
-from dm2_backend.plugins.icp import information_2d, register, slide_loss
+from dm2_backend.algorithms.icp import information_2d, register, slide_loss
+from dm2_backend.errors import InputError
+from dm2_backend.geometry import se3
 from dm2_backend.prepare.types import Frames
 from dm2_backend.progress import progress
 from dm2_backend.trajectory import Trajectory

@@ -8,8 +8,8 @@ from typing import ClassVar
 
 import numpy as np
 
+from dm2_backend.algorithms.common import lengths, project_planar
 from dm2_backend.errors import InputError
-from dm2_backend.plugins.common import lengths, project_planar
 from dm2_backend.prepare.types import Frames
 from dm2_backend.progress import progress
 from dm2_backend.trajectory import Trajectory

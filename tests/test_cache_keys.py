@@ -87,7 +87,7 @@ def test_the_code_of_a_plugin_and_of_what_it_uses_is_in_the_key():
 
     closure = module_closure(LoopsTopology.__module__)
     # the shared algorithms the plugin calls are part of its fingerprint, not just its own file
-    assert {"dm2_backend.plugins.common", "dm2_backend.plugins.gates", "dm2_backend.geometry.se3"} <= closure
+    assert {"dm2_backend.algorithms.common", "dm2_backend.algorithms.gates", "dm2_backend.geometry.se3"} <= closure
     assert code_fingerprint(LoopsTopology) != code_fingerprint(RadiusTopology)
 
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from dm2_backend.algorithms.common import Cloud
 from dm2_backend.geometry import se3
-from dm2_backend.plugins.common import Cloud
 from dm2_backend.plugins.topology_loops import LoopsTopology
 
 

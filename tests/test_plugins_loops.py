@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from plugins_scenes import floor_2d
 
+from dm2_backend.algorithms import correlative as cm
+from dm2_backend.algorithms.loop_graph import Closure, between, cycle_error
 from dm2_backend.geometry import se3
-from dm2_backend.plugins import correlative as cm
-from dm2_backend.plugins.loop_graph import Closure, between, cycle_error
 from dm2_backend.plugins.registry import load
 from dm2_backend.plugins.topology_loops import correct
 from dm2_backend.simulate.path import drifting_odometry

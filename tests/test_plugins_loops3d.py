@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from plugins_scenes import room_3d
 
+from dm2_backend.algorithms.loop_graph3d import Closure3, FrameGraph
 from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
 from dm2_backend.pipeline.live import ate_rmse
-from dm2_backend.plugins.loop_graph3d import Closure3, FrameGraph
 from dm2_backend.plugins.registry import load
 from dm2_backend.prepare.pipeline import resolve_auto
 

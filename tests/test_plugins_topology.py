@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from plugins_scenes import floor_2d, room_3d
 
+from dm2_backend.algorithms import scan_context as sc
+from dm2_backend.algorithms.common import temporal_order
 from dm2_backend.errors import InputError
 from dm2_backend.formats.registry import ReadOptions, write_trajectory
 from dm2_backend.geometry import se3
-from dm2_backend.plugins import scan_context as sc
-from dm2_backend.plugins.common import temporal_order
 from dm2_backend.plugins.topology_descriptor import DescriptorTopology
 from dm2_backend.plugins.topology_external import ExternalTopology
 from dm2_backend.plugins.topology_poses import GpsTopology, PosesTopology

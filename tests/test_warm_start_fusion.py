@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from plugins_scenes import floor_2d, frames_from
 
+from dm2_backend.algorithms.common import Cloud
+from dm2_backend.algorithms.icp import information_2d, slide_loss
 from dm2_backend.geometry import se3
-from dm2_backend.plugins.common import Cloud
-from dm2_backend.plugins.icp import information_2d, slide_loss
 from dm2_backend.plugins.warm_start_icp import IcpWarmStart
 from dm2_backend.simulate.corridor import corridor_sequence
 from dm2_backend.simulate.path import drifting_odometry

@@ -15,11 +15,11 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
+from dm2_backend.algorithms.common import fine_distance, lengths
 from dm2_backend.baselines.graph import valid_pairs
 from dm2_backend.baselines.options import GraphResult, SolverOptions
 from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
-from dm2_backend.plugins.common import fine_distance, lengths
 from dm2_backend.prepare.types import Frames, Pairwise, Topology
 
 reg = o3d.pipelines.registration

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dm2_backend.algorithms.common import path_length
 from dm2_backend.errors import InputError
-from dm2_backend.plugins.common import path_length
 from dm2_backend.plugins.registry import load as load_plugin
 from dm2_backend.prepare import store
 from dm2_backend.prepare.cache_keys import code_fingerprint, source_key, step_key

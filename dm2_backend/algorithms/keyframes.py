@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from dm2_backend.algorithms.common import path_length
 from dm2_backend.geometry import se3
-from dm2_backend.plugins.common import path_length
 from dm2_backend.prepare.types import Frames
 
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import minimum_filter
 
+from dm2_backend.algorithms.common import Cloud, Match
 from dm2_backend.geometry import se3
-from dm2_backend.plugins.common import Cloud, Match
 
 
 def coverage(moving: Cloud, fixed: Cloud, T: np.ndarray, distance: float) -> tuple[float, float]:

@@ -9,8 +9,8 @@ from collections.abc import Sequence
 import numpy as np
 import open3d as o3d
 
+from dm2_backend.algorithms.common import Cloud, Match, planar_pose, project_planar
 from dm2_backend.geometry import se3
-from dm2_backend.plugins.common import Cloud, Match, planar_pose, project_planar
 
 reg = o3d.pipelines.registration
 
