@@ -1,24 +1,98 @@
-"""Write outputs under a temporary name and rename, so a crash never leaves half a file."""
+"""Write outputs under a temporary name and rename, so a crash never leaves half a file.
+
+Nothing here removes what it did not create: an existing folder is never replaced (a file target that is a
+folder, or a folder target that exists, is an :class:`InputError`), and only our own temporaries
+(``.tmp-PID-name``) are deleted: on every exit path of the writer, and, for writers killed before they could
+(a dead PID), by the next write into the same folder.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO
+
+from dm2_backend.errors import InputError
+
+_TEMP = re.compile(r"\.tmp-(\d+)-")
 
 
 def _temp_name(path: Path) -> Path:
     return path.with_name(f".tmp-{os.getpid()}-{path.name}")
 
 
+def temp_prefix() -> str:
+    """Prefix for other temporaries of this process (``tempfile`` names) that :func:`clean_stale` knows."""
+    return f".tmp-{os.getpid()}-"
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True  # exists (owned by someone else) or cannot tell: keep its files
+    return True
+
+
+def clean_stale(folder: str | Path) -> list[Path]:
+    """Remove ``.tmp-PID-*`` entries of ``folder`` left by processes that no longer run; returns them."""
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    for entry in entries:
+        m = _TEMP.match(entry.name)
+        if m is None or _alive(int(m.group(1))):
+            continue
+        with contextlib.suppress(OSError):
+            if entry.is_dir(follow_symlinks=False):
+                shutil.rmtree(entry.path)
+            else:
+                os.unlink(entry.path)
+            removed.append(Path(entry.path))
+    return removed
+
+
+def _prepare(path: Path, folder: bool, replaceable: Callable[[Path], bool] | None = None) -> None:
+    """Create the parent folder; refuse targets that would replace a folder (or, for a folder, a file)
+    unless ``replaceable(path)`` says the folder is one this writer writes (e.g. a bag folder)."""
+    if path.is_dir() and not (folder and replaceable is not None and replaceable(path)):
+        what = "folder" if folder else "file"
+        raise InputError(path, f"is an existing folder; dm2 does not replace folders (writing a {what} here "
+                               f"would lose what it holds): remove it or choose another name")
+    if folder and path.exists() and not path.is_dir():
+        raise InputError(path, "is an existing file; a bag folder would replace it: remove it or choose another name")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise InputError(path, "cannot create the output's folder: a parent is a file") from None
+    except PermissionError as exc:
+        raise InputError(path, f"cannot create the output's folder ({exc.strerror})") from None
+    clean_stale(path.parent)
+
+
+def _remove(tmp: Path) -> None:
+    if tmp.is_dir() and not tmp.is_symlink():
+        shutil.rmtree(tmp, ignore_errors=True)
+    elif tmp.exists() or tmp.is_symlink():
+        tmp.unlink(missing_ok=True)
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | Path, mode: str = "w", **kwargs) -> Iterator[IO]:
-    """Open ``path``'s temporary twin for writing; on success rename it over ``path``."""
+    """Open ``path``'s temporary twin for writing; on success rename it over ``path`` (an existing file is
+    replaced, an existing folder is an :class:`InputError`)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _prepare(path, folder=False)
     tmp = _temp_name(path)
     try:
         with open(tmp, mode, **kwargs) as fh:
@@ -29,18 +103,27 @@ def atomic_write(path: str | Path, mode: str = "w", **kwargs) -> Iterator[IO]:
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path (file or folder) for a writer that wants a name; rename on success."""
+def atomic_path(
+    path: str | Path, folder: bool = False, replaceable: Callable[[Path], bool] | None = None
+) -> Iterator[Path]:
+    """Yield a temporary path for a writer that wants a name (a file, or with ``folder`` a folder); rename it
+    to ``path`` on success. ``path`` must not be an existing folder, except (with ``folder``) one for which
+    ``replaceable`` is true, such as an earlier output of the same writer: nothing else the user had is
+    removed."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _prepare(path, folder=folder, replaceable=replaceable)
     tmp = _temp_name(path)
+    old = path.with_name(f".tmp-{os.getpid()}-old-{path.name}")
     try:
         yield tmp
-        if path.is_dir() and tmp.is_dir():
-            shutil.rmtree(path)
-        os.replace(tmp, path)
-    finally:
         if tmp.is_dir():
-            shutil.rmtree(tmp, ignore_errors=True)
-        elif tmp.exists():
-            tmp.unlink()
+            if path.is_dir() and replaceable is not None and replaceable(path):
+                os.rename(path, old)  # set aside, removed once the new one is in place
+            elif path.exists():  # appeared meanwhile: never replace it
+                raise InputError(path, "appeared while it was written; left as it is")
+            os.rename(tmp, path)
+        else:
+            os.replace(tmp, path)
+    finally:
+        _remove(tmp)
+        _remove(old)

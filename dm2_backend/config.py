@@ -47,9 +47,15 @@ def load(path: str | Path | None, overrides: dict | None = None) -> dict:
     if path is not None:
         path = Path(path)
         try:
-            user = yaml.safe_load(path.read_text()) or {}
+            user = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
         except FileNotFoundError as exc:
             raise InputError(path, "no such file") from exc
+        except IsADirectoryError as exc:
+            raise InputError(path, "is a folder, expected a YAML file") from exc
+        except UnicodeDecodeError as exc:
+            raise InputError(path, f"not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+        except RecursionError:
+            raise InputError(path, "invalid YAML: nested too deeply") from None
         except yaml.YAMLError as exc:
             mark = getattr(exc, "problem_mark", None)
             raise InputError(path, f"invalid YAML: {getattr(exc, 'problem', exc)}",
@@ -58,13 +64,17 @@ def load(path: str | Path | None, overrides: dict | None = None) -> dict:
             raise InputError(path, "the config must be a mapping")
         unknown = set(user) - set(DEFAULTS)
         if unknown:
-            raise InputError(path, f"unknown config sections: {', '.join(sorted(unknown))}")
+            raise InputError(path, f"unknown config sections: {', '.join(sorted(map(str, unknown)))}")
         cfg = merge(cfg, user)
     cfg = merge(cfg, overrides or {})
     try:
         config_schema.validate(cfg)
     except config_schema.ConfigError as exc:
         raise InputError(path, str(exc)) from None
+    except InputError as exc:  # e.g. an unknown plugin name: the error names the config it came from
+        if exc.source is not None or path is None:
+            raise
+        raise InputError(path, exc.problem, line=exc.line) from None
     return cfg
 
 

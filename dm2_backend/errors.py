@@ -2,7 +2,15 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
+
+_BREAKS = re.compile(r"\s*[\r\n]+\s*")
+
+
+def one_line(text: str) -> str:
+    """``text`` with its line breaks (and the blanks around them) collapsed to one space."""
+    return _BREAKS.sub(" ", text).strip()
 
 
 class InputError(Exception):
@@ -29,4 +37,5 @@ class InputError(Exception):
             where += f":{self.line}"
         if self.topic is not None:
             where += f" [topic {self.topic}]"
-        return f"{where}: {self.problem}" if where else self.problem
+        text = f"{where}: {self.problem}" if where else self.problem
+        return one_line(text)  # third-party messages (YAML, rosbags) span lines; the CLI promises one

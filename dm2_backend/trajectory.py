@@ -76,6 +76,11 @@ class Trajectory:
         return self
 
 
+#: positions further than this from the origin (metres) are refused: no map is that large, and distances
+#: between such numbers overflow
+MAX_POSITION = 1e9
+
+
 def _line(first_line: int | None, i: int) -> int | None:
     return None if first_line is None else first_line + i
 
@@ -88,6 +93,12 @@ def validate_poses(poses: np.ndarray, source: str | Path | None, first_line: int
     if bad.any():
         i = int(np.argmax(bad))
         raise InputError(source, f"pose {i} has NaN or infinite values", line=_line(first_line, i))
+    far = np.abs(poses[:, :3, 3]).max(axis=1, initial=0.0) > MAX_POSITION if len(poses) else np.zeros(0, bool)
+    if far.any():
+        i = int(np.argmax(far))
+        where = np.abs(poses[i, :3, 3]).max()
+        raise InputError(source, f"pose {i} has a position {where:.3g} m from the origin (more than "
+                                 f"{MAX_POSITION:.0e} m: a broken number)", line=_line(first_line, i))
     err = se3.rotation_error(poses[:, :3, :3])
     if (err > se3.ROTATION_TOL).any():
         i = int(np.argmax(err > se3.ROTATION_TOL))
@@ -100,14 +111,16 @@ def validate_poses(poses: np.ndarray, source: str | Path | None, first_line: int
         poses[off, :3, :3] = se3.project_to_so3(poses[off, :3, :3])
 
 
-def validate_timestamps(stamps: np.ndarray, source: str | Path | None, first_line: int | None = None) -> None:
-    """Raise :class:`InputError` for non-finite, unsorted or duplicate timestamps."""
+def validate_timestamps(stamps: np.ndarray, source: str | Path | None, first_line: int | None = None,
+                        duplicates_ok: bool = False) -> None:
+    """Raise :class:`InputError` for non-finite, unsorted or (unless ``duplicates_ok``) duplicate timestamps."""
     if not np.isfinite(stamps).all():
         i = int(np.argmax(~np.isfinite(stamps)))
         raise InputError(source, f"timestamp {i} is not finite", line=_line(first_line, i))
     d = np.diff(stamps)
-    if (d <= 0).any():
-        i = int(np.argmax(d <= 0)) + 1
+    bad = d < 0 if duplicates_ok else d <= 0
+    if bad.any():
+        i = int(np.argmax(bad)) + 1
         kind = "duplicate" if d[i - 1] == 0 else "unsorted"
         now, before = float(stamps[i]), float(stamps[i - 1])
         hint = " (--duplicate-times keep-first keeps the first pose of each)" if kind == "duplicate" else ""

@@ -10,6 +10,7 @@ from dm2_backend.formats import (  # noqa: F401  (each module registers itself)
     kitti,
     kitti_raw,
     nclt,
+    poses_npy,
     scan_folder,
     tum,
 )

@@ -3,6 +3,7 @@ validation that names the file line."""
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Iterator
 from pathlib import Path
@@ -11,6 +12,8 @@ import numpy as np
 
 from dm2_backend.errors import InputError
 from dm2_backend.trajectory import Trajectory, validate_poses, validate_timestamps
+
+log = logging.getLogger(__name__)
 
 #: Largest accepted deviation of a parsed quaternion's norm from 1 (print rounding is far smaller;
 #: a larger one means a wrong column or a broken file).
@@ -37,7 +40,9 @@ def data_lines(lines: list[str], comment: str = "#") -> Iterator[tuple[int, list
         text = text.strip()
         if not text or text.startswith(comment):
             continue
-        yield number, text.replace(",", " ").split()
+        fields = text.replace(",", " ").split()
+        if fields:  # a line of commas only is blank
+            yield number, fields
 
 
 def parse_floats(path: Path, number: int, fields: list[str]) -> list[float]:
@@ -110,12 +115,13 @@ def check_quaternions(path: Path, q: np.ndarray, lines: np.ndarray) -> None:
         raise InputError(path, f"quaternion norm {norm:.4g} is not 1 (not a rotation)", line=int(lines[i]))
 
 
-def validate(traj: Trajectory, path: Path, lines: np.ndarray) -> Trajectory:
-    """Validate poses and timestamps, naming the file line of the first bad row."""
+def validate(traj: Trajectory, path: Path, lines: np.ndarray, duplicates_ok: bool = False) -> Trajectory:
+    """Validate poses and timestamps (repeated ones allowed with ``duplicates_ok``), naming the file line of
+    the first bad row."""
     try:
         validate_poses(traj.poses, path, 0)
         if traj.timestamps is not None:
-            validate_timestamps(traj.timestamps, path, 0)
+            validate_timestamps(traj.timestamps, path, 0, duplicates_ok)
     except InputError as exc:
         line = None if exc.line is None else int(lines[exc.line])
         raise InputError(path, exc.problem, line=line) from None
@@ -131,12 +137,40 @@ def drop_duplicate_times(
     return stamps[keep], rows[keep], lines[keep], [int(n) for n in lines[~keep]]
 
 
+#: what a text trajectory reader does with a repeated timestamp (``ReadOptions.extra["duplicate_times"]``):
+#: "keep" every pose, as evo's readers do (the default; one warning), "keep-first" of each run, or "error"
+DUPLICATE_POLICIES = ("keep", "keep-first", "error")
+
+
 def duplicate_policy(extra: dict) -> str:
-    """``ReadOptions.extra["duplicate_times"]``: "error" (default) or "keep-first"."""
-    policy = extra.get("duplicate_times", "error")
-    if policy not in ("error", "keep-first"):
-        raise ValueError(f"duplicate_times must be 'error' or 'keep-first', not {policy!r}")
+    """``ReadOptions.extra["duplicate_times"]``, one of :data:`DUPLICATE_POLICIES` ("keep" by default)."""
+    policy = extra.get("duplicate_times", "keep")
+    if policy not in DUPLICATE_POLICIES:
+        raise ValueError(f"duplicate_times must be one of {', '.join(DUPLICATE_POLICIES)}, not {policy!r}")
     return policy
+
+
+def duplicate_times(
+    path: Path, stamps: np.ndarray, rows: np.ndarray, lines: np.ndarray, extra: dict, meta: dict
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+    """Apply the :func:`duplicate_policy` to repeated consecutive timestamps: "keep" keeps every pose as evo
+    does (its association then picks the nearest pose, as for any other stamp) with one warning and the
+    repeating lines in ``meta["duplicate_lines"]``; "keep-first" drops the later poses of a run (their lines
+    in ``meta["dropped_duplicate_lines"]``). Returns the rows and whether repeated stamps may remain."""
+    policy = duplicate_policy(extra)
+    if policy == "keep-first":
+        stamps, rows, lines, dropped = drop_duplicate_times(stamps, rows, lines)
+        if dropped:
+            meta["dropped_duplicate_lines"] = dropped
+    elif policy == "keep":
+        repeated = np.flatnonzero(np.diff(stamps) == 0) + 1
+        if len(repeated):
+            meta["duplicate_lines"] = [int(n) for n in lines[repeated]]
+            i = int(repeated[0])
+            more = f" and {len(repeated) - 1} more" if len(repeated) > 1 else ""
+            log.warning("%s: line %d repeats the timestamp %r of line %d%s; kept every pose, as evo does",
+                        path, int(lines[i]), float(stamps[i]), int(lines[i - 1]), more)
+    return stamps, rows, lines, policy == "keep"
 
 
 def fmt(value: float) -> str:

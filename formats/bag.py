@@ -9,7 +9,9 @@ geometry_msgs/PoseStamped.
 
 from __future__ import annotations
 
+import bz2
 import contextlib
+import functools
 import os
 import sqlite3
 import struct
@@ -17,21 +19,30 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+import apsw
+import lz4.frame
 import numpy as np
 import yaml
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.rosbag1 import ReaderError as ReaderError1
 from rosbags.rosbag1 import Writer as Writer1
+from rosbags.rosbag1 import reader as _reader1
 from rosbags.rosbag2 import ReaderError as ReaderError2
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
+from rosbags.rosbag2 import storage_mcap as _storage_mcap
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 
-from dm2_backend.atomic import atomic_path
+try:
+    from compression import zstd as _zstd  # Python 3.14
+except ImportError:  # pragma: no cover - the backport rosbags depends on before 3.14
+    from backports import zstd as _zstd
+
+from dm2_backend.atomic import atomic_path, temp_prefix
 from dm2_backend.errors import InputError
 from dm2_backend.formats import bag_messages as bm
-from dm2_backend.formats.bag_tf import TfBuffer, TfError, parse_tf_id
+from dm2_backend.formats.bag_tf import TfBuffer, TfError, TfId, parse_tf_id
 from dm2_backend.formats.registry import (
     ReadOptions,
     ScanSource,
@@ -46,8 +57,43 @@ from dm2_backend.trajectory import Trajectory
 DEFAULT_WRITE_TOPIC = "/dm2/poses"
 SUFFIXES = (".bag", ".db3", ".mcap")
 _READ_ERRORS = (
-    AnyReaderError, ReaderError1, ReaderError2, SerdeError, sqlite3.DatabaseError, struct.error, EOFError,
+    AnyReaderError, ReaderError1, ReaderError2, SerdeError, sqlite3.DatabaseError, apsw.Error, struct.error,
+    EOFError,
 )
+#: largest decompressed chunk accepted from a bag (ROS 1 bz2/lz4 chunks, MCAP lz4/zstd chunks)
+MAX_CHUNK_BYTES = 1 << 30
+
+
+def _bounded(kind: str, data: bytes, limit: int, error: type[Exception]) -> bytes:
+    """Decompress ``data`` to at most ``limit`` bytes; library errors and larger outputs become ``error``."""
+    try:
+        if kind == "lz4":
+            out = lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=limit + 1)
+        elif kind == "zstd":
+            out = _zstd.ZstdDecompressor().decompress(data, max_length=limit + 1)
+        else:
+            out = bz2.BZ2Decompressor().decompress(data, max_length=limit + 1)
+    except (RuntimeError, OSError, EOFError, ValueError, _zstd.ZstdError) as exc:
+        raise error(f"corrupt {kind} chunk: {exc}") from None
+    if len(out) > limit:
+        raise error(f"a {kind} chunk decompresses to more than {limit} bytes")
+    return out
+
+
+def _mcap_decompressor(kind: str):
+    def run(data: bytes, size: int) -> bytes:
+        if size > MAX_CHUNK_BYTES:
+            raise ReaderError2(f"a {kind} chunk declares {size} bytes (limit {MAX_CHUNK_BYTES})")
+        return _bounded(kind, data, size, ReaderError2)
+
+    return run
+
+
+# rosbags decompresses chunks without a bound and lets the codecs' own errors through: give it ours
+_storage_mcap.DECOMPRESSORS.update({k: _mcap_decompressor(k) for k in ("lz4", "zstd")})
+_reader1.decompressors.update({
+    k: functools.partial(_bounded, k, limit=MAX_CHUNK_BYTES, error=ReaderError1) for k in ("bz2", "lz4")
+})
 
 
 def _kind(path: Path) -> str:
@@ -55,7 +101,7 @@ def _kind(path: Path) -> str:
         try:
             meta = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
             return f"ROS 2 bag folder ({meta['storage_identifier']})"
-        except (OSError, yaml.YAMLError, KeyError, TypeError):
+        except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError):  # ValueError: not UTF-8
             return "ROS 2 bag folder"
     return {".bag": "ROS 1 bag", ".db3": "ROS 2 sqlite3 file", ".mcap": "ROS 2 mcap file"}.get(
         path.suffix.lower(), "bag"
@@ -65,10 +111,16 @@ def _kind(path: Path) -> str:
 @contextlib.contextmanager
 def open_bag(path: Path) -> Iterator[AnyReader]:
     """An open AnyReader; failures to open become :class:`InputError`."""
+    reader = None
     try:
         reader = AnyReader([Path(path)], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()
+        # the index and metadata are parsed lazily: make rosbags read them here, inside this guard
+        _ = reader.topics, reader.message_count, reader.duration, reader.connections
     except Exception as exc:  # rosbags raises many kinds on foreign or truncated files
+        if reader is not None:
+            with contextlib.suppress(Exception):
+                reader.close()
         raise InputError(path, f"cannot open as a {_kind(Path(path))}: {exc}") from None
     try:
         yield reader
@@ -76,6 +128,68 @@ def open_bag(path: Path) -> Iterator[AnyReader]:
         raise InputError(path, f"cannot read the {_kind(Path(path))}: {exc}") from None
     finally:
         reader.close()
+
+
+def _messages(reader: AnyReader, **kwargs) -> Iterator:
+    """``reader.messages(**kwargs)``; rosbags checks a ROS 1 bag's index against its records with ``assert``,
+    which is turned into its reader error here (only around rosbags' own iteration)."""
+    it = reader.messages(**kwargs)
+    while True:
+        try:
+            item = next(it)
+        except StopIteration:
+            return
+        except _READ_ERRORS:
+            raise
+        except Exception as exc:  # only rosbags runs here; on corrupt records it fails with assert, KeyError...
+            raise ReaderError1(f"corrupt bag record ({type(exc).__name__}: {exc})") from None
+        yield item
+
+
+@functools.lru_cache(maxsize=2)
+def _standard_stores() -> tuple:
+    return get_typestore(Stores.ROS2_HUMBLE), get_typestore(Stores.ROS1_NOETIC)
+
+
+def _nested(fields) -> Iterator[str]:
+    for _, (kind, detail) in fields:
+        while isinstance(detail, tuple) and detail and isinstance(detail[0], tuple):  # sequences / arrays
+            kind, detail = detail[0]
+        if isinstance(detail, str):
+            yield detail
+
+
+def _definition_problem(typestore, msgtype: str) -> str | None:
+    """How the bag's own definition of a message type dm2 reads (and of the types inside it) differs from
+    ROS's (ROS 2 Humble or ROS 1 Noetic): a corrupt definition deserialises to objects without the fields
+    dm2 reads. None when it is the standard one."""
+    todo, seen = [msgtype], set()
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        seen.add(name)
+        mine = typestore.fielddefs.get(name)
+        if mine is None:
+            return f"the bag carries no definition of {name[:80]}"
+        if not any(store.fielddefs.get(name) == mine for store in _standard_stores()):
+            return f"the bag's definition of {name[:80]} is not the standard one"
+        todo.extend(_nested(mine[1]))
+    return None
+
+
+def _deserialize(reader: AnyReader, raw: bytes, msgtype: str):
+    """``reader.deserialize`` of a type dm2 reads; a message whose bytes or type definition are corrupt is a
+    read error (the generated deserialisers fail with struct, index, key or unicode errors)."""
+    checked = reader.__dict__.setdefault("_dm2_checked_types", {})
+    if msgtype not in checked:
+        checked[msgtype] = _definition_problem(reader.typestore, msgtype)
+    if checked[msgtype] is not None:
+        raise SerdeError(checked[msgtype])
+    try:
+        return reader.deserialize(raw, msgtype)
+    except Exception as exc:  # only rosbags' generated code runs here
+        raise SerdeError(f"cannot deserialise a {msgtype[:80]} message ({type(exc).__name__}: {exc})") from None
 
 
 def _topic_list(reader: AnyReader) -> str:
@@ -122,8 +236,8 @@ def _read_tf(reader: AnyReader, path: Path, topic: str) -> Trajectory:
     buffer = TfBuffer()
     for name, static in ((tf_id.topic, False), (tf_id.static_topic, True)):
         conns = [c for c in reader.connections if c.topic == name and c.msgtype == bm.TF_TYPE]
-        for conn, _, raw in reader.messages(connections=conns) if conns else ():
-            buffer.add(reader.deserialize(raw, conn.msgtype), static)
+        for conn, _, raw in _messages(reader, connections=conns) if conns else ():
+            buffer.add(_deserialize(reader, raw, conn.msgtype), static)
     try:
         poses, stamps = buffer.trajectory(tf_id.parent, tf_id.child)
     except TfError as err:
@@ -142,13 +256,15 @@ def read(path: Path, options: ReadOptions) -> Trajectory:
             return _read_tf(reader, path, options.topic)
         topic = _pick_topic(reader, path, options.topic, bm.POSE_TYPES, "poses")
         stamps, xyz, quat, frame_id = [], [], [], None
-        for conn, _, raw in reader.messages(connections=reader.topics[topic].connections):
-            msg = reader.deserialize(raw, conn.msgtype)
+        for conn, _, raw in _messages(reader, connections=reader.topics[topic].connections):
+            msg = _deserialize(reader, raw, conn.msgtype)
             stamps.append(bm.stamp_seconds(msg.header.stamp))
             p, q = bm.pose_of(msg)
             xyz.append(p)
             quat.append(q)
             frame_id = msg.header.frame_id if frame_id is None else frame_id
+    if not stamps:
+        raise InputError(path, "no message could be read (the bag's index lists some)", topic=topic)
     quat = np.asarray(quat, dtype=np.float64)
     if (bad := bm.bad_quaternion(quat)).any():
         i = int(np.argmax(bad))
@@ -168,6 +284,13 @@ def _write_messages(traj: Trajectory, writer, typestore, topic: str, ros1: bool)
         writer.write(conn, sec * 1_000_000_000 + nsec, serialize(msg, bm.WRITE_TYPE))
 
 
+def _is_bag_folder(path: Path) -> bool:
+    """A folder holding a ROS 2 bag and nothing else (metadata.yaml and its storage files): replaceable."""
+    names = [p.name for p in path.iterdir()]
+    return "metadata.yaml" in names and all(
+        n == "metadata.yaml" or n.endswith((".db3", ".mcap", ".db3-shm", ".db3-wal")) for n in names)
+
+
 def write(traj: Trajectory, path: Path, options: ReadOptions) -> None:
     """PoseStamped messages (frame "map", header stamps = trajectory stamps) on ``options.topic``:
     a ROS 1 ``.bag``, a bare ``.mcap`` or ``.db3`` file, or (any other name) a ROS 2 sqlite3 folder."""
@@ -177,19 +300,23 @@ def write(traj: Trajectory, path: Path, options: ReadOptions) -> None:
     if len(traj) and (not np.isfinite(traj.timestamps).all() or traj.timestamps.min() < 0):
         raise InputError(path, "bag stamps must be finite and not negative")
     suffix = path.suffix.lower()
-    with atomic_path(path) as tmp:
+    bare = suffix in SUFFIXES
+    with atomic_path(path, folder=not bare, replaceable=_is_bag_folder) as tmp:
         if suffix == ".bag":
             with Writer1(tmp) as writer:
                 _write_messages(traj, writer, get_typestore(Stores.ROS1_NOETIC), topic, ros1=True)
             return
         plugin = StoragePlugin.MCAP if suffix == ".mcap" else StoragePlugin.SQLITE3
-        with tempfile.TemporaryDirectory(dir=path.parent, prefix=".tmp-bag-") as work:
-            folder = Path(work) / "bag" if suffix in (".mcap", ".db3") else tmp
+        with tempfile.TemporaryDirectory(dir=path.parent, prefix=temp_prefix() + "bag-") as work:
+            # rosbags names the storage file after the folder: write it as PATH's name, then move it
+            folder = Path(work) / (path.stem if bare else path.name)
             with Writer2(folder, version=8, storage_plugin=plugin) as writer:
                 _write_messages(traj, writer, get_typestore(Stores.ROS2_HUMBLE), topic, ros1=False)
-            if folder != tmp:  # a bare storage file: take it out of the folder rosbags wrote
+            if bare:  # a bare storage file: take it out of the folder rosbags wrote
                 (inner,) = folder.glob(f"*{suffix}")
                 os.replace(inner, tmp)
+            else:
+                os.rename(folder, tmp)
 
 
 class _LazyMessages:
@@ -212,11 +339,11 @@ class _LazyMessages:
         reader = self._open()
         bag_ns, rank = self.keys[i]
         conns = reader.topics[self.topic].connections
-        msgs = reader.messages(connections=conns, start=bag_ns, stop=bag_ns + 1)
+        msgs = _messages(reader, connections=conns, start=bag_ns, stop=bag_ns + 1)
         for k, (conn, _, raw) in enumerate(msgs):
             if k == rank:
                 try:
-                    return bm.scan_of(reader.deserialize(raw, conn.msgtype), self.msgtype)
+                    return bm.scan_of(_deserialize(reader, raw, conn.msgtype), self.msgtype)
                 except ValueError as err:
                     raise InputError(self.path, f"message {i}: {err}", topic=self.topic) from None
         raise InputError(self.path, f"message {i} vanished from the bag", topic=self.topic)
@@ -236,10 +363,10 @@ def open_scans(path: Path, options: ReadOptions) -> ScanSequence:
         topic = _pick_topic(reader, path, options.topic, bm.SCAN_TYPES, "scans")
         msgtype = reader.topics[topic].msgtype
         keys, stamps = [], []
-        for conn, bag_ns, raw in reader.messages(connections=reader.topics[topic].connections):
+        for conn, bag_ns, raw in _messages(reader, connections=reader.topics[topic].connections):
             rank = keys[-1][1] + 1 if keys and keys[-1][0] == bag_ns else 0
             keys.append((bag_ns, rank))
-            stamps.append(bm.stamp_seconds(reader.deserialize(raw, conn.msgtype).header.stamp))
+            stamps.append(bm.stamp_seconds(_deserialize(reader, raw, conn.msgtype).header.stamp))
     stamps = np.asarray(stamps, dtype=np.float64)
     _checked(path, topic, Trajectory(se3.identity(len(stamps)), stamps))
     return ScanSequence(
@@ -255,7 +382,8 @@ def describe(path: Path) -> list[tuple[str, str]]:
         topics = sorted(reader.topics.items())
         rows = [
             ("storage", _kind(path)),
-            ("duration", f"{reader.duration * 1e-9:.3f} s"),
+            ("duration", f"{reader.duration * 1e-9:.3f} s" if 0 <= reader.duration < 2**63 else
+             "unknown (the bag's metadata gives none that is a number of nanoseconds)"),
             ("messages", str(reader.message_count)),
         ]
         if topics:
@@ -264,7 +392,45 @@ def describe(path: Path) -> list[tuple[str, str]]:
             rows += [
                 ("topic", f"{t:<{w_name}}  {i.msgtype or 'mixed':<{w_type}}  {i.msgcount}") for t, i in topics
             ]
+        rows += _tf_rows(reader)
     return rows
+
+
+def _tf_rows(reader: AnyReader) -> list[tuple[str, str]]:
+    """One row per TF frame pair ``parent -> child`` with its transform count and the ``--topic`` id that
+    reads the pose of ``child`` in ``parent`` (any two connected frames can be named the same way)."""
+    tf_topics = sorted(t for t, i in reader.topics.items() if i.msgtype == bm.TF_TYPE and i.msgcount > 0)
+    if not tf_topics:
+        return []
+    dynamic = [t for t in tf_topics if "static" not in t]
+    main = "/tf" if "/tf" in dynamic else (dynamic[0] if dynamic else None)
+    counts: dict[tuple[str, str, str], int] = {}
+    try:
+        for topic in tf_topics:
+            for conn, _, raw in _messages(reader, connections=reader.topics[topic].connections):
+                for tf in _deserialize(reader, raw, conn.msgtype).transforms:
+                    key = (topic, tf.header.frame_id, tf.child_frame_id)
+                    counts[key] = counts.get(key, 0) + 1
+    except (*_READ_ERRORS, KeyError) as exc:
+        return [("tf", f"cannot read the TF messages ({exc})")]
+    if not counts:
+        return []
+    pairs = [(f"{parent} -> {child}", topic, n, _tf_id(topic, parent, child, main)) for (topic, parent, child), n
+             in sorted(counts.items(), key=lambda kv: (kv[0][0] not in dynamic, kv[0][1], kv[0][2]))]
+    w_pair = max(len(p) for p, *_ in pairs)
+    w_count = max(len(f"{n} on {t}") for _, t, n, _ in pairs)
+    return [("tf", f"{pair:<{w_pair}}  {f'{n} on {topic}':<{w_count}}  " + (f"--topic {tf_id}" if tf_id else ""))
+            for pair, topic, n, tf_id in pairs]
+
+
+def _tf_id(topic: str, parent: str, child: str, main: str | None) -> str | None:
+    """The ``/tf:PARENT.CHILD`` id of a pair seen on ``topic`` (a static topic is read with the dynamic one);
+    None where no id can name it (no dynamic TF topic, or a frame name with a dot)."""
+    if main is None or "." in parent:
+        return None
+    static = "" if topic == main or topic == "/tf_static" else f":{topic}"
+    tf_id = f"{main}:{parent}.{child}{static}"
+    return tf_id if parse_tf_id(tf_id) == TfId(main, parent, child, topic if static else "/tf_static") else None
 
 
 def sniff(path: Path) -> bool:

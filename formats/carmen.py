@@ -30,8 +30,11 @@ Conventions:
   -89.5..+89.5 deg (4.4 / 3.0 cm) or -90..+90 deg in 179 steps (4.4 / 3.0 cm).
 * In FLASER/ROBOTLASER1, ``x y theta`` is the laser's pose in the world and ``odom_x..`` / ``robot_x..``
   the robot's (odometry) pose; the laser sits at ``robot (+) offset``, the offset being
-  ``robot_frontlaser_offset`` / ``_side_offset`` / ``_angular_offset`` PARAMs (0 when absent; override with
-  ``ReadOptions.extra["laser_offset"] = (x, y, theta)``). In the Freiburg logs the offset is 0, so both
+  ``robot_frontlaser_offset`` / ``_side_offset`` / ``_angular_offset`` PARAMs (override with
+  ``ReadOptions.extra["laser_offset"] = (x, y, theta)``); without them 0, except for ROBOTLASER1, whose
+  messages carry both poses: there the offset is ``robot_pose^-1 (+) laser_pose`` when every message agrees
+  on it (a raw log written by CARMEN's robot module), so that a laser mounted ahead of the axle is not
+  taken for the robot. In the Freiburg logs the offset is 0, so both
   poses are equal; in the GMapping "corrected" dialect both hold the corrected pose.
 * Scans are returned in the ROBOT frame (offset applied), z = 0. Trajectories are robot poses:
   ``"odometry"`` = the robot pose fields, ``"logged"`` = laser pose (+) offset^-1. For RAWLASER both are the
@@ -59,6 +62,7 @@ import io
 import itertools
 import math
 import re
+import zlib
 from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -76,7 +80,7 @@ from dm2_backend.formats.registry import (
 )
 from dm2_backend.geometry import se3
 from dm2_backend.scans import Scan, ScanSequence
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.trajectory import Trajectory, validate_poses
 
 SUFFIXES = (".clf", ".log", ".clf.gz", ".log.gz", ".clf.bz2", ".log.bz2")
 POSE_KINDS = ("FLASER", "ROBOTLASER1")
@@ -90,6 +94,8 @@ KNOWN_NAMES = frozenset(
                    "NMEA-GGA", "GPSNMEA", "SONAR", "BUMPER", "SCANMARK", "POSITIONLASER", "NEFF", "LASER")
 )
 CARMEN_MAX_RANGE = 80.0
+#: largest log accepted (decompressed bytes): the Intel log, among the longest public ones, is 16 MiB
+MAX_LOG_BYTES = 512 << 20
 _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_\-]*\Z")
 _TOKEN = re.compile(r"\S+")
 
@@ -229,6 +235,8 @@ def _parse_config_laser(tokens, kind, source, line) -> tuple[Message, int]:
         _num(tokens[i], name, source, line)
         for i, name in enumerate(("start_angle", "fov", "angular_resolution", "maximum_range", "accuracy"), 2)
     )
+    if abs(start) > 4 * math.pi or abs(step) > 2 * math.pi:
+        raise _err(source, line, f"start_angle {start:g} / angular_resolution {step:g} rad are not beam angles")
     _int(tokens[7], "remission_mode", source, line)
     n = _int(tokens[8], "num_readings", source, line)
     _need(tokens, 9 + n, kind, source, line)
@@ -303,20 +311,17 @@ def read_text(path: str | Path) -> str:
     try:
         with open(path, "rb") as fh:
             magic = fh.read(3)
-        if magic[:2] == b"\x1f\x8b":
-            with gzip.open(path, "rb") as fh:
-                data = fh.read()
-        elif magic == b"BZh":
-            with bz2.open(path, "rb") as fh:
-                data = fh.read()
-        else:
-            data = path.read_bytes()
+        opener = gzip.open if magic[:2] == b"\x1f\x8b" else bz2.open if magic == b"BZh" else open
+        with opener(path, "rb") as fh:
+            data = fh.read(MAX_LOG_BYTES + 1)  # a bound: a small compressed file may expand without one
     except FileNotFoundError:
         raise InputError(path, "no such file") from None
     except IsADirectoryError:
         raise InputError(path, "is a folder, not a CARMEN log") from None
-    except (OSError, EOFError, ValueError) as exc:
+    except (OSError, EOFError, ValueError, zlib.error) as exc:  # gzip/bz2/zlib's errors for corrupt streams
         raise InputError(path, f"cannot decompress ({exc or 'truncated stream'})") from None
+    if len(data) > MAX_LOG_BYTES:
+        raise InputError(path, f"log larger than {MAX_LOG_BYTES >> 20} MiB (decompressed)")
     return data.decode("latin-1")
 
 
@@ -473,6 +478,9 @@ def laser_offset(log: CarmenLog, kind: str, options: ReadOptions | None = None) 
         return x, y, th
     if kind not in FRONT_KINDS:
         return 0.0, 0.0, 0.0
+    if kind == "ROBOTLASER1" and not any(f"robot_frontlaser_{s}" in log.params
+                                         for s in ("offset", "side_offset", "angular_offset")):
+        return _message_offset(log.messages[kind])
     out = []
     for suffix in ("offset", "side_offset", "angular_offset"):
         text = log.params.get(f"robot_frontlaser_{suffix}", "0")
@@ -481,6 +489,23 @@ def laser_offset(log: CarmenLog, kind: str, options: ReadOptions | None = None) 
         except ValueError:
             raise InputError(log.path, f"PARAM robot_frontlaser_{suffix} {text!r} is not a number") from None
     return out[0], out[1], out[2]
+
+
+def _message_offset(msgs: list[Message]) -> tuple[float, float, float]:
+    """The laser's pose in the robot frame that ROBOTLASER1 messages imply (``laser_pose = robot_pose (+)
+    offset``, as CARMEN's robot module writes them) when the log has no front-laser PARAMs: the median of
+    ``robot_pose^-1 (+) laser_pose`` when it is the same in every message (within 1 cm and 0.5 deg), else 0 (the
+    two poses come from different estimators, e.g. a corrected laser pose over raw odometry)."""
+    rel = se3.to_xy_yaw(se3.relative(se3.from_xy_yaw(_xyyaw(msgs, "robot_pose")),
+                                     se3.from_xy_yaw(_xyyaw(msgs, "laser_pose"))))
+    if not len(rel):
+        return 0.0, 0.0, 0.0
+    med = np.median(rel, axis=0)
+    spread = np.abs(rel - med)
+    spread[:, 2] = np.abs(se3.wrap_angle(rel[:, 2] - med[2]))
+    if spread[:, :2].max() > 0.01 or spread[:, 2].max() > math.radians(0.5):
+        return 0.0, 0.0, 0.0
+    return float(med[0]), float(med[1]), float(med[2])
 
 
 def _xyyaw(msgs: list[Message], attr: str) -> np.ndarray:
@@ -520,6 +545,19 @@ def robot_poses(log: CarmenLog, kind: str, options: ReadOptions | None = None) -
     return {"odometry": odom, "logged": odom}
 
 
+def _validated(log: CarmenLog, kind: str, poses: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``poses`` after :func:`validate_poses` (finite, not absurdly far), an error naming the message's line."""
+    msgs = log.messages[kind]
+    for value in poses.values():
+        try:
+            validate_poses(value, log.path)
+        except InputError as exc:
+            m = re.match(r"pose (\d+)", exc.problem)
+            line = msgs[int(m.group(1))].line if m and int(m.group(1)) < len(msgs) else None
+            raise InputError(log.path, exc.problem, line=line) from None
+    return poses
+
+
 def _stamps(msgs: list[Message]) -> np.ndarray:
     return np.array([m.timestamp for m in msgs], dtype=np.float64)
 
@@ -542,11 +580,20 @@ def read_carmen(path: str | Path, options: ReadOptions | None = None) -> Traject
     if options.pose_source not in ("logged", "odometry"):
         raise InputError(path, f"pose source {options.pose_source!r}: choose 'logged' or 'odometry'")
     kind = _pick(log, options.topic, TRAJ_ORDER + RAW_KINDS, "poses")
-    poses = robot_poses(log, kind, options)
+    poses = _validated(log, kind, robot_poses(log, kind, options))
     if not poses:
         raise InputError(path, f"{kind} messages carry no pose and the log has no ODOM messages")
-    stamps = _stamps(log.messages[kind])
-    return Trajectory(poses[options.pose_source], stamps, planar=True, meta=_meta(log, kind, stamps, options))
+    msgs = log.messages[kind]
+    stamps = _stamps(msgs)
+    chosen = poses[options.pose_source]
+    meta = _meta(log, kind, stamps, options)
+    if (options.extra or {}).get("duplicate_times") == "keep-first":
+        keep = np.ones(len(stamps), bool)
+        keep[1:] = np.diff(stamps) != 0
+        if not keep.all():
+            meta["dropped_duplicate_lines"] = [msgs[i].line for i in np.flatnonzero(~keep)]
+            chosen, stamps = chosen[keep], stamps[keep]
+    return Trajectory(chosen, stamps, planar=True, meta=meta)
 
 
 # ---------------------------------------------------------------- scans
@@ -597,7 +644,7 @@ def open_carmen_scans(path: str | Path, options: ReadOptions | None = None) -> S
     meta = _meta(log, kind, stamps, options) | {"max_range": max_r, "min_range": min_r}
     trajs = {
         name: Trajectory(p, stamps.copy(), planar=True, meta=dict(meta, pose_source=name))
-        for name, p in robot_poses(log, kind, options).items()
+        for name, p in _validated(log, kind, robot_poses(log, kind, options)).items()
     }
 
     def loader(i: int) -> Scan:
@@ -727,6 +774,14 @@ def _rewrite(log: CarmenLog, traj: Trajectory, path: Path, message: str | None, 
     drop = {m.line for m in msgs} - set(new_fields)
     lines = read_text(log.path).split("\n")
     out = []
+    offset = laser_offset(log, kind, options)
+    if kind == "ROBOTLASER1" and any(offset) and not overwrite_odometry and not any(
+            k.startswith("robot_frontlaser_") for k in log.params):
+        # the offset came from the messages; once the laser poses are rewritten they no longer imply it, so
+        # the output says it (CARMEN's PARAM lines), and reading it back gives the same robot poses
+        t = msgs[0].timestamp
+        out += [f"PARAM robot_frontlaser_{name} {v:.6f} {t!r} dm2 0.000000"
+                for name, v in zip(("offset", "side_offset", "angular_offset"), offset, strict=True)]
     for no, line in enumerate(lines, start=1):
         if no in drop:
             continue
@@ -775,7 +830,7 @@ def sniff(path: str | Path) -> bool:
         opener = gzip.open if magic[:2] == b"\x1f\x8b" else bz2.open if magic == b"BZh" else open
         with opener(path, "rb") as fh:
             head = fh.read(1 << 16).decode("latin-1")
-    except (OSError, EOFError, ValueError):
+    except (OSError, EOFError, ValueError, zlib.error):
         return False
     for line in head.split("\n")[:-1] or head.split("\n"):
         words = line.split()
@@ -827,6 +882,7 @@ trajectory_format(TrajectoryFormat(
     suffixes=SUFFIXES,
     sniff=sniff,
     describe=describe,
+    ordered_stamps=False,  # log order is kept: real logs step back in time and repeat stamps
 ))
 
 scan_source(ScanSource(

@@ -21,8 +21,12 @@ Layouts:
 from __future__ import annotations
 
 import functools
+import io
 import os
 import re
+import struct
+import warnings
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -124,6 +128,8 @@ def read_depth_list(path: Path) -> tuple[np.ndarray, list[str]]:
                 stamp = float("nan")
             if len(tokens) != 2 or not np.isfinite(stamp):
                 raise InputError(path, f"expected 'timestamp filename', got {line.strip()[:60]!r}", line=no)
+            if "\x00" in tokens[1]:
+                raise InputError(path, f"image file name {tokens[1][:60]!r} holds a NUL byte", line=no)
             if stamps and stamp <= stamps[-1]:
                 kind = "duplicate" if stamp == stamps[-1] else "unsorted"
                 raise InputError(path, f"{kind} timestamp {stamp!r} after {stamps[-1]!r}", line=no)
@@ -199,17 +205,49 @@ def load_folder(path: str | Path, options: ReadOptions | None = None) -> DepthFo
     return folder
 
 
+#: largest depth image accepted (pixels), checked from the header before decoding (PIL's own bomb limit is
+#: 179 megapixels; depth cameras give 0.3 to 1 megapixel)
+MAX_DEPTH_PIXELS = 16_777_216  # 4096 x 4096
+#: what PIL raises for broken or hostile images (its decoders raise SyntaxError for broken PNG chunks)
+_IMAGE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, struct.error, zlib.error, Image.DecompressionBombError)
+
+
+def _check_png_chunks(path: Path, data: bytes) -> None:
+    """Every PNG chunk's declared length fits in the file (PIL reads a chunk's declared length at once)."""
+    if not data.startswith(b"\x89PNG\r\n\x1a\n"):
+        return
+    pos = 8
+    while pos + 8 <= len(data):
+        length, kind = struct.unpack(">I4s", data[pos:pos + 8])
+        if pos + 12 + length > len(data):
+            raise InputError(path, f"truncated or corrupt PNG: chunk {kind!r} declares {length} bytes, "
+                                   f"{max(len(data) - pos - 12, 0)} remain")
+        if kind == b"IEND":
+            return
+        pos += 12 + length
+
+
 def read_depth_image(path: Path) -> np.ndarray:
     """A 16-bit depth PNG as a uint16 array (H, W)."""
     try:
-        with Image.open(path) as img:
-            if img.mode not in ("I;16", "I;16B", "I;16L", "I"):
-                raise InputError(path, f"not a 16-bit depth image (PIL mode {img.mode})")
-            depth = np.asarray(img)
+        data = path.read_bytes()
+        _check_png_chunks(path, data)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            with Image.open(io.BytesIO(data)) as img:
+                if img.mode not in ("I;16", "I;16B", "I;16L", "I"):
+                    raise InputError(path, f"not a 16-bit depth image (PIL mode {img.mode})")
+                if img.width * img.height > MAX_DEPTH_PIXELS:
+                    raise InputError(path, f"image of {img.width} x {img.height} pixels (limit {MAX_DEPTH_PIXELS})")
+                depth = np.asarray(img)
     except FileNotFoundError:
         raise InputError(path, "no such file") from None
-    except OSError as exc:
+    except Image.DecompressionBombWarning as exc:
         raise InputError(path, f"cannot read the image: {exc}") from None
+    except _IMAGE_ERRORS as exc:
+        raise InputError(path, f"cannot read the image: {exc or type(exc).__name__}") from None
+    if depth.ndim != 2 or depth.size == 0:
+        raise InputError(path, f"not a single-channel depth image (shape {depth.shape})")
     if depth.dtype != np.uint16:
         depth = depth.clip(0, 65535).astype(np.uint16)
     return depth

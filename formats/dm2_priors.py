@@ -35,9 +35,10 @@ import numpy as np
 
 from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError
+from dm2_backend.formats._npy import load_npy, npy_shape
 from dm2_backend.formats.registry import ReadOptions, TrajectoryFormat, trajectory_format
 from dm2_backend.geometry import se3
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.trajectory import Trajectory, validate_poses
 
 INIT_POSE = "init_pose.npy"
 GROUP_MATRIX = "group_matrix.npy"
@@ -48,11 +49,8 @@ def _load(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "no such file" if not path.exists() else "is not a file")
-    try:
-        array = np.load(path, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
-        raise InputError(path, f"not a readable .npy array ({exc})") from None
-    if not isinstance(array, np.ndarray) or array.dtype.kind not in "iuf":
+    array = load_npy(path)  # checked header and size, never a pickle
+    if array.dtype.kind not in "iuf":
         raise InputError(path, "not a numeric .npy array")
     return array
 
@@ -75,7 +73,9 @@ def read_init_pose(path: str | Path) -> np.ndarray:
     if array.ndim != 2 or array.shape[1] != 6 or len(array) == 0:
         raise InputError(path, f"shape {array.shape}, expected (N, 6): x y z + Euler XYZ angles")
     _check_finite(path, array, "row")
-    return se3.from_xyz_euler(array.astype(np.float64)).reshape(-1, 4, 4)
+    poses = se3.from_xyz_euler(array.astype(np.float64)).reshape(-1, 4, 4)
+    validate_poses(poses, path)
+    return poses
 
 
 def write_init_pose(poses: np.ndarray, path: str | Path, dtype: type = np.float64) -> None:
@@ -179,8 +179,14 @@ def _write(traj: Trajectory, path: Path, options: ReadOptions) -> None:
 
 
 def sniff(path: Path) -> bool:
-    array = np.load(path, mmap_mode="r", allow_pickle=False)
-    return array.ndim == 2 and array.shape[1] == 6 and array.dtype.kind in "iuf"
+    """An .npy file whose header declares a numeric (N, 6) array (only the header is read)."""
+    if not path.is_file() or path.suffix.lower() != ".npy":
+        return False
+    try:
+        shape, dtype = npy_shape(path)
+    except InputError:
+        return False
+    return len(shape) == 2 and shape[1] == 6 and dtype.kind in "iuf"
 
 
 def describe(path: Path) -> list[tuple[str, str]]:
@@ -189,8 +195,8 @@ def describe(path: Path) -> list[tuple[str, str]]:
         other = path.with_name(name)
         if other.is_file():
             try:
-                shape = " x ".join(str(s) for s in np.load(other, mmap_mode="r", allow_pickle=False).shape)
-            except (ValueError, OSError):
+                shape = " x ".join(str(s) for s in npy_shape(other)[0])
+            except (InputError, OSError):
                 shape = "unreadable"
             rows.append((name, shape))
     return rows
@@ -202,7 +208,7 @@ FORMAT = trajectory_format(
         description="DeepMapping2 init_pose.npy: N x 6, x y z + Euler XYZ angles",
         read=_read,
         write=_write,
-        suffixes=(".npy",),
+        suffixes=(".npy", "init_pose.npy"),
         sniff=sniff,
         describe=describe,
     )

@@ -24,13 +24,15 @@ WHAT = "EuRoC: timestamp[ns] px py pz qw qx qy qz [+ 9 velocity/bias columns]"
 
 def _stamp_ns(path: Path, number: int, text: str) -> int:
     try:
-        return int(text)
+        ns = int(text)
     except ValueError:
-        pass
-    value = _text.parse_floats(path, number, [text])[0]
-    if value != int(value):
-        raise InputError(path, f"timestamp {text!r} is not whole nanoseconds", line=number)
-    return int(value)
+        value = _text.parse_floats(path, number, [text])[0]
+        if value != int(value):
+            raise InputError(path, f"timestamp {text!r} is not whole nanoseconds", line=number) from None
+        ns = int(value)
+    if not -(2**63) <= ns < 2**63:  # ROS / EuRoC stamps are int64 nanoseconds
+        raise InputError(path, f"timestamp {text[:40]!r} is beyond the int64 nanosecond range", line=number)
+    return ns
 
 
 def read_euroc(path: str | Path, options: ReadOptions | None = None) -> Trajectory:
@@ -59,13 +61,10 @@ def read_euroc(path: str | Path, options: ReadOptions | None = None) -> Trajecto
     lines = np.asarray(numbers)
     stamps = np.asarray([n / 1_000_000_000 for n in stamps_ns], dtype=np.float64)
     meta: dict = {"columns": width}
-    if _text.duplicate_policy(options.extra) == "keep-first":
-        stamps, data, lines, dropped = _text.drop_duplicate_times(stamps, data, lines)
-        if dropped:
-            meta["dropped_duplicate_lines"] = dropped
+    stamps, data, lines, repeats_ok = _text.duplicate_times(path, stamps, data, lines, options.extra, meta)
     _text.check_quaternions(path, data[:, 3:7], lines)
     poses = se3.from_xyz_quat(data[:, 0:3], data[:, 3:7], "wxyz")
-    return _text.validate(Trajectory(poses=poses, timestamps=stamps, meta=meta), path, lines)
+    return _text.validate(Trajectory(poses=poses, timestamps=stamps, meta=meta), path, lines, repeats_ok)
 
 
 def sniff(path: Path) -> bool:

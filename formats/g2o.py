@@ -9,11 +9,14 @@
 
 Quaternions are normalised as ``gtsam.readG2o`` does. Nodes without a vertex line (an edges-only file) get
 initial poses by chaining the odometry edges ``i -> i+1`` from identity, then any other edge in file
-order, which is what ``gtsam.readG2o`` gives for the usual edges-only file.
+order, which is what ``gtsam.readG2o`` gives for the usual edges-only file. Information matrices that are
+not positive semi-definite are read as the nearest positive-definite ones, with one warning (see
+:func:`_project_information`).
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,7 +27,9 @@ from dm2_backend.errors import InputError
 from dm2_backend.formats import _text
 from dm2_backend.formats.registry import ReadOptions, TrajectoryFormat, trajectory_format
 from dm2_backend.geometry import se3
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.trajectory import Trajectory, validate_poses
+
+log = logging.getLogger(__name__)
 
 #: tag -> (fields after the tag, 3D?)
 TAGS = {"VERTEX_SE2": (4, False), "EDGE_SE2": (11, False), "VERTEX_SE3:QUAT": (8, True),
@@ -93,6 +98,17 @@ def _ids_of(traj: Trajectory) -> np.ndarray:
     return np.arange(len(traj))
 
 
+#: information entries beyond this overflow the eigen-decomposition (squares of 1e154 are inf)
+MAX_INFORMATION = 1e150
+
+
+def _check_magnitudes(info: np.ndarray, lines: np.ndarray, path: Path) -> None:
+    big = np.abs(info).max(axis=(1, 2), initial=0.0) > MAX_INFORMATION
+    if big.any():
+        k = int(np.argmax(big))
+        raise InputError(path, f"information matrix entry beyond {MAX_INFORMATION:.0e}", line=int(lines[k]))
+
+
 def _upper_to_full(values: np.ndarray, dim: int) -> np.ndarray:
     M = np.zeros((len(values), dim, dim))
     iu = np.triu_indices(dim)
@@ -115,9 +131,12 @@ class _Parser:
 
     def node_id(self, text: str, line: int) -> int:
         try:
-            return int(text)
+            node = int(text)
         except ValueError:
             raise self.fail(f"node id {text!r} is not an integer", line) from None
+        if not -(2**63) <= node < 2**63:
+            raise self.fail(f"node id {text[:40]!r} is beyond the int64 range", line)
+        return node
 
     def line(self, number: int, fields: list[str]) -> None:
         tag = fields[0]
@@ -164,12 +183,33 @@ def _poses_from(values: np.ndarray, lines: np.ndarray, is3d: bool, path: Path) -
     return se3.from_xy_yaw(values[:, :3])
 
 
-def _check_information(info: np.ndarray, lines: np.ndarray, path: Path) -> None:
-    eig = np.linalg.eigvalsh(info) if len(info) else np.zeros((0, 1))
-    bad = eig[:, 0] < -1e-9 * np.maximum(np.abs(eig).max(axis=1), 1.0)
+#: eigenvalues of a projected information matrix are at least this fraction of its largest (invertible)
+PSD_FLOOR = 1e-9
+
+
+def _project_information(info: np.ndarray, lines: np.ndarray, path: Path) -> int:
+    """Replace (in place) information matrices that are not positive semi-definite by the nearest ones that
+    are, with negative eigenvalues raised to :data:`PSD_FLOOR` of the largest (kept invertible, so that
+    gtsam's and g2o's Cholesky factorisations work); one warning says how many and the first line. Returns
+    how many were replaced.
+
+    Real graphs hold such matrices (SE-Sync's ``cubicle.g2o``). ``gtsam.readG2o`` keeps them as they are and
+    its noise model then factorises them wrongly without a word (an LLT of an indefinite matrix; NaN sigmas
+    for a diagonal one), so a solver would weigh those edges arbitrarily."""
+    if len(info) == 0:
+        return 0
+    w, V = np.linalg.eigh(info)
+    top = np.maximum(np.abs(w).max(axis=1), 1.0)
+    bad = w[:, 0] < -1e-9 * top
     if bad.any():
-        k = int(np.argmax(bad))
-        raise InputError(path, "information matrix is not positive semi-definite", line=int(lines[k]))
+        floor = PSD_FLOOR * np.abs(w[bad]).max(axis=1, keepdims=True)
+        wb = np.maximum(w[bad], floor)
+        info[bad] = (V[bad] * wb[:, None, :]) @ np.swapaxes(V[bad], 1, 2)
+        info[bad] = (info[bad] + np.swapaxes(info[bad], 1, 2)) / 2
+        log.warning("%s: %d of %d information matrices are not positive semi-definite (first on line %d); "
+                    "using the nearest positive-definite ones", path, int(bad.sum()), len(info),
+                    int(lines[int(np.argmax(bad))]))
+    return int(bad.sum())
 
 
 def _fill_missing(ids: np.ndarray, known: dict[int, np.ndarray], edges: np.ndarray, rel: np.ndarray) -> int:
@@ -218,7 +258,8 @@ def read_g2o(path: str | Path) -> PoseGraph:
     k = 7 if is3d else 3
     relative = _poses_from(e_values[:, :k], e_lines, is3d, path).reshape(-1, 4, 4)
     information = _upper_to_full(e_values[:, k:], 6 if is3d else 3)
-    _check_information(information, e_lines, path)
+    _check_magnitudes(information, e_lines, path)
+    projected = _project_information(information, e_lines, path)
     ids = np.union1d(v_ids, edges.reshape(-1)).astype(int)
     known = {int(n): T for n, T in zip(v_ids, v_poses, strict=True)}
     filled = _fill_missing(ids, known, edges, relative) if len(known) < len(ids) else 0
@@ -230,6 +271,8 @@ def read_g2o(path: str | Path) -> PoseGraph:
         meta["initialised_from_edges"] = filled
     if parser.skipped:
         meta["skipped"] = dict(parser.skipped)
+    if projected:
+        meta["information_projected"] = projected
     return PoseGraph(
         ids=ids, poses=np.stack([known[int(n)] for n in ids]).reshape(-1, 4, 4), edges=edges,
         relative=relative, information=information, planar=not is3d,
@@ -265,7 +308,9 @@ def write_g2o(graph: PoseGraph, path: str | Path) -> None:
 
 
 def _read(path: Path, options: ReadOptions) -> Trajectory:
-    return read_g2o(path).to_trajectory()
+    traj = read_g2o(path).to_trajectory()
+    validate_poses(traj.poses, path)  # chained edges can carry a position past any map (overflowing distances)
+    return traj
 
 
 def _write(traj: Trajectory, path: Path, options: ReadOptions) -> None:

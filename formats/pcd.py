@@ -20,6 +20,8 @@ from dm2_backend.errors import InputError
 DATA_KINDS = ("ascii", "binary", "binary_compressed")
 _TYPE_SIZES = {"F": (2, 4, 8), "I": (1, 2, 4, 8), "U": (1, 2, 4, 8)}
 _NUMPY_KIND = {"F": "f", "I": "i", "U": "u"}
+#: largest COUNT of one field (PCL's own histograms use a few hundred)
+MAX_COUNT = 1 << 16
 
 
 @dataclass
@@ -102,6 +104,9 @@ def parse_header(lines: list[str], source: str | Path | None = None) -> PcdHeade
         if len(values) != n:
             line = items[key][1] if key in items else None
             raise InputError(source, f"{key} has {len(values)} entries for {n} FIELDS", line=line)
+    if any(c < 1 or c > MAX_COUNT for c in counts):
+        raise InputError(source, f"COUNT values must be 1 to {MAX_COUNT}, got {' '.join(map(str, counts))}",
+                         line=items["COUNT"][1])
     for i, (t, s) in enumerate(zip(types, sizes, strict=True)):
         if s not in _TYPE_SIZES.get(t, ()):
             raise InputError(source, f"field {names[i]!r}: unsupported TYPE {t} with SIZE {s}",
@@ -177,6 +182,10 @@ def _decode_compressed(header: PcdHeader, body: bytes, source) -> dict[str, np.n
     if len(body) < 8:
         raise InputError(source, "truncated binary_compressed PCD data: no size words")
     packed, unpacked = (int(v) for v in np.frombuffer(body[:8], "<u4"))
+    expected = header.points * sum(s * c for s, c in zip(header.sizes, header.counts, strict=True))
+    if unpacked != expected:
+        raise InputError(source, f"binary_compressed PCD data declares {unpacked} bytes, the header's "
+                                 f"{header.points} points need {expected}")
     if len(body) < 8 + packed:
         raise InputError(source, f"truncated binary_compressed PCD data: {len(body) - 8} of {packed} bytes")
     try:

@@ -10,9 +10,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from dm2_backend.errors import InputError
 from dm2_backend.scans import LASER_2D, LIDAR, ScanSequence
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.trajectory import Trajectory, validate_poses, validate_timestamps
 
 
 @dataclass
@@ -42,6 +44,10 @@ class TrajectoryFormat:
     sniff: Callable[[Path], bool] | None = None
     #: extra facts for ``dm2 info`` (e.g. a bag's topics): rows of (key, value)
     describe: Callable[[Path], list[tuple[str, str]]] | None = None
+    #: the format's reader refuses decreasing timestamps, so the writer must never get them
+    ordered_stamps: bool = True
+    #: the format's reader accepts repeated timestamps by default (else the writer must not get them either)
+    repeated_stamps: bool = False
 
 
 @dataclass(frozen=True)
@@ -97,7 +103,7 @@ def _detect(path: Path, table: dict, kind: str) -> str:
 def _safe_sniff(sniff: Callable[[Path], bool], path: Path) -> bool:
     try:
         return bool(sniff(path))
-    except (OSError, ValueError, UnicodeDecodeError):
+    except (OSError, ValueError, UnicodeDecodeError, InputError):
         return False
 
 
@@ -123,7 +129,26 @@ def read_trajectory(path: str | Path, fmt: str | None = None, options: ReadOptio
     name = fmt or detect_trajectory_format(path)
     traj = _lookup(TRAJECTORY_FORMATS, name, "trajectory", path).read(path, options or ReadOptions())
     traj.meta.setdefault("format", name)
+    traj.meta.setdefault("source", str(path))
     return traj
+
+
+def check_writable(traj: Trajectory, fmt: str, path: str | Path) -> None:
+    """:class:`InputError` naming the trajectory's source when ``fmt``'s own reader would refuse what its
+    writer would write: non-finite or broken poses, non-finite stamps, and (for formats that need them
+    ordered) decreasing or repeated stamps. What dm2 writes, dm2 reads."""
+    spec = TRAJECTORY_FORMATS[fmt]
+    source = traj.meta.get("source") or path
+    try:
+        validate_poses(traj.poses.copy(), source)  # a copy: validation snaps near-rotations in place
+        if traj.timestamps is not None:
+            if spec.ordered_stamps:
+                validate_timestamps(traj.timestamps, source, duplicates_ok=spec.repeated_stamps)
+            elif not np.isfinite(traj.timestamps).all():
+                i = int(np.argmax(~np.isfinite(traj.timestamps)))
+                raise InputError(source, f"timestamp {i} is not finite")
+    except InputError as err:
+        raise InputError(err.source, f"cannot write {fmt} {path}: {err.problem}", line=err.line) from None
 
 
 def write_trajectory(
@@ -136,6 +161,7 @@ def write_trajectory(
         raise InputError(path, f"format {fmt!r} cannot be written; writable: {writable}")
     if len(traj) == 0:
         raise InputError(path, "no poses to write")
+    check_writable(traj, fmt, path)
     spec.write(traj, path, options or ReadOptions())
 
 
@@ -161,6 +187,8 @@ def open_scans(path: str | Path, fmt: str | None = None, options: ReadOptions | 
     seq = spec.open(path, options)
     seq.read_spec = read_spec(name, path, options)
     seq.sensor = seq.sensor or spec.sensor or (LASER_2D if seq.planar else LIDAR)
+    if len(seq) == 0:
+        raise InputError(seq.source or path, "holds no scans")
     seq.meta.setdefault("format", name)
     return seq
 
@@ -168,10 +196,10 @@ def open_scans(path: str | Path, fmt: str | None = None, options: ReadOptions | 
 def format_for_output(path: str | Path) -> str:
     """Writable format implied by an output path's suffix (no content to sniff yet)."""
     path = Path(path)
-    names = [
-        f.name for f in TRAJECTORY_FORMATS.values()
-        if f.write is not None and any(path.name.lower().endswith(s) for s in f.suffixes if s != "/")
-    ]
+    matched = {f.name: max((len(s) for s in f.suffixes if s != "/" and path.name.lower().endswith(s)), default=0)
+               for f in TRAJECTORY_FORMATS.values() if f.write is not None}
+    longest = max(matched.values(), default=0)
+    names = [name for name, n in matched.items() if n and n == longest]  # the most specific name wins
     if len(names) == 1:
         return names[0]
     choices = ", ".join(names or sorted(n for n, f in TRAJECTORY_FORMATS.items() if f.write))

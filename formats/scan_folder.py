@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import os
 import re
-import zipfile
 from decimal import Decimal
 from pathlib import Path
 
@@ -24,6 +23,8 @@ import numpy as np
 
 from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError
+from dm2_backend.formats import ply
+from dm2_backend.formats._npy import load_npy, load_npz
 from dm2_backend.formats.pcd import read_pcd, write_pcd
 from dm2_backend.formats.registry import ReadOptions, ScanSource, scan_source
 from dm2_backend.scans import Scan, ScanSequence
@@ -85,20 +86,15 @@ def write_bin(path: str | Path, points: np.ndarray, intensity: np.ndarray | None
 
 def read_numpy(path: Path) -> Scan:
     """``.npy`` / ``.npz`` (key ``data`` or the only key): an (N, 3+) array, column 4 = intensity, or a
-    structured array with named fields."""
-    try:
-        loaded = np.load(path, allow_pickle=False)
-        if isinstance(loaded, np.lib.npyio.NpzFile):
-            with loaded:
-                keys = list(loaded.keys())
-                if "data" not in keys and len(keys) != 1:
-                    names = ", ".join(keys)
-                    raise InputError(path, f"npz holds {len(keys)} arrays ({names}), none named 'data'")
-                arr = loaded["data" if "data" in keys else keys[0]]
-        else:
-            arr = loaded
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
-        raise InputError(path, f"cannot read as {path.suffix}: {exc}") from None
+    structured array with named fields. Headers are checked before reading; pickles are never loaded."""
+    if path.suffix.lower() == ".npz":
+        arrays = load_npz(path)
+        keys = list(arrays)
+        if "data" not in keys and len(keys) != 1:
+            raise InputError(path, f"npz holds {len(keys)} arrays ({', '.join(keys)}), none named 'data'")
+        arr = arrays["data" if "data" in keys else keys[0]]
+    else:
+        arr = load_npy(path)
     if arr.dtype.names:
         return scan_from_fields({n: arr[n].reshape(-1) for n in arr.dtype.names}, path)
     if arr.ndim != 2 or arr.shape[1] < 3 or arr.dtype.kind not in "fiu":
@@ -110,17 +106,9 @@ def read_numpy(path: Path) -> Scan:
 
 
 def read_ply(path: Path) -> Scan:
-    """PLY through open3d's tensor reader (keeps every vertex property)."""
-    import open3d as o3d
-
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        cloud = o3d.t.io.read_point_cloud(str(path))
-    if "positions" not in cloud.point:
-        raise InputError(path, "empty scan (or not a readable PLY point cloud)")
-    fields = {k: v.numpy() for k, v in cloud.point.items() if k != "positions"}
-    fields = {k: v[:, 0] if v.ndim == 2 and v.shape[1] == 1 else v for k, v in fields.items()}
-    xyz = cloud.point.positions.numpy()
-    return scan_from_fields({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], **fields}, path)
+    """PLY through dm2's numpy reader (:mod:`dm2_backend.formats.ply`; open3d's C++ reader crashes on
+    hostile headers and truncated data): every scalar vertex property is kept."""
+    return scan_from_fields(ply.read_ply(path), path)
 
 
 def read_pcd_scan(path: Path) -> Scan:

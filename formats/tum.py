@@ -23,14 +23,11 @@ def read_tum(path: str | Path, options: ReadOptions | None = None) -> Trajectory
     rows, lines = _text.read_table(path, (8,), "timestamp tx ty tz qx qy qz qw")
     meta: dict = {}
     stamps = rows[:, 0]
-    if _text.duplicate_policy(options.extra) == "keep-first":
-        stamps, rows, lines, dropped = _text.drop_duplicate_times(stamps, rows, lines)
-        if dropped:
-            meta["dropped_duplicate_lines"] = dropped
+    stamps, rows, lines, repeats_ok = _text.duplicate_times(path, stamps, rows, lines, options.extra, meta)
     _text.check_quaternions(path, rows[:, 4:8], lines)
     poses = se3.from_xyz_quat(rows[:, 1:4], rows[:, 4:8], "xyzw")
     traj = Trajectory(poses=poses, timestamps=stamps, meta=meta)
-    return _text.validate(traj, path, lines)
+    return _text.validate(traj, path, lines, repeats_ok)
 
 
 def write_tum(traj: Trajectory, path: str | Path, options: ReadOptions | None = None) -> None:
@@ -60,5 +57,6 @@ FORMAT = trajectory_format(
         write=write_tum,
         suffixes=(".txt", ".tum"),
         sniff=sniff,
+        repeated_stamps=True,  # read_tum keeps repeated stamps by default, as evo does
     )
 )

@@ -548,3 +548,29 @@ def test_tf_bad_trees(tmp_path, rows, problem):
         read_trajectory(tmp_path / "b", None, ReadOptions(topic="/tf:a.b" if problem != "not connected"
                                                           else "/tf:a.d"))
     assert err.value.topic is not None
+
+
+@pytest.mark.parametrize("name", ["tf_example.bag", "tf_example", "nav2_turtlebot.mcap"])
+def test_info_lists_tf_frame_pairs_with_their_topic_ids(bags, name):
+    """`dm2 info BAG` lists every TF pair (parent -> child, count, topic) with the --topic id that reads it."""
+    expected: dict[tuple[str, str, str], int] = {}
+    with AnyReader([bags / name], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
+        for conn, _, raw in reader.messages(connections=[c for c in reader.connections if c.topic.startswith("/tf")]):
+            for tf in reader.deserialize(raw, conn.msgtype).transforms:
+                key = (tf.header.frame_id, tf.child_frame_id, conn.topic)
+                expected[key] = expected.get(key, 0) + 1
+    result = CliRunner().invoke(cli, ["info", str(bags / name)], obj={})
+    assert result.exit_code == 0, result.output
+    listed = {}
+    for line in result.output.splitlines():
+        if line.startswith("tf "):
+            pair, rest = line[2:].strip().split("  ", 1)
+            parent, child = pair.split(" -> ")
+            count, _, topic = rest.split("--topic")[0].strip().partition(" on ")
+            tf_id = rest.split("--topic ")[1]
+            assert tf_id == f"/tf:{parent}.{child}"
+            listed[(parent, child, topic)] = int(count)
+    assert listed == expected
+    parent, child, _ = max(expected, key=expected.get)  # the busiest dynamic pair reads as typed
+    traj = read_trajectory(bags / name, None, ReadOptions(topic=f"/tf:{parent}.{child}"))
+    assert len(traj) > 10

@@ -164,7 +164,6 @@ INFO6 = " ".join("1" if (r == c) else "0" for r in range(6) for c in range(r, 6)
         (V0 + V1 + "VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\n", 3, "vertex 0 defined twice"),
         (V0 + V1 + f"EDGE_SE3:QUAT 1 1 0 0 0 0 0 0 1 {INFO6}\n", 3, "to itself"),
         (V0 + "VERTEX_SE3:QUAT a 1 0 0 0 0 0 1\n", 2, "node id 'a' is not an integer"),
-        (V0 + V1 + f"EDGE_SE3:QUAT 0 1 0 0 0 0 0 0 1 {INFO6.replace('1', '-1', 1)}\n", 3, "semi-definite"),
         (V0 + V1 + f"EDGE_SE3:QUAT 0 1 0 0 0 0 0 0 1 {INFO6.replace('1', 'x', 1)}\n", 3, "not a number"),
         (V0 + "FIX 5\n", 2, "FIX of unknown node 5"),
         ("# nothing\nVERTEX_XY 1 2 3\n", None, "no VERTEX_SE2"),
@@ -178,6 +177,51 @@ def test_bad_input(tmp_path, text, line, problem):
     assert info.value.line == line and info.value.source == str(path)
     assert_one_line_error(run("info", str(path)), "bad.g2o")
     assert_one_line_error(run("convert", str(path), str(tmp_path / "o.tum")), "bad.g2o")
+
+
+def _indefinite_graph(path: Path) -> np.ndarray:
+    """An SE-Sync-style 3D graph (cubicle.g2o has such edges): edge 1-2 has an indefinite information matrix
+    (a 2x2 translation block with eigenvalues -100 and 300), edge 0-2 a negative diagonal entry. Returns the
+    matrix of edge 1-2."""
+    info = np.diag([100.0, 100, 100, 400, 400, 400])
+    bad = info.copy()
+    bad[0, 1] = bad[1, 0] = 200.0
+    neg = info.copy()
+    neg[0, 0] = -5.0
+    iu = np.triu_indices(6)
+    text = V0 + V1 + "VERTEX_SE3:QUAT 2 2 0.1 0 0 0 0 1\n"
+    for (i, j, x), M in (((0, 1, 1.0), info), ((1, 2, 1.0), bad), ((0, 2, 2.0), neg)):
+        text += f"EDGE_SE3:QUAT {i} {j} {x} 0 0 0 0 0 1 " + " ".join(map(repr, M[iu].tolist())) + "\n"
+    path.write_text(text)
+    return bad
+
+
+def test_indefinite_information_is_read_as_the_nearest_psd_with_one_warning(tmp_path, caplog):
+    path = tmp_path / "cubicle.g2o"
+    bad = _indefinite_graph(path)
+    with caplog.at_level("WARNING", logger="dm2_backend.formats.g2o"):
+        graph = read_g2o(path)
+    (record,) = caplog.records
+    assert "2 of 3 information matrices are not positive semi-definite (first on line 5)" in record.getMessage()
+    assert graph.meta["information_projected"] == 2
+    w, V = np.linalg.eigh(bad)
+    nearest = V @ np.diag(np.clip(w, 0, None)) @ V.T  # the nearest PSD matrix (Frobenius norm)
+    np.testing.assert_allclose(graph.information[1], nearest, atol=1e-5)
+    assert (np.linalg.eigvalsh(graph.information) > 0).all()  # invertible: the solvers factorise them
+    np.testing.assert_array_equal(graph.information[0], np.diag([100.0, 100, 100, 400, 400, 400]))
+    result = run("info", str(path))
+    assert result.exit_code == 0 and "g2o" in result.output, result.output
+    assert result.stderr.count("\n") == 1 and "not positive semi-definite" in result.stderr
+
+
+def test_baselines_solve_a_graph_with_indefinite_information(tmp_path):
+    from dm2_backend.baselines import gtsam_backend
+
+    path = tmp_path / "cubicle.g2o"
+    _indefinite_graph(path)
+    result = gtsam_backend.optimize(read_g2o(path))
+    assert np.isfinite(result.poses).all()
+    np.testing.assert_allclose(result.poses[1, :3, 3], [1, 0, 0], atol=0.1)
 
 
 def test_missing_file(tmp_path):

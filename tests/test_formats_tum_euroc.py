@@ -33,21 +33,54 @@ def test_tum_agrees_with_evo(name):
     np.testing.assert_allclose(ours.poses, np.array(theirs.poses_se3), atol=1e-9, rtol=0)
 
 
-def test_tum_duplicate_stamp_in_real_groundtruth():
-    """fr2_desk ground truth repeats 1311868229.5760 (lines 10862-10863): an error unless asked to drop."""
+def test_tum_duplicate_stamp_in_real_groundtruth(caplog, tmp_path):
+    """fr2_desk ground truth repeats 1311868229.5760 (lines 10862-10863): read as evo reads it, every pose
+    kept, with one warning; refused or thinned only when asked."""
     from evo.tools.file_interface import read_tum_trajectory_file
 
     path = need(TRAJ / "fr2_desk_groundtruth.txt")
-    with pytest.raises(InputError, match="duplicate timestamp 1311868229.576") as info:
-        read_tum(path)
-    assert info.value.line == 10863
-    ours = read_tum(path, ReadOptions(extra={"duplicate_times": "keep-first"}))
-    assert ours.meta["dropped_duplicate_lines"] == [10863]
     theirs = read_tum_trajectory_file(str(path))
+    with caplog.at_level("WARNING", logger="dm2_backend.formats"):
+        ours = read_trajectory(path)
+    (record,) = caplog.records
+    assert "line 10863 repeats the timestamp 1311868229.576 of line 10862" in record.getMessage()
+    assert ours.meta["duplicate_lines"] == [10863]
+    np.testing.assert_array_equal(ours.timestamps, theirs.timestamps)
+    np.testing.assert_allclose(ours.poses, np.array(theirs.poses_se3), atol=1e-9, rtol=0)
+    with pytest.raises(InputError, match="duplicate timestamp 1311868229.576") as info:
+        read_tum(path, ReadOptions(extra={"duplicate_times": "error"}))
+    assert info.value.line == 10863
+    first = read_tum(path, ReadOptions(extra={"duplicate_times": "keep-first"}))
+    assert first.meta["dropped_duplicate_lines"] == [10863]
     keep = np.ones(len(theirs.timestamps), bool)
     keep[10863 - 4] = False  # three comment lines, 1-based line numbers
-    np.testing.assert_array_equal(ours.timestamps, theirs.timestamps[keep])
-    np.testing.assert_allclose(ours.poses, np.array(theirs.poses_se3)[keep], atol=1e-9, rtol=0)
+    np.testing.assert_array_equal(first.timestamps, theirs.timestamps[keep])
+    back = tmp_path / "back.txt"
+    back.write_text("0 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n")
+    with pytest.raises(InputError, match="unsorted") as info:  # a step back in time stays an error
+        read_tum(back)
+    assert info.value.line == 4
+
+
+def test_eval_with_repeated_ground_truth_stamp_equals_evo(tmp_path):
+    """`dm2 eval` on fr2_desk without a flag: one warning line, and the APE of evo_ape tum gt est -a."""
+    import json
+
+    from evo.core import metrics, sync
+    from evo.tools.file_interface import read_tum_trajectory_file
+
+    gt, est = need(TRAJ / "fr2_desk_groundtruth.txt"), need(TRAJ / "fr2_desk_ORB.txt")
+    out = tmp_path / "eval.json"
+    result = run("eval", "--gt", str(gt), "--est", str(est), "--align", "se3", "--json", str(out))
+    assert result.exit_code == 0, result.output
+    warnings = [ln for ln in result.stderr.splitlines() if "warning" in ln]
+    assert len(warnings) == 1 and "line 10863" in warnings[0]
+    ref, traj = sync.associate_trajectories(read_tum_trajectory_file(str(gt)), read_tum_trajectory_file(str(est)))
+    traj.align(ref, correct_scale=False)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, traj))
+    mine = json.loads(out.read_text())["estimates"][0]["metrics"]["ape_trans"]
+    assert mine["rmse"] == pytest.approx(ape.get_statistic(metrics.StatisticsType.rmse), abs=1e-9)
 
 
 def test_euroc_agrees_with_evo():
@@ -107,7 +140,6 @@ GOOD = "1.0 0 0 0 0 0 0 1\n"
         (GOOD + "2.0 0 0 0 0 0 0 0.5\n", 2, "quaternion norm 0.5"),
         (GOOD + "2.0 0 0 0 0 0 0 0\n", 2, "quaternion norm 0"),
         (GOOD + "0.5 0 0 0 0 0 0 1\n", 2, "unsorted timestamp 0.5 after 1.0"),
-        (GOOD + "\n\n1.0 0 0 0 0 0 0 1\n", 4, "duplicate timestamp"),
         (GOOD + "2.0 0 0 0 0 0 0 one\n", 2, "not a number: 'one'"),
         ("# only a comment\n", None, "no timestamp"),
     ],

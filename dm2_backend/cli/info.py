@@ -35,7 +35,9 @@ def _time_rows(stamps: np.ndarray | None) -> list[tuple[str, str]]:
     rows = [("time span", f"{float(stamps[0])!r} .. {float(stamps[-1])!r} ({stamps[-1] - stamps[0]:.3f} s)")]
     if len(stamps) > 1:
         dt = np.diff(stamps)
-        rows.append(("rate", f"{1.0 / np.median(dt):.3f} Hz median (dt {dt.min():.4g} .. {dt.max():.4g} s)"))
+        median = float(np.median(dt))
+        rate = f"{1.0 / median:.3f} Hz median" if median > 0 else "none (most stamps repeat or step back)"
+        rows.append(("rate", f"{rate} (dt {dt.min():.4g} .. {dt.max():.4g} s)"))
     return rows
 
 

@@ -15,7 +15,7 @@ def read_options(
     calib: Path | None = None,
     intrinsics: str | None = None,
     depth_scale: float | None = None,
-    duplicate_times: str = "error",
+    duplicate_times: str = "keep",
 ) -> ReadOptions:
     fx_fy_cx_cy = None
     if intrinsics:
@@ -48,6 +48,7 @@ depth_scale_option = click.option(
     help="Depth units per metre [default: 1000 for 7-Scenes, 5000 for TUM RGB-D].",
 )
 duplicate_times_option = click.option(
-    "--duplicate-times", type=click.Choice(["error", "keep-first"]), default="error", show_default=True,
-    help="A repeated timestamp in a trajectory file is an error, or keep the first pose of each.",
+    "--duplicate-times", type=click.Choice(["keep", "keep-first", "error"]), default="keep", show_default=True,
+    help="A repeated timestamp in a TUM/EuRoC file: keep every pose as evo does (with a warning), keep the first "
+         "pose of each, or refuse the file.",
 )

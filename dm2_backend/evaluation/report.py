@@ -9,7 +9,9 @@ Run report schema (``<run folder>/report.json``, one JSON object)::
     timings      {stage: seconds}  wall-clock seconds per stage, e.g. {"prepare": 12.1, "refine": 340.2}
     peak_rss_mb  number            peak resident memory of the run, MiB
     epochs       [ {...} ]         optional, per refinement epoch: "epoch" (int), "loss" and "ate" (numbers),
-                                   each key optional; "ate" may also be {name: number}
+                                   each key optional; "ate" may also be {name: number}; "ate_metric"
+                                   names the metric "ate" is (a key of "metrics": "ape_trans_rmse_m" or
+                                   "relations_trans_mean_m"; its value at the start is in "start_metrics")
 
 Evaluation JSON (``dm2 eval --json``): ``format`` ("dm2-eval/1"), ``ground_truth``, ``relations``,
 ``settings`` and ``estimates`` (a list with ``label``, ``path``, ``association``, ``alignment`` and
@@ -270,7 +272,9 @@ def write_markdown(report: EvalReport, path: str | Path) -> None:
 
 
 def safe_name(label: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", label).strip("_") or "estimate"
+    """A file-name part from a label that may come from file content (a topic, a frame id): letters, digits,
+    ``. _ -`` only, never starting with a dot (no hidden files, no ``..``)."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", label).strip("._") or "estimate"
 
 
 def write_evo_results(report: EvalReport, folder: str | Path) -> list[Path]:

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from dm2_backend.atomic import atomic_path
+from dm2_backend.errors import InputError
 from dm2_backend.prepare.types import Frames, Pairwise, Topology
 
 log = logging.getLogger(__name__)
@@ -30,14 +31,18 @@ def put(root: Path, name: str, arrays: dict[str, np.ndarray | list[np.ndarray]],
     written concatenated along the first axis, one piece at a time (no concatenated copy in memory)."""
     if (root / name).is_dir():  # another process (a rank of the same run) wrote it meanwhile
         return
-    with atomic_path(root / name) as tmp:
-        tmp.mkdir()
-        for key, value in arrays.items():
-            if isinstance(value, list):
-                _save_pieces(tmp / f"{key}.npy", value)
-            else:
-                np.save(tmp / f"{key}.npy", np.ascontiguousarray(value), allow_pickle=False)
-        (tmp / "meta.json").write_text(json.dumps({**(meta or {}), "arrays": sorted(arrays)}, default=float))
+    try:
+        with atomic_path(root / name) as tmp:
+            tmp.mkdir()
+            for key, value in arrays.items():
+                if isinstance(value, list):
+                    _save_pieces(tmp / f"{key}.npy", value)
+                else:
+                    np.save(tmp / f"{key}.npy", np.ascontiguousarray(value), allow_pickle=False)
+            (tmp / "meta.json").write_text(json.dumps({**(meta or {}), "arrays": sorted(arrays)}, default=float))
+    except InputError:
+        if not (root / name).is_dir():  # not the race with another rank writing the same entry
+            raise
 
 
 def _save_pieces(path: Path, pieces: list[np.ndarray]) -> None:
