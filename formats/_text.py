@@ -137,27 +137,27 @@ def drop_duplicate_times(
     return stamps[keep], rows[keep], lines[keep], [int(n) for n in lines[~keep]]
 
 
-#: what a text trajectory reader does with a repeated timestamp (``ReadOptions.extra["duplicate_times"]``):
+#: what a text trajectory reader does with a repeated timestamp (``ReadOptions.duplicate_times``):
 #: "keep" every pose, as evo's readers do (the default; one warning), "keep-first" of each run, or "error"
 DUPLICATE_POLICIES = ("keep", "keep-first", "error")
 
 
-def duplicate_policy(extra: dict) -> str:
-    """``ReadOptions.extra["duplicate_times"]``, one of :data:`DUPLICATE_POLICIES` ("keep" by default)."""
-    policy = extra.get("duplicate_times", "keep")
+def duplicate_policy(options) -> str:
+    """``ReadOptions.duplicate_times``, one of :data:`DUPLICATE_POLICIES` ("keep" by default)."""
+    policy = getattr(options, "duplicate_times", "keep")
     if policy not in DUPLICATE_POLICIES:
         raise ValueError(f"duplicate_times must be one of {', '.join(DUPLICATE_POLICIES)}, not {policy!r}")
     return policy
 
 
 def duplicate_times(
-    path: Path, stamps: np.ndarray, rows: np.ndarray, lines: np.ndarray, extra: dict, meta: dict
+    path: Path, stamps: np.ndarray, rows: np.ndarray, lines: np.ndarray, options, meta: dict
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
     """Apply the :func:`duplicate_policy` to repeated consecutive timestamps: "keep" keeps every pose as evo
     does (its association then picks the nearest pose, as for any other stamp) with one warning and the
     repeating lines in ``meta["duplicate_lines"]``; "keep-first" drops the later poses of a run (their lines
     in ``meta["dropped_duplicate_lines"]``). Returns the rows and whether repeated stamps may remain."""
-    policy = duplicate_policy(extra)
+    policy = duplicate_policy(options)
     if policy == "keep-first":
         stamps, rows, lines, dropped = drop_duplicate_times(stamps, rows, lines)
         if dropped:

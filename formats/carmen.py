@@ -31,7 +31,7 @@ Conventions:
 * In FLASER/ROBOTLASER1, ``x y theta`` is the laser's pose in the world and ``odom_x..`` / ``robot_x..``
   the robot's (odometry) pose; the laser sits at ``robot (+) offset``, the offset being
   ``robot_frontlaser_offset`` / ``_side_offset`` / ``_angular_offset`` PARAMs (override with
-  ``ReadOptions.extra["laser_offset"] = (x, y, theta)``); without them 0, except for ROBOTLASER1, whose
+  ``ReadOptions.laser_offset = (x, y, theta)``); without them 0, except for ROBOTLASER1, whose
   messages carry both poses: there the offset is ``robot_pose^-1 (+) laser_pose`` when every message agrees
   on it (a raw log written by CARMEN's robot module), so that a laser mounted ahead of the axle is not
   taken for the robot. In the Freiburg logs the offset is 0, so both
@@ -40,13 +40,13 @@ Conventions:
   ``"odometry"`` = the robot pose fields, ``"logged"`` = laser pose (+) offset^-1. For RAWLASER both are the
   ODOM poses interpolated at the scan times. Timestamps are the ipc_timestamp, parsed with ``float()``.
 * Readings ``<= min_range`` (0) or ``>= max_range`` are invalid and dropped. ``max_range``: the
-  ``extra["max_range"]`` option, else the message's ``maximum_range`` field, else (FLASER) CARMEN's 80 m,
+  ``ReadOptions.max_range``, else the message's ``maximum_range`` field, else (FLASER) CARMEN's 80 m,
   lowered to the log's largest reading when that value repeats as a saturation value (ACES: 50 m).
 * Log order is kept. Real logs have non-monotonic ipc timestamps (Intel: 631 steps back, up to 0.9 s, while
   the poses show file order is right) and duplicate ODOM stamps, so neither is an error here; the count of
   backward steps is in ``meta["unsorted_timestamps"]``.
 
-Writing (:func:`write_carmen`): with a template log (``extra["template"]``, else the log the trajectory was
+Writing (:func:`write_carmen`): with a template log (``ReadOptions.template``, else the log the trajectory was
 read from) only the pose fields of the matched laser messages change; without one, ODOM lines.
 :func:`read_relations` reads the Freiburg benchmark ``.relations`` files.
 
@@ -471,10 +471,9 @@ def _pick(log: CarmenLog, wanted: str | None, order: tuple[str, ...], what: str)
 
 
 def laser_offset(log: CarmenLog, kind: str, options: ReadOptions | None = None) -> tuple[float, float, float]:
-    """The laser's pose in the robot frame: ``extra["laser_offset"]``, else the front-laser PARAMs, else 0."""
-    extra = (options.extra if options else {}) or {}
-    if extra.get("laser_offset") is not None:
-        x, y, th = (float(v) for v in extra["laser_offset"])
+    """The laser's pose in the robot frame: ``ReadOptions.laser_offset``, else the front-laser PARAMs, else 0."""
+    if options is not None and options.laser_offset is not None:
+        x, y, th = (float(v) for v in options.laser_offset)
         return x, y, th
     if kind not in FRONT_KINDS:
         return 0.0, 0.0, 0.0
@@ -587,7 +586,7 @@ def read_carmen(path: str | Path, options: ReadOptions | None = None) -> Traject
     stamps = _stamps(msgs)
     chosen = poses[options.pose_source]
     meta = _meta(log, kind, stamps, options)
-    if (options.extra or {}).get("duplicate_times") == "keep-first":
+    if options.duplicate_times == "keep-first":
         keep = np.ones(len(stamps), bool)
         keep[1:] = np.diff(stamps) != 0
         if not keep.all():
@@ -601,9 +600,8 @@ def read_carmen(path: str | Path, options: ReadOptions | None = None) -> Traject
 
 def max_range(log: CarmenLog, kind: str, options: ReadOptions | None = None) -> float | None:
     """The range at or beyond which readings are invalid; ``None``: the per-message maximum_range field."""
-    extra = (options.extra if options else {}) or {}
-    if extra.get("max_range") is not None:
-        return float(extra["max_range"])
+    if options is not None and options.max_range is not None:
+        return float(options.max_range)
     if kind != "FLASER":
         return None
     top = max((float(m.ranges.max()) for m in log.messages[kind] if len(m.ranges)), default=0.0)
@@ -639,7 +637,7 @@ def open_carmen_scans(path: str | Path, options: ReadOptions | None = None) -> S
     msgs = log.messages[kind]
     offset = laser_offset(log, kind, options)
     max_r = max_range(log, kind, options)
-    min_r = float((options.extra or {}).get("min_range", 0.0))
+    min_r = float(options.min_range)
     stamps = _stamps(msgs)
     meta = _meta(log, kind, stamps, options) | {"max_range": max_r, "min_range": min_r}
     trajs = {
@@ -662,7 +660,7 @@ def open_carmen_scans(path: str | Path, options: ReadOptions | None = None) -> S
 def _xyyaw_of(traj: Trajectory, path: Path, force_planar: bool) -> np.ndarray:
     if not force_planar and not se3.is_planar(traj.poses, tol=1e-3):
         raise InputError(path, "CARMEN logs are 2D but the trajectory is not planar (z, roll or pitch "
-                               "above 1e-3); set extra['force_planar'] to drop them")
+                               "above 1e-3); set ReadOptions.force_planar to drop them")
     return se3.to_xy_yaw(traj.poses)
 
 
@@ -861,16 +859,15 @@ def describe(path: str | Path) -> list[tuple[str, str]]:
 
 
 def _write(traj: Trajectory, path: Path, options: ReadOptions) -> None:
-    extra = options.extra or {}
-    template = extra.get("template")
+    template = options.template
     if template is None and traj.meta.get("carmen_template") and Path(traj.meta["carmen_template"]).exists():
         template = traj.meta["carmen_template"]
-    message = extra.get("message") or (traj.meta.get("carmen_message") if template is not None else None)
+    message = options.message or (traj.meta.get("carmen_message") if template is not None else None)
     if message not in (None,) + TRAJ_ORDER:
         message = None
     write_carmen(
-        path, traj, template, message=message, overwrite_odometry=bool(extra.get("overwrite_odometry")),
-        force_planar=bool(extra.get("force_planar")), options=options,
+        path, traj, template, message=message, overwrite_odometry=options.overwrite_odometry,
+        force_planar=options.force_planar, options=options,
     )
 
 

@@ -1,7 +1,7 @@
 """Depth-image sequences as scans: each 16-bit depth PNG is back-projected to a point cloud.
 
 Points are in the camera frame (x right, y down, z forward; pinhole ``X = (u - cx) Z / fx``,
-``Y = (v - cy) Z / fy``); depth 0 and 65535 are invalid. ``ReadOptions.extra["stride"]`` keeps every
+``Y = (v - cy) Z / fy``); depth 0 and 65535 are invalid. ``ReadOptions.stride`` keeps every
 n-th pixel in u and v (default 2: at most 320 x 240 points from a 640 x 480 image; 1 keeps all).
 
 Layouts:
@@ -279,7 +279,7 @@ def back_project(
 
 
 def _stride(options: ReadOptions) -> int:
-    stride = options.extra.get("stride", DEFAULT_STRIDE)
+    stride = DEFAULT_STRIDE if options.stride is None else options.stride
     if not isinstance(stride, int) or isinstance(stride, bool) or stride < 1:
         raise InputError(None, f"stride must be a whole number >= 1, got {stride!r}")
     return stride

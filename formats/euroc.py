@@ -36,7 +36,7 @@ def _stamp_ns(path: Path, number: int, text: str) -> int:
 
 
 def read_euroc(path: str | Path, options: ReadOptions | None = None) -> Trajectory:
-    """Read a EuRoC ground-truth CSV (see :data:`ReadOptions.extra` ``duplicate_times``)."""
+    """Read a EuRoC ground-truth CSV (see ``ReadOptions.duplicate_times``)."""
     path = Path(path)
     options = options or ReadOptions()
     stamps_ns: list[int] = []
@@ -61,7 +61,7 @@ def read_euroc(path: str | Path, options: ReadOptions | None = None) -> Trajecto
     lines = np.asarray(numbers)
     stamps = np.asarray([n / 1_000_000_000 for n in stamps_ns], dtype=np.float64)
     meta: dict = {"columns": width}
-    stamps, data, lines, repeats_ok = _text.duplicate_times(path, stamps, data, lines, options.extra, meta)
+    stamps, data, lines, repeats_ok = _text.duplicate_times(path, stamps, data, lines, options, meta)
     _text.check_quaternions(path, data[:, 3:7], lines)
     poses = se3.from_xyz_quat(data[:, 0:3], data[:, 3:7], "wxyz")
     return _text.validate(Trajectory(poses=poses, timestamps=stamps, meta=meta), path, lines, repeats_ok)

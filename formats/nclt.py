@@ -169,7 +169,7 @@ def read_nclt_csv(path: str | Path, options: ReadOptions | None = None) -> Traje
         if not len(data):
             raise InputError(path, "every row has NaN values")
     stamps = data[:, 0] / 1e6
-    if _text.duplicate_policy(options.extra) == "keep-first":
+    if _text.duplicate_policy(options) == "keep-first":
         stamps, data, lines, dropped = _text.drop_duplicate_times(stamps, data, lines)
         if dropped:
             meta["dropped_duplicate_lines"] = dropped

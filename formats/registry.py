@@ -29,6 +29,23 @@ class ReadOptions:
     depth_scale: float | None = None
     #: CARMEN: which pose the trajectory reader returns, "odometry" or "logged"
     pose_source: str = "logged"
+    #: text trajectories (TUM, EuRoC, CARMEN, NCLT): a repeated timestamp is kept as evo keeps it ("keep"),
+    #: only its first pose kept ("keep-first") or an error ("error")
+    duplicate_times: str = "keep"
+    #: depth sequences: every ``stride``-th pixel in each direction (None: the reader's default)
+    stride: int | None = None
+    #: CARMEN: the laser's pose in the robot frame (x, y, theta; None: the log's PARAMs or messages), ranges
+    #: beyond ``max_range`` (m; None: the message's own) and below ``min_range`` (m) dropped
+    laser_offset: tuple[float, float, float] | None = None
+    max_range: float | None = None
+    min_range: float = 0.0
+    #: CARMEN writer: the log whose messages get the poses (None: the trajectory's own ``carmen_template``),
+    #: which message type, whether ODOM lines are rewritten too, and whether 3D poses are flattened to x, y, yaw
+    template: Path | None = None
+    message: str | None = None
+    overwrite_odometry: bool = False
+    force_planar: bool = False
+    #: options of third-party formats (dm2's own readers use only the fields above)
     extra: dict = field(default_factory=dict)
 
 
@@ -172,7 +189,7 @@ def read_spec(fmt: str, path: Path, options: ReadOptions) -> dict:
         return str(Path(value).resolve()) if isinstance(value, Path) else value
 
     spec = {"format": fmt, "path": str(Path(path).resolve())}
-    spec.update({k: plain(v) for k, v in vars(options).items() if k != "extra"})
+    spec.update({k: plain(v) for k, v in vars(options).items() if k != "extra"})  # every declared field
     spec["extra"] = {k: plain(v) for k, v in sorted(options.extra.items())}
     return spec
 

@@ -17,13 +17,13 @@ from dm2_backend.trajectory import Trajectory
 
 
 def read_tum(path: str | Path, options: ReadOptions | None = None) -> Trajectory:
-    """Read a TUM trajectory file (see :data:`ReadOptions.extra` ``duplicate_times``)."""
+    """Read a TUM trajectory file (see ``ReadOptions.duplicate_times``)."""
     path = Path(path)
     options = options or ReadOptions()
     rows, lines = _text.read_table(path, (8,), "timestamp tx ty tz qx qy qz qw")
     meta: dict = {}
     stamps = rows[:, 0]
-    stamps, rows, lines, repeats_ok = _text.duplicate_times(path, stamps, rows, lines, options.extra, meta)
+    stamps, rows, lines, repeats_ok = _text.duplicate_times(path, stamps, rows, lines, options, meta)
     _text.check_quaternions(path, rows[:, 4:8], lines)
     poses = se3.from_xyz_quat(rows[:, 1:4], rows[:, 4:8], "xyzw")
     traj = Trajectory(poses=poses, timestamps=stamps, meta=meta)

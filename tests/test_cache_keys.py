@@ -43,9 +43,12 @@ def frames_key(path: Path, options: ReadOptions) -> str:
 
 @pytest.mark.parametrize("option", [
     {"times": "times.txt"}, {"calib": "calib.txt"}, {"topic": "/scan"}, {"depth_scale": 500.0},
-    {"intrinsics": (525.0, 525.0, 319.5, 239.5)}, {"pose_source": "odometry"}, {"extra": {"duplicate_times": "keep"}},
+    {"intrinsics": (525.0, 525.0, 319.5, 239.5)}, {"pose_source": "odometry"}, {"duplicate_times": "error"},
+    {"stride": 2}, {"laser_offset": (0.1, 0.0, 0.0)}, {"max_range": 30.0}, {"min_range": 0.5},
+    {"extra": {"third_party": 1}},
 ])
 def test_every_read_option_is_in_the_key(seq, option):
+    """Each declared read option (and a third party's ``extra``) changes the frames' key."""
     if "times" in option:
         option = {"times": seq / "times.txt"}
     if "calib" in option:

@@ -80,4 +80,4 @@ def test_robotlaser1_inconsistent_poses_keep_no_offset(tmp_path):
     words[13] = f"{float(words[13]) + 0.4:.6f}"  # the second laser x moved 0.4 m
     (tmp_path / "c.log").write_text(lines[0] + "\n" + " ".join(words) + "\n")
     assert laser_offset(load(tmp_path / "c.log"), "ROBOTLASER1") == (0.0, 0.0, 0.0)
-    assert laser_offset(load(tmp_path / "c.log"), "ROBOTLASER1", ReadOptions(extra={"laser_offset": OFFSET})) == OFFSET
+    assert laser_offset(load(tmp_path / "c.log"), "ROBOTLASER1", ReadOptions(laser_offset=OFFSET)) == OFFSET

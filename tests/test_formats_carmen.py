@@ -309,7 +309,7 @@ def test_robotlaser_offset_rawlaser_interpolation_and_compression(tmp_path, comp
     assert len(read_trajectory(path, options=ReadOptions(topic="ODOM"))) == 2
     with pytest.raises(InputError, match="no FLASER messages"):
         open_scans(path, options=ReadOptions(topic="FLASER"))
-    wide = open_scans(path, options=ReadOptions(extra={"max_range": 100.0, "laser_offset": (0, 0, 0)}))
+    wide = open_scans(path, options=ReadOptions(max_range=100.0, laser_offset=(0, 0, 0)))
     assert len(wide[0]) == 3
 
 

@@ -93,7 +93,7 @@ def test_seven_scenes_real():
     scan = seq[42]
     assert 40000 < len(scan) <= 320 * 240 and scan.timestamp == pytest.approx(42 / 30)
     assert scan.points[:, 2].min() > 0.3 and scan.points[:, 2].max() < 10
-    full = open_scans(folder, options=ReadOptions(extra={"stride": 1}))[42]
+    full = open_scans(folder, options=ReadOptions(stride=1))[42]
     assert len(full) > 3.5 * len(scan)
 
 
@@ -169,7 +169,7 @@ def test_seven_scenes_bad_inputs(tmp_path):
     with pytest.raises(InputError, match="16-bit"):
         open_scans(folder)[2]
     with pytest.raises(InputError, match="stride"):
-        open_scans(folder, options=ReadOptions(extra={"stride": 0}))
+        open_scans(folder, options=ReadOptions(stride=0))
 
 
 # ---------------------------------------------------------------- TUM RGB-D (synthetic)

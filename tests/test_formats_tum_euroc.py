@@ -48,9 +48,9 @@ def test_tum_duplicate_stamp_in_real_groundtruth(caplog, tmp_path):
     np.testing.assert_array_equal(ours.timestamps, theirs.timestamps)
     np.testing.assert_allclose(ours.poses, np.array(theirs.poses_se3), atol=1e-9, rtol=0)
     with pytest.raises(InputError, match="duplicate timestamp 1311868229.576") as info:
-        read_tum(path, ReadOptions(extra={"duplicate_times": "error"}))
+        read_tum(path, ReadOptions(duplicate_times="error"))
     assert info.value.line == 10863
-    first = read_tum(path, ReadOptions(extra={"duplicate_times": "keep-first"}))
+    first = read_tum(path, ReadOptions(duplicate_times="keep-first"))
     assert first.meta["dropped_duplicate_lines"] == [10863]
     keep = np.ones(len(theirs.timestamps), bool)
     keep[10863 - 4] = False  # three comment lines, 1-based line numbers

@@ -347,7 +347,7 @@ def test_carmen_stamps_never_reach_a_writer_that_cannot_read_them(tmp_path):
         assert len(read_trajectory(out)) == 3  # what dm2 writes, dm2 reads
     else:
         assert_one_line_error(result, str(repeated))
-    first = read_trajectory(repeated, options=ReadOptions(extra={"duplicate_times": "keep-first"}))
+    first = read_trajectory(repeated, options=ReadOptions(duplicate_times="keep-first"))
     assert len(first) == 2
     with pytest.raises(InputError, match="cannot write bag"):
         write_trajectory(read_trajectory(unsorted), tmp_path / "k.txt", "bag")

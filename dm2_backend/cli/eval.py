@@ -181,13 +181,12 @@ def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topi
     if run_report is not None and plot_dir is None:
         raise click.UsageError("--run-report is used for the error-vs-epoch plot: give --plot DIR too")
 
-    dup = {"duplicate_times": duplicate_times}
-    gt_options = ReadOptions(topic=gt_topic, times=gt_times, extra=dup)
+    gt_options = ReadOptions(topic=gt_topic, times=gt_times, duplicate_times=duplicate_times)
     gt = read_trajectory(gt_path, gt_format, gt_options) if gt_path else None
     if gt is not None and len(gt) == 0:
         raise InputError(gt_path, "no poses")
     relations = load_relations(relations_path) if relations_path else None
-    scans = open_scans(scans_path, scans_format, ReadOptions(extra=dup)) if scans_path else None
+    scans = open_scans(scans_path, scans_format, ReadOptions(duplicate_times=duplicate_times)) if scans_path else None
     sampler = MapSampler.from_scans(scans) if scans is not None else None
     report = EvalReport(
         ground_truth=str(gt_path) if gt_path else None,
@@ -196,7 +195,7 @@ def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topi
                   "delta_unit": delta_unit, "relations_max_dt": relations_max_dt},
         map=None if sampler is None else {"scans_path": str(scans_path), **sampler.settings_summary()},
     )
-    est_options = ReadOptions(topic=est_topic, times=est_times, extra=dup)
+    est_options = ReadOptions(topic=est_topic, times=est_times, duplicate_times=duplicate_times)
     options = EvalOptions(align=align, align_origin=align_origin, max_diff=max_diff, delta=delta,
                           delta_unit=delta_unit, relations_max_dt=relations_max_dt)
     for path, label in zip(est_paths, _labels(est_paths), strict=True):

@@ -28,7 +28,7 @@ def read_options(
         fx_fy_cx_cy = values
     return ReadOptions(
         topic=topic, times=times, calib=calib, intrinsics=fx_fy_cx_cy, depth_scale=depth_scale,
-        extra={"duplicate_times": duplicate_times},
+        duplicate_times=duplicate_times,
     )
 
 
