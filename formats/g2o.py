@@ -17,7 +17,6 @@ not positive semi-definite are read as the nearest positive-definite ones, with 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +26,7 @@ from dm2_backend.errors import InputError
 from dm2_backend.formats import _text
 from dm2_backend.formats.registry import ReadOptions, TrajectoryFormat, trajectory_format
 from dm2_backend.geometry import se3
+from dm2_backend.pose_graph import PoseGraph
 from dm2_backend.trajectory import Trajectory, validate_poses
 
 log = logging.getLogger(__name__)
@@ -34,68 +34,6 @@ log = logging.getLogger(__name__)
 #: tag -> (fields after the tag, 3D?)
 TAGS = {"VERTEX_SE2": (4, False), "EDGE_SE2": (11, False), "VERTEX_SE3:QUAT": (8, True),
         "EDGE_SE3:QUAT": (30, True)}
-#: g2o SE3 ordering [x y z qx qy qz] -> rotation-first [qx qy qz x y z] (GTSAM Pose3 tangent order)
-ROTATION_FIRST = np.array([3, 4, 5, 0, 1, 2])
-
-
-@dataclass
-class PoseGraph:
-    """Nodes (ascending ids) with initial poses, and relative-pose edges with information matrices."""
-
-    ids: np.ndarray  # (N,) int node ids, ascending
-    poses: np.ndarray  # (N, 4, 4) initial poses
-    edges: np.ndarray  # (E, 2) int node ids (i, j)
-    relative: np.ndarray  # (E, 4, 4) pose of j in the frame of i
-    information: np.ndarray  # (E, 6, 6) g2o order [x y z qx qy qz], or (E, 3, 3) [x y theta] when planar
-    planar: bool = False
-    fixed: list[int] = field(default_factory=list)
-    meta: dict = field(default_factory=dict)
-
-    def __len__(self) -> int:
-        return len(self.ids)
-
-    def index_of(self) -> dict[int, int]:
-        """Node id -> row in :attr:`poses`."""
-        return {int(n): k for k, n in enumerate(self.ids)}
-
-    def edge_rows(self) -> np.ndarray:
-        """Edges as rows of :attr:`poses` (E, 2)."""
-        index = self.index_of()
-        return np.vectorize(index.__getitem__, otypes=[int])(self.edges).reshape(-1, 2)
-
-    def information_rotation_first(self) -> np.ndarray:
-        """Information matrices in GTSAM's tangent order (rotation first for 3D; unchanged for 2D)."""
-        if self.planar:
-            return self.information.copy()
-        return self.information[:, ROTATION_FIRST][:, :, ROTATION_FIRST]
-
-    def to_trajectory(self) -> Trajectory:
-        meta = {"edges": len(self.edges), **self.meta}
-        return Trajectory(poses=self.poses, frame_ids=[str(int(n)) for n in self.ids], planar=self.planar,
-                          meta=meta)
-
-    @classmethod
-    def from_trajectory(cls, traj: Trajectory) -> PoseGraph:
-        """Vertices of ``traj`` and odometry edges between consecutive poses with identity information."""
-        ids = _ids_of(traj)
-        n = len(traj)
-        dim = 3 if traj.planar else 6
-        return cls(
-            ids=ids, poses=traj.poses.copy(),
-            edges=np.stack([ids[:-1], ids[1:]], axis=1).reshape(-1, 2),
-            relative=se3.relative(traj.poses[:-1], traj.poses[1:]).reshape(-1, 4, 4),
-            information=np.tile(np.eye(dim), (max(n - 1, 0), 1, 1)),
-            planar=traj.planar,
-        )
-
-
-def _ids_of(traj: Trajectory) -> np.ndarray:
-    ids = traj.frame_ids
-    if ids is not None and all(i.isdigit() for i in ids):
-        values = np.array([int(i) for i in ids])
-        if np.all(np.diff(values) > 0):
-            return values
-    return np.arange(len(traj))
 
 
 #: information entries beyond this overflow the eigen-decomposition (squares of 1e154 are inf)

@@ -128,8 +128,9 @@ def _seeds_euroc(tmp: Path) -> list[Seed]:
 
 
 def _seeds_g2o(tmp: Path) -> list[Seed]:
-    from dm2_backend.formats.g2o import PoseGraph, write_g2o
+    from dm2_backend.formats.g2o import write_g2o
     from dm2_backend.geometry import se3
+    from dm2_backend.pose_graph import PoseGraph
 
     seeds = []
     for planar, name in ((False, "graph3d.g2o"), (True, "graph2d.g2o")):

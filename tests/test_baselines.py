@@ -18,8 +18,9 @@ from dm2_backend.baselines.multiway import multiway
 from dm2_backend.baselines.options import SolverOptions
 from dm2_backend.cli.main import cli
 from dm2_backend.errors import InputError
-from dm2_backend.formats.g2o import PoseGraph, read_g2o, write_g2o
+from dm2_backend.formats.g2o import read_g2o, write_g2o
 from dm2_backend.geometry import se3
+from dm2_backend.pose_graph import PoseGraph
 from dm2_backend.prepare.types import Frames, Pairwise, Topology
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 from dm2_backend.cli.main import cli
 from dm2_backend.errors import InputError
 from dm2_backend.formats import ReadOptions, carmen, detect_trajectory_format, open_scans, read_trajectory
+from dm2_backend.formats.relations import read_relations
 from dm2_backend.geometry import se3
 from dm2_backend.trajectory import Trajectory
 
@@ -126,7 +127,7 @@ def test_corrected_dialect_parses(name, count):
 
 @pytest.mark.parametrize("name, count", [("aces.relations", 1279), ("intel.relations", 2984)])
 def test_relations_reference_flaser_stamps(name, count):
-    rel = carmen.read_relations(data(name))
+    rel = read_relations(data(name))
     assert rel.shape == (count, 8) and rel.dtype == np.float64
     stamps = set(read_trajectory(data(name.replace(".relations", ".clf.bz2"))).timestamps.tolist())
     assert all(t in stamps for t in rel[:, :2].ravel())
@@ -361,10 +362,10 @@ def test_bad_files(tmp_path):
     rel = tmp_path / "bad.relations"
     rel.write_text("1 2 0 0 0 0 0 0\n1 2 0 0 0 0 nan 0\n")
     with pytest.raises(InputError, match=r"bad\.relations:2: pitch"):
-        carmen.read_relations(rel)
+        read_relations(rel)
     rel.write_text("1 2 0 0 0 0 0\n")
     with pytest.raises(InputError, match="8 values"):
-        carmen.read_relations(rel)
+        read_relations(rel)
 
 
 def test_cli_info_on_aces():

@@ -12,8 +12,9 @@ from shared_helpers import DATA, assert_one_line_error, need, run
 
 from dm2_backend.errors import InputError
 from dm2_backend.formats import detect_trajectory_format, read_trajectory, write_trajectory
-from dm2_backend.formats.g2o import PoseGraph, read_g2o, write_g2o
+from dm2_backend.formats.g2o import read_g2o, write_g2o
 from dm2_backend.geometry import se3
+from dm2_backend.pose_graph import PoseGraph
 from dm2_backend.trajectory import Trajectory
 
 GRAPHS = DATA / "posegraphs"

@@ -18,8 +18,8 @@ import numpy as np
 from dm2_backend.baselines.gtsam_backend import anchors
 from dm2_backend.baselines.options import KERNELS, GraphResult, SolverOptions
 from dm2_backend.errors import InputError
-from dm2_backend.formats.g2o import PoseGraph
 from dm2_backend.geometry import se3
+from dm2_backend.pose_graph import PoseGraph
 
 _KERNEL_CLASSES = {"huber": "RobustKernelHuber", "cauchy": "RobustKernelCauchy", "tukey": "RobustKernelTukey",
                    "welsch": "RobustKernelWelsch", "geman-mcclure": "RobustKernelGemanMcClure",

@@ -12,8 +12,8 @@ from scipy.sparse.csgraph import connected_components
 
 from dm2_backend.baselines.options import KERNELS, GraphResult, SolverOptions
 from dm2_backend.errors import InputError
-from dm2_backend.formats.g2o import PoseGraph
 from dm2_backend.geometry import se3
+from dm2_backend.pose_graph import PoseGraph
 
 #: robust kernel name -> GTSAM m-estimator
 ESTIMATORS = {

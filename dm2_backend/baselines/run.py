@@ -17,11 +17,12 @@ from dm2_backend.baselines.options import GRAPH_METHODS, METHODS, GraphResult, S
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import plots
 from dm2_backend.formats import write_trajectory
-from dm2_backend.formats.g2o import PoseGraph, read_g2o, write_g2o
+from dm2_backend.formats.g2o import read_g2o, write_g2o
 from dm2_backend.pipeline import outputs
 from dm2_backend.pipeline.inputs import RunInputs
 from dm2_backend.pipeline.run_report import RunReport
 from dm2_backend.pipeline.run_writer import write_run
+from dm2_backend.pose_graph import PoseGraph
 from dm2_backend.prepare.pipeline import prepare
 from dm2_backend.trajectory import Trajectory
 

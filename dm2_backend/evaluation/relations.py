@@ -52,7 +52,7 @@ class RelationsResult:
 
 def load_relations(path: str | Path) -> np.ndarray:
     """Relations (M,8) ``t1 t2 x y z roll pitch yaw`` of a Freiburg ``.relations`` file."""
-    from dm2_backend.formats.carmen import read_relations
+    from dm2_backend.formats.relations import read_relations
 
     path = Path(path)
     if not path.is_file():

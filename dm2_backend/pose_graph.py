@@ -1,0 +1,74 @@
+"""A pose graph: nodes with initial poses and relative-pose edges with information matrices (what the g2o
+format holds, what the pose-graph baselines solve)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dm2_backend.geometry import se3
+from dm2_backend.trajectory import Trajectory
+
+#: g2o SE3 ordering [x y z qx qy qz] -> rotation-first [qx qy qz x y z] (GTSAM Pose3 tangent order)
+ROTATION_FIRST = np.array([3, 4, 5, 0, 1, 2])
+
+
+@dataclass
+class PoseGraph:
+    """Nodes (ascending ids) with initial poses, and relative-pose edges with information matrices."""
+
+    ids: np.ndarray  # (N,) int node ids, ascending
+    poses: np.ndarray  # (N, 4, 4) initial poses
+    edges: np.ndarray  # (E, 2) int node ids (i, j)
+    relative: np.ndarray  # (E, 4, 4) pose of j in the frame of i
+    information: np.ndarray  # (E, 6, 6) g2o order [x y z qx qy qz], or (E, 3, 3) [x y theta] when planar
+    planar: bool = False
+    fixed: list[int] = field(default_factory=list)
+    meta: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def index_of(self) -> dict[int, int]:
+        """Node id -> row in :attr:`poses`."""
+        return {int(n): k for k, n in enumerate(self.ids)}
+
+    def edge_rows(self) -> np.ndarray:
+        """Edges as rows of :attr:`poses` (E, 2)."""
+        index = self.index_of()
+        return np.vectorize(index.__getitem__, otypes=[int])(self.edges).reshape(-1, 2)
+
+    def information_rotation_first(self) -> np.ndarray:
+        """Information matrices in GTSAM's tangent order (rotation first for 3D; unchanged for 2D)."""
+        if self.planar:
+            return self.information.copy()
+        return self.information[:, ROTATION_FIRST][:, :, ROTATION_FIRST]
+
+    def to_trajectory(self) -> Trajectory:
+        meta = {"edges": len(self.edges), **self.meta}
+        return Trajectory(poses=self.poses, frame_ids=[str(int(n)) for n in self.ids], planar=self.planar,
+                          meta=meta)
+
+    @classmethod
+    def from_trajectory(cls, traj: Trajectory) -> PoseGraph:
+        """Vertices of ``traj`` and odometry edges between consecutive poses with identity information."""
+        ids = _ids_of(traj)
+        n = len(traj)
+        dim = 3 if traj.planar else 6
+        return cls(
+            ids=ids, poses=traj.poses.copy(),
+            edges=np.stack([ids[:-1], ids[1:]], axis=1).reshape(-1, 2),
+            relative=se3.relative(traj.poses[:-1], traj.poses[1:]).reshape(-1, 4, 4),
+            information=np.tile(np.eye(dim), (max(n - 1, 0), 1, 1)),
+            planar=traj.planar,
+        )
+
+
+def _ids_of(traj: Trajectory) -> np.ndarray:
+    ids = traj.frame_ids
+    if ids is not None and all(i.isdigit() for i in ids):
+        values = np.array([int(i) for i in ids])
+        if np.all(np.diff(values) > 0):
+            return values
+    return np.arange(len(traj))
