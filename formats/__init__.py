@@ -1,4 +1,5 @@
-"""Input/output adapters. Importing this package registers every built-in format."""
+"""Input/output adapters. Importing this package registers every built-in format, then the formats other
+packages add through the ``dm2.formats`` entry-point group (see ``registry.load_third_party``)."""
 
 from dm2_backend.formats import (  # noqa: F401  (each module registers itself)
     bag,
@@ -21,10 +22,13 @@ from dm2_backend.formats.registry import (
     detect_scan_source,
     detect_trajectory_format,
     format_for_output,
+    load_third_party,
     open_scans,
     read_trajectory,
     write_trajectory,
 )
+
+load_third_party()
 
 __all__ = [
     "SCAN_SOURCES",

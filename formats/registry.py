@@ -221,3 +221,26 @@ def format_for_output(path: str | Path) -> str:
         return names[0]
     choices = ", ".join(names or sorted(n for n, f in TRAJECTORY_FORMATS.items() if f.write))
     raise InputError(path, f"cannot tell the output format from the name; say which with --to ({choices})")
+
+
+#: entry-point group through which other packages add formats: each entry point names a module that registers
+#: its formats with :func:`trajectory_format` / :func:`scan_source` when imported, e.g. in its pyproject.toml
+#: ``[project.entry-points."dm2.formats"] my-lidar = "my_package.dm2_format"``
+FORMAT_GROUP = "dm2.formats"
+
+
+def load_third_party() -> list[str]:
+    """Import the modules of the ``dm2.formats`` entry points; one that fails to import is logged and skipped
+    (a broken add-on must not stop dm2 from reading its own formats). Returns the names loaded."""
+    import logging
+    from importlib.metadata import entry_points
+
+    loaded = []
+    for ep in entry_points(group=FORMAT_GROUP):
+        try:
+            ep.load()
+        except Exception as exc:  # noqa: BLE001 (any error of someone else's module: reported, not fatal)
+            logging.getLogger(__name__).warning("format add-on %s (%s) not loaded: %s", ep.name, ep.value, exc)
+            continue
+        loaded.append(ep.name)
+    return loaded
