@@ -21,7 +21,7 @@ DEFAULTS: dict = {
     "frames": {"max_points": 1024, "voxel": None},
     "warm_start": {"name": "poses", "options": {}},
     #: "auto": loops for laser scans moving like a ground vehicle, loops3d for depth cameras and for scanners
-    #: that tilt or climb (prepare/pipeline.py resolve_auto)
+    #: that tilt or climb (prepare/steps.py resolve_auto)
     "place_recognition": {"name": "auto", "options": {}},
     "registration": {"name": "icp", "options": {}},
     "optimiser": asdict(OptimConfig()),

@@ -18,7 +18,7 @@ from dm2_backend import config
 from dm2_backend.cli.main import cli
 from dm2_backend.formats import ReadOptions, open_scans, read_trajectory
 from dm2_backend.prepare.cache_keys import code_fingerprint, file_fingerprint, module_closure, source_key, step_key
-from dm2_backend.prepare.pipeline import prepare
+from dm2_backend.prepare.steps import prepare
 from dm2_backend.simulate.sequence import write_sequence
 
 STEPS = ("frames", "warm_start", "place_recognition", "registration")

@@ -25,7 +25,7 @@ from dm2_backend.pipeline.inputs import load_inputs
 from dm2_backend.pipeline.run_writer import map_entropy, map_sampler
 from dm2_backend.pipeline.start import choose_start
 from dm2_backend.prepare import store
-from dm2_backend.prepare.pipeline import load_prepared
+from dm2_backend.prepare.steps import load_prepared
 from dm2_backend.simulate.sequence import write_sequence
 
 

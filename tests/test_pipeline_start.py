@@ -14,7 +14,7 @@ from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.optim.config import OptimConfig
 from dm2_backend.pipeline import start as start_module
 from dm2_backend.pipeline.start import GRAPH_SOLVER, choose_start
-from dm2_backend.prepare.pipeline import Prepared
+from dm2_backend.prepare.steps import Prepared
 from dm2_backend.scans import Scan, ScanSequence
 
 

@@ -12,7 +12,7 @@ from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
 from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.plugins.registry import load
-from dm2_backend.prepare.pipeline import resolve_auto
+from dm2_backend.prepare.steps import resolve_auto
 
 
 def drifted(truth: np.ndarray, yaw: float, roll: float, dz: float, scale: float) -> np.ndarray:

@@ -9,7 +9,7 @@ from shared_helpers import DATA, need
 
 from dm2_backend.formats import ReadOptions, open_scans
 from dm2_backend.pipeline.inputs import load_inputs
-from dm2_backend.prepare.pipeline import resolve_auto
+from dm2_backend.prepare.steps import resolve_auto
 from dm2_backend.scans import DEPTH_CAMERA, LASER_2D, LIDAR
 from dm2_backend.simulate.sequence import write_sequence
 

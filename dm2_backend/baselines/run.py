@@ -23,7 +23,7 @@ from dm2_backend.pipeline.inputs import RunInputs
 from dm2_backend.pipeline.run_report import RunReport
 from dm2_backend.pipeline.run_writer import write_run
 from dm2_backend.pose_graph import PoseGraph
-from dm2_backend.prepare.pipeline import prepare
+from dm2_backend.prepare.steps import prepare
 from dm2_backend.trajectory import Trajectory
 
 GRAPH_SOLVERS = {"gtsam": gtsam_backend.optimize, "g2o": g2o_backend.optimize}

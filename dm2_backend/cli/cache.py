@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from dm2_backend.prepare.pipeline import default_cache_dir
+from dm2_backend.prepare.steps import default_cache_dir
 
 path_type = click.Path(path_type=Path)
 cache_dir_option = click.option("--cache-dir", type=path_type, default=None,

@@ -24,7 +24,7 @@ from dm2_backend.formats.kitti import find_calib, looks_camera_frame
 from dm2_backend.pipeline.inputs import load_inputs
 from dm2_backend.pipeline.run_folder import digest, fingerprint, run_folder
 from dm2_backend.pipeline.run_report import RunReport
-from dm2_backend.prepare.pipeline import default_cache_dir
+from dm2_backend.prepare.steps import default_cache_dir
 
 path_type = click.Path(path_type=Path)
 

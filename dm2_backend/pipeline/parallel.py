@@ -33,7 +33,7 @@ from dm2_backend.optim.trainer import Optimiser, OptimResult, sample_points
 from dm2_backend.pipeline.start import Start
 from dm2_backend.prepare import store
 from dm2_backend.prepare.cache_keys import code_fingerprint, step_key
-from dm2_backend.prepare.pipeline import Prepared, load_prepared, prepare
+from dm2_backend.prepare.steps import Prepared, load_prepared, prepare
 
 
 @dataclass

@@ -10,7 +10,7 @@ import numpy as np
 
 from dm2_backend import __version__
 from dm2_backend.atomic import atomic_write
-from dm2_backend.prepare.pipeline import Prepared
+from dm2_backend.prepare.steps import Prepared
 
 
 @dataclass

@@ -20,7 +20,7 @@ from dm2_backend.maps.run_maps import write_run_maps
 from dm2_backend.pipeline import outputs
 from dm2_backend.pipeline.inputs import RunInputs
 from dm2_backend.pipeline.run_report import PrepareSummary, RunReport
-from dm2_backend.prepare.pipeline import Prepared
+from dm2_backend.prepare.steps import Prepared
 from dm2_backend.trajectory import Trajectory
 
 log = logging.getLogger(__name__)

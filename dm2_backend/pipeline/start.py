@@ -21,7 +21,7 @@ from dm2_backend.baselines.options import SolverOptions
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.optim.config import OptimConfig
-from dm2_backend.prepare.pipeline import Prepared
+from dm2_backend.prepare.steps import Prepared
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""Run the preparation steps (frames -> warm start -> topology -> pairwise), each cached on disk.
+"""The preparation steps (frames -> warm start -> topology -> pairwise), each cached on disk.
 
 Each step's cache key hashes the key of the step before it, its own plugin name, options and code, and the
 first step's the input files and read options (:mod:`dm2_backend.prepare.cache_keys`), so a second run on the
