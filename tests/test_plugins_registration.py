@@ -110,6 +110,21 @@ def test_3d_pairs(cls, median, worst, worst_deg):
     assert np.median(errs[:, 0]) < median and errs[:, 0].max() < worst and errs[:, 1].max() < worst_deg
 
 
+@pytest.mark.parametrize("cls", [IcpRegistration, GicpRegistration])
+def test_clouds_built_per_chunk_give_the_same_pairs(cls):
+    """Pairs run a chunk at a time with only the clouds the next chunk needs kept (bounded memory): the result
+    is that of one chunk holding every cloud, also for pairs reaching back across chunks (n-1 -> 0)."""
+    frames, truth = room_3d(count=16)
+    n = len(frames)
+    groups = np.stack([(np.arange(n) + 1) % n, (np.arange(n) + 5) % n], axis=1)
+    warm = perturb(truth, 2, 0.05, 1.0)
+    one = cls(progress=False).run(frames, warm, Topology(groups))
+    chunked = cls(progress=False, chunk=3).run(frames, warm, Topology(groups))
+    np.testing.assert_allclose(chunked.relative, one.relative, atol=1e-9)
+    np.testing.assert_array_equal(chunked.valid, one.valid)
+    np.testing.assert_allclose(chunked.fitness, one.fitness, atol=1e-12)
+
+
 def test_options_checked(floor):
     frames, truth = floor
     topo = Topology(np.full((len(frames), 1), -1))

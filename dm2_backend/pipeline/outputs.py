@@ -64,11 +64,23 @@ def write_trajectories(out: Path, traj: Trajectory, given_path: Path | None, giv
     return written
 
 
+#: frames placed and down-sampled at a time by :func:`write_map` (its memory is that of one chunk and the map)
+MAP_CHUNK = 1000
+
+
 def write_map(path: Path, frames: Frames, poses: np.ndarray, voxel: float) -> None:
-    """All frames in the refined frame, voxel-down-sampled, as a PLY point cloud."""
-    world = np.concatenate([p @ T[:3, :3].T + T[:3, 3] for p, T in zip(frames.points, poses)])
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(world.astype(np.float64)))
-    if voxel > 0:
+    """All frames in the refined frame, voxel-down-sampled, as a PLY point cloud. Placed and down-sampled
+    ``MAP_CHUNK`` frames at a time, then once more over the chunks (a voxel's point is then a mean of its chunks'
+    means): all points at once took about 100 KB per 3D frame, 2 GB at 20,000 frames."""
+    parts = []
+    for c0 in range(0, len(frames), MAP_CHUNK):
+        chunk = zip(frames.points[c0 : c0 + MAP_CHUNK], poses[c0 : c0 + MAP_CHUNK], strict=True)
+        world = np.concatenate([p @ T[:3, :3].T + T[:3, 3] for p, T in chunk] or [np.zeros((0, 3))])
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(world.astype(np.float64, copy=False)))
+        parts.append(np.asarray(pcd.voxel_down_sample(voxel).points) if voxel > 0 else world)
+    world = np.concatenate(parts) if parts else np.zeros((0, 3))
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(world))
+    if voxel > 0 and len(parts) > 1:
         pcd = pcd.voxel_down_sample(voxel)
     with atomic_path(path) as tmp:
         if not o3d.io.write_point_cloud(str(tmp), pcd):
