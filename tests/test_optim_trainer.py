@@ -359,3 +359,31 @@ def test_a_diverging_run_returns_its_start_not_a_scattered_map(case, select):
     assert min(row["disagreement"] for row in result.history) > 10 * opt.derived["start_disagreement"]
     assert result.best_epoch == -1 and "diverged" in result.stopped
     np.testing.assert_allclose(result.poses, case.warm, atol=1e-9)
+
+
+def test_step_budget_keeps_min_epochs(case):
+    """The step cap never leaves fewer than ``min_epochs`` passes (a long sequence's frames each get several
+    visits), and never more than ``epochs``."""
+    steps = len(case.frames) // 16 + 1  # about one epoch
+    assert optimiser(case, epochs=6, max_steps=steps).epochs == 2
+    assert optimiser(case, epochs=6, max_steps=steps, min_epochs=3).epochs == 3
+    assert optimiser(case, epochs=1, max_steps=steps, min_epochs=3).epochs == 1
+    assert optimiser(case, epochs=6, max_steps=0).epochs == 6
+
+
+def test_converged_run_stops_early_and_traces(case):
+    """Under the step budget with the map selection, two epochs in a row that neither lower the loss by more
+    than ``converge_tol`` nor make a sharper map stop the run; each epoch row traces loss and accuracy against
+    the steps."""
+    flat_map = lambda poses: 0.0  # noqa: E731  (never sharper than the start)
+    run = Optimiser(case.frames, case.warm, case.topology, case.pairwise,
+                    small_config(epochs=6, converge_tol=1.0), device="cpu", map_metric=flat_map, progress=False,
+                    trace_metric=lambda poses: ate_rmse(case.gt, poses)).run()
+    assert [row["epoch"] for row in run.history] == [0, 1, 2] and "converged" in run.history[-1]
+    assert run.stopped is None and run.best_epoch == -1  # the start: no epoch made a sharper map
+    trace = [p for row in run.history for p in row["trace"]]
+    assert [p["step"] for p in trace] == sorted({p["step"] for p in trace}) and all("ate" in p for p in trace)
+    assert run.history[-1]["steps"] == trace[-1]["step"]
+    full = Optimiser(case.frames, case.warm, case.topology, case.pairwise, small_config(epochs=6, converge_tol=0.0),
+                     device="cpu", map_metric=flat_map, progress=False).run()
+    assert len(full.history) == 6 and not any("converged" in row for row in full.history)

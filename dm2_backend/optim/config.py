@@ -19,6 +19,13 @@ class OptimConfig:
     #: one). More passes of noisy steps made ACES worse (icp warm start 0.716 m: 2 epochs 0.300, 12 epochs 0.75)
     #: while a 300-frame sequence keeps all 12 (228 steps). 0 = no cap
     max_steps: int = 1000
+    #: ... but never fewer epochs than this (at most ``epochs``): at 10,000 frames the 1,000-step cap alone gave
+    #: each frame a single visit, spent entirely in the pose warm-up when polishing a 3D start
+    min_epochs: int = 2
+    #: stop early once the optimisation has converged: after an epoch whose mean loss fell by less than this
+    #: fraction of the previous epoch's and whose poses made no better map than the best so far (the start
+    #: counts), two such epochs in a row (pose warm-up epochs do not count). 0 = run every epoch
+    converge_tol: float = 1e-3
     #: torch CPU threads; the steps are many small ops, where one thread beats two (0.15 s vs 1.0 s a step on
     #: 7k ACES frames while the other core is busy), 0 keeps torch's default
     threads: int = 1
@@ -110,6 +117,9 @@ class OptimConfig:
             _check_type(f.name, f.type, getattr(cfg, f.name))
         if cfg.epochs < 1:
             raise ValueError(f"optimiser.epochs must be at least 1, got {cfg.epochs}")
+        if cfg.min_epochs < 1 or cfg.converge_tol < 0:
+            raise ValueError("optimiser.min_epochs must be at least 1 and converge_tol at least 0, "
+                             f"got {cfg.min_epochs} and {cfg.converge_tol}")
         for name, allowed in CHOICES.items():
             value = getattr(cfg, name)
             if value is not None and value not in allowed:

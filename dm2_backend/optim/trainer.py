@@ -122,11 +122,13 @@ class Optimiser:
         samples: np.ndarray | None = None,
         dist: distributed.Dist | None = None,
         from_graph: bool = False,
+        trace_metric: Callable[[np.ndarray], float] | None = None,
     ) -> None:
         """``metric``: accuracy against ground truth, shown and recorded per epoch, never used to choose;
         ``map_metric``: the map entropy of poses (lower = sharper), recorded per epoch and, with
         ``cfg.select == "map"``, what chooses the returned poses among the start and the epochs;
         ``from_graph``: ``warm_start`` is the pose-graph solution (locally accurate by construction);
+        ``trace_metric``: the accuracy recorded a few times per epoch with the loss (each epoch row's ``trace``);
         ``samples``: the points of :func:`sample_points` computed ahead (a memory-mapped array shared by the
         ranks); ``dist``: this process's rank when several optimise together (see ``distributed``)."""
         self.cfg = cfg
@@ -134,6 +136,7 @@ class Optimiser:
         self.seed = seed
         self.metric = metric
         self.map_metric = map_metric
+        self.trace_metric = trace_metric
         if cfg.select not in ("map", "loss"):
             raise ValueError(f"unknown select {cfg.select!r} (map or loss)")
         self.progress = progress
@@ -194,8 +197,8 @@ class Optimiser:
         self.optim = torch.optim.Adam(groups)
         self.steps_per_epoch = math.ceil(self.n / cfg.batch_groups)
         self.epochs = cfg.epochs
-        if cfg.max_steps > 0:  # long sequences: fewer passes, the same step budget
-            self.epochs = max(1, min(cfg.epochs, cfg.max_steps // self.steps_per_epoch))
+        if cfg.max_steps > 0:  # long sequences: fewer passes, the same step budget, but at least min_epochs
+            self.epochs = max(min(cfg.epochs, cfg.min_epochs), min(cfg.epochs, cfg.max_steps // self.steps_per_epoch))
         self.derived["epochs"] = self.epochs
         total = max(1, self.epochs * self.steps_per_epoch)
         warmup = int(round(self.derived["pose_warmup"] * self.steps_per_epoch)) if self.derived["drift"] is False else 0
@@ -353,6 +356,13 @@ class Optimiser:
             best, history, start = state["best"], state["history"], state["epoch"] + 1
         ddp = distributed.data_parallel(self) if dist.enabled else None
         stopped = None
+        # convergence (loss and, with a metric, accuracy against the steps): a few points per epoch
+        trace_every = max(1, self.steps_per_epoch // 8)
+        warmup_epochs = math.ceil(self.derived["pose_warmup_steps"] / self.steps_per_epoch)
+        # an early stop at convergence only under the step budget (explicit epochs run them all) and with the map
+        # selection (it needs a map that no longer improves, judged on rank 0); every rank takes rank 0's decision
+        early = self.cfg.converge_tol > 0 and self.cfg.max_steps > 0 and self.cfg.select == "map"
+        flat = 0
         bar = progress(range(start, self.epochs), "refine", unit="epoch", enabled=self.progress and lead)
         for epoch in bar:
             t0 = time.perf_counter()
@@ -360,6 +370,7 @@ class Optimiser:
             gen = torch.Generator(device="cpu").manual_seed(distributed.generator_seed(int(rng.integers(2**31)), dist))
             order = rng.permutation(self.n)  # the same on every rank
             sums: dict[str, float] = {}
+            trace, window = [], []
             for s in range(self.steps_per_epoch):
                 anchors = order[s * self.cfg.batch_groups : (s + 1) * self.cfg.batch_groups]
                 if len(anchors) == 0:
@@ -381,10 +392,18 @@ class Optimiser:
                 self.sched.step()
                 for key, val in values.items():
                     sums[key] = sums.get(key, 0.0) + float(val.detach())
+                window.append(float(values["loss"].detach()))
+                if (s + 1) % trace_every == 0 or s + 1 == self.steps_per_epoch:
+                    point = {"step": epoch * self.steps_per_epoch + s + 1, "loss": float(np.mean(window))}
+                    if self.trace_metric is not None and lead:
+                        point["ate"] = float(self.trace_metric(self.poses()))
+                    trace.append(point)
+                    window = []
             if stopped:
                 break
             row = {k: v / self.steps_per_epoch for k, v in sums.items()}
-            row.update(epoch=epoch, seconds=time.perf_counter() - t0)
+            row.update(epoch=epoch, seconds=time.perf_counter() - t0, steps=(epoch + 1) * self.steps_per_epoch,
+                       trace=trace)
             poses = self.poses()
             if self.metric is not None and lead:
                 row["ate"] = float(self.metric(poses))
@@ -404,8 +423,20 @@ class Optimiser:
                 best = {**best, "loss": row["loss"], "epoch": epoch, "poses": poses,
                         **({"map": row["map_entropy"]} if by_map and lead else {})}
             bar.set_postfix(**{k: f"{row[k]:.4g}" for k in ("loss", "ate", "map_entropy") if k in row})
+            if early and by_map and lead and epoch >= warmup_epochs + 1:
+                previous = history[-2]["loss"]
+                better_map = best["epoch"] == epoch
+                small = abs(previous - row["loss"]) <= self.cfg.converge_tol * max(abs(previous), 1e-12)
+                flat = flat + 1 if small and not better_map else 0
+            if dist.enabled and early:
+                flat = distributed.broadcast(flat)
+            if flat >= 2 and epoch + 1 < self.epochs:
+                row["converged"] = (f"stopped after epoch {epoch} of {self.epochs}: the loss changed by less than "
+                                    f"{self.cfg.converge_tol:g} of itself and the map did not improve, twice")
             if ckpt is not None and lead:
                 self._save(ckpt, self._state(epoch, best, history))
+            if "converged" in row:
+                break
         rejected = sum("rejected" in row for row in history)
         if rejected and best["epoch"] < 0:
             stopped = stopped or (f"diverged: all {rejected} epochs disagreed with the registrations "

@@ -103,10 +103,12 @@ def samples_entry(cache: Path, prep: Prepared, ocfg: OptimConfig, seed: int) -> 
 @dataclass
 class Watch:
     """What rank 0 evaluates per epoch: ``metric`` accuracy against ground truth (shown, never used to
-    choose), ``map_metric`` the map entropy (chooses the returned poses, see ``OptimConfig.select``)."""
+    choose), ``map_metric`` the map entropy (chooses the returned poses, see ``OptimConfig.select``), ``trace``
+    the accuracy recorded a few times per epoch with the loss (the convergence, see ``Optimiser``)."""
 
     metric: Callable | None = None
     map_metric: Callable | None = None
+    trace: Callable | None = None
 
 
 def build(prep: Prepared, start: Start, ocfg: OptimConfig, cfg: dict, watch: Watch | None = None,
@@ -118,7 +120,7 @@ def build(prep: Prepared, start: Start, ocfg: OptimConfig, cfg: dict, watch: Wat
     return Optimiser(prep.frames, start.poses, prep.topology, prep.pairwise, ocfg, seed=cfg["seed"],
                      device=device, metric=watch.metric, map_metric=watch.map_metric,
                      progress=progress and dist.rank == 0, samples=samples, dist=dist,
-                     from_graph=start.name == "graph")
+                     from_graph=start.name == "graph", trace_metric=watch.trace)
 
 
 def optimise_rank(prep: Prepared, start: Start, samples: str, ocfg: OptimConfig, cfg: dict, sess: Session,

@@ -37,7 +37,8 @@ def refine(inputs: RunInputs, cfg: dict, out: Path, cache_dir: Path | None, resu
         if sess.mode == "torchrun":
             start = distributed.broadcast(start)
         t_map = time.perf_counter() - t_map
-        watch = parallel.Watch(live_metric(inputs, stamps), map_entropy(sampler)) if lead else None
+        metric = live_metric(inputs, stamps) if lead else None
+        watch = parallel.Watch(metric, map_entropy(sampler), metric) if lead else None
         extra = {}
         if sess.mode == "single":
             opt = parallel.build(prep, start, ocfg, cfg, watch, progress)
