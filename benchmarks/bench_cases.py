@@ -111,5 +111,23 @@ def run_case(method: Method, input_args: list[str], run_dir: Path, cache_dir: Pa
                     timings=report.get("timings", {}),
                     prepare_cached=report.get("prepare", {}).get("cached", {}),
                     report_peak_rss_mb=report.get("peak_rss_mb"), best_epoch=report.get("best_epoch"),
-                    epochs_run=len(report.get("epochs", []) or []), device=report.get("device"))
+                    epochs_run=len(report.get("epochs", []) or []), device=report.get("device"),
+                    convergence=convergence(report))
     return case
+
+
+#: what each epoch row of a report contributes to the benchmark's convergence record
+CONVERGENCE_KEYS = ("epoch", "steps", "loss", "ate", "map_entropy", "seconds", "rejected", "converged", "trace")
+
+
+def convergence(report: dict) -> dict | None:
+    """Loss, accuracy and map entropy against optimisation steps (per epoch, and the epochs' ``trace`` of a
+    few points each); None for a baseline."""
+    epochs = report.get("epochs")
+    if epochs is None:
+        return None
+    derived = report.get("derived") or {}
+    start = report.get("start") or {}
+    return {"epochs_planned": derived.get("epochs"), "pose_warmup_steps": derived.get("pose_warmup_steps"),
+            "start": start.get("name"), "start_ate": (report.get("start_metrics") or {}).get("ape_trans_rmse_m"),
+            "epochs": [{k: e[k] for k in CONVERGENCE_KEYS if k in e} for e in epochs]}

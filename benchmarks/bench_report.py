@@ -144,11 +144,107 @@ def markdown(results: dict) -> str:
         "(with Python start-up and writing the run folder). Peak RSS: the case's own process (wait4). "
         "Datasets marked simulated come from `dm2 simulate`.",
     ]
+    if results.get("targets"):
+        lines += ["", *scale_tables(results)]
     return "\n".join(lines) + "\n"
 
 
+STAGE_COLUMNS = (("frames", "load scans"), ("warm_start", "warm start"), ("place_recognition", "place recognition"),
+                 ("registration", "registration"), ("start", "map sampler + start"), ("optimise", "optimise"))
+
+
+def _kind(dataset: str) -> str | None:
+    if dataset.startswith(("sim-3d-", "huge-3d-")):
+        return "3D LiDAR"
+    if dataset.startswith(("sim-2d-", "huge-2d-")):
+        return "planar laser"
+    return None
+
+
+def scale_tables(results: dict) -> list[str]:
+    """The scale set's per-stage times, memory against its targets, and the optimiser's convergence."""
+    t = results["targets"]
+    lines = [f"Per stage (s; cached stages of a second method show their load time; outputs: the rest of the "
+             f"process, writing the run folder with its maps and metrics) and peak memory; targets: "
+             f"{t['s_per_frame']} s / frame for the whole refine, {t['peak_rss_mb']:.0f} MiB peak at "
+             f"{t['at_frames']:,} frames.", "",
+             "| dataset | method | frames | " + " | ".join(label for _, label in STAGE_COLUMNS)
+             + " | outputs | total (s) | s / frame | peak RSS (MiB) | MiB / 1,000 frames |",
+             "|---|---|" + "---:|" * (len(STAGE_COLUMNS) + 6)]
+    for c in results["cases"]:
+        if c.get("status") != "ok" or c["method"] in STAGES or _kind(c["dataset"]) is None:
+            continue
+        tm = c.get("timings", {})
+        stages = " | ".join(_num(tm.get(k), "{:.1f}") for k, _ in STAGE_COLUMNS)
+        rss = c.get("peak_rss_mb")
+        rest = c["wall_s"] - sum(tm.get(k, 0.0) for k, _ in STAGE_COLUMNS) if c.get("wall_s") else None
+        lines.append(f"| {c['dataset']} | {c['method']} | {c.get('frames')} | {stages} | {_num(rest, '{:.0f}')} | "
+                     f"{_num(c.get('total_uncached_s'), '{:.0f}')} | "
+                     f"{_num(c.get('s_per_frame'), '{:.3f}')} | {_num(rss, '{:.0f}')} | "
+                     f"{_num(rss / c['frames'] * 1000 if rss and c.get('frames') else None, '{:.0f}')} |")
+    conv = [c for c in results["cases"] if c.get("status") == "ok" and c.get("convergence")]
+    if conv:
+        lines += ["", "Convergence of `dm2 refine` (epoch: steps so far, mean loss, ATE (m), map entropy; the start's "
+                  "ATE first; the epoch rows' `trace` in the JSON has a few points per epoch):", ""]
+        for c in conv:
+            cv = c["convergence"]
+            parts = [f"start ({cv.get('start')}) ATE {_num(cv.get('start_ate'), '{:.4f}')}"]
+            for e in cv["epochs"]:
+                parts.append(f"{e.get('epoch')}: {e.get('steps', '–')} steps, loss {_num(e.get('loss'), '{:.4f}')}, "
+                             f"ATE {_num(e.get('ate'), '{:.4f}')}, map {_num(e.get('map_entropy'), '{:.4f}')}"
+                             + (" (converged: stopped)" if e.get("converged") else ""))
+            lines.append(f"- {c['dataset']} ({cv.get('epochs_planned')} epochs planned, pose warm-up "
+                         f"{cv.get('pose_warmup_steps')} steps; returned {c.get('selection', '')}): "
+                         + "; ".join(parts))
+    return lines
+
+
+def scale_plot(results: dict, path: Path) -> Path | None:
+    """Time and peak memory of refine and gtsam against frames, 3D LiDAR and planar laser, with the targets."""
+    series: dict[tuple[str, str], list] = {}
+    for c in results["cases"]:
+        kind = _kind(c["dataset"])
+        if kind and c.get("status") == "ok" and c["method"] in ("dm2 refine", "gtsam"):
+            series.setdefault((kind, c["method"]), []).append((c["frames"], c))
+    if not series:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = results["targets"]
+    top = max(n for rows in series.values() for n, _ in rows)
+    fig, (ax_t, ax_m) = plt.subplots(1, 2, figsize=(12, 4.5))
+    for i, ((kind, method), rows) in enumerate(sorted(series.items())):
+        rows.sort(key=lambda r: r[0])
+        n = [r[0] for r in rows]
+        style = dict(color=f"C{i}", marker="o" if kind.startswith("3D") else "s",
+                     ls="-" if method == "dm2 refine" else "--", label=f"{method}, {kind}")
+        ax_t.plot(n, [r[1].get("total_uncached_s") for r in rows], **style)
+        ax_m.plot(n, [r[1].get("peak_rss_mb") for r in rows], **style)
+    ax_t.plot([0, top], [0, t["s_per_frame"] * top], "k:", lw=0.9, label=f"target {t['s_per_frame']} s / frame")
+    ax_m.axhline(t["peak_rss_mb"], color="k", ls=":", lw=0.9,
+                 label=f"target {t['peak_rss_mb']:.0f} MiB at {t['at_frames']:,} frames")
+    ax_t.set(xlabel="frames", ylabel="seconds (with preparation)", title="time", xlim=(0, 1.05 * top), ylim=(0, None))
+    ax_m.set(xlabel="frames", ylabel="MiB", title="peak RSS", xlim=(0, 1.05 * top), ylim=(0, None))
+    for ax in (ax_t, ax_m):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    load = results["machine"].get("loadavg_start", [0])[0]
+    fig.suptitle(f"benchmark set {results['set']}, {results['date']} ({results['machine']['cpus']} CPU cores, "
+                 f"load average {load:.1f} at the start)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def scaling_plot(results: dict, path: Path) -> Path | None:
-    """Time and peak memory of ``dm2 refine`` against the number of frames (simulated 3D LiDAR)."""
+    """Time and peak memory of ``dm2 refine`` against the number of frames (simulated 3D LiDAR); the scale
+    sets (with targets) draw refine and gtsam for 3D and planar data (:func:`scale_plot`)."""
+    if results.get("targets"):
+        return scale_plot(results, path)
     rows = sorted((c["frames"], c) for c in results["cases"]
                   if c["dataset"].startswith("sim-3d-") and c["method"] == "dm2 refine"
                   and c["status"] == "ok")

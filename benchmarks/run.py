@@ -78,6 +78,23 @@ SETS: dict[str, dict] = {
         "epochs": None,
         "timeout": 3600,
     },
+    # the paper's largest scale (NeBula, about 38,000 scans) on one machine: dm2 simulate --frames N --seed 11
+    # (3D LiDAR and planar laser), refine and gtsam on the same preparation; 3D 40,000 last (the longest)
+    "huge": {
+        "cases": {name: ["dm2 refine", "gtsam"]
+                  for name in ("huge-2d-10000", "huge-3d-10000", "huge-2d-20000", "huge-3d-20000", "huge-2d-40000",
+                               "huge-3d-40000")},
+        "epochs": None,
+        "timeout": 3 * 3600,
+        "targets": {"s_per_frame": 0.05, "peak_rss_mb": 2048, "at_frames": 20000},
+    },
+    # the same at 2,000 frames (the size the huge set's defaults were measured at; minutes)
+    "huge-small": {
+        "cases": {"huge-2d-2000": ["dm2 refine", "gtsam"], "huge-3d-2000": ["dm2 refine", "gtsam"]},
+        "epochs": None,
+        "timeout": 3600,
+        "targets": {"s_per_frame": 0.05, "peak_rss_mb": 2048, "at_frames": 20000},
+    },
     "full": {
         "cases": {name: ALL[1:] for name in DATASETS},
         "epochs": None,
@@ -195,6 +212,7 @@ def main(argv: list[str] | None = None) -> int:
         "set": label, "date": date, "commit": commit(), "dm2_version": importlib.metadata.version("dm2"),
         "machine": machine(), "settings": {"epochs": epochs, "timeout_s": timeout, "only": args.only,
                                            "config": "default (dm2_backend/config.py) + method overrides"},
+        **({"targets": spec["targets"]} if "targets" in spec else {}),
         "methods": {m.name: {"command": m.command, "config": m.config, "description": m.description}
                     for m in METHODS.values()},
         "datasets": {}, "cases": [], "runs": str(runs),
