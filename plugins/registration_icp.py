@@ -1,177 +1,23 @@
-"""Pairwise registration ``icp`` (GICP in 3D, 2D point-to-line for planar scans, by default) and ``gicp``
-(GICP always): ICP of each neighbour onto its anchor, initialised from
-the warm-start relative pose inv(T_i) @ T_j (or from the loop transform the ``descriptor`` topology
-verified), gated on fitness and inlier rmse; pairs failing a gate are marked invalid, keep their
-initial relative pose and get a reason.
-
-Each unordered pair is registered once (the reverse direction is its inverse). Pairs run in order, a chunk
-at a time; a frame's cloud (normals or covariances, KD-tree) is built when a chunk needs it and dropped when
-the next chunk does not, so memory stays bounded however long the sequence (all clouds at once took about
-150 KB per 3D frame: 1.5 GB at 10,000 frames); a frame of a loop pair is built again at most once per chunk
-that needs it. Planar pairs run on a thread pool (scipy's KD-tree releases the GIL; open3d parallelises each
-3D ICP itself).
-"""
+"""Pairwise registration plugins ``icp`` (open3d GICP in 3D, 2D point-to-line for planar scans, by default) and
+``gicp`` (Generalized ICP always); the machinery, options and gates are in :mod:`dm2_backend.algorithms.pairwise`."""
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import ClassVar
 
-import numpy as np
-
-from dm2_backend.algorithms.common import (
-    Cloud,
-    Match,
-    fine_distance,
-    lengths,
-    orthonormal,
-    project_planar,
-    resolve_method,
-)
-from dm2_backend.algorithms.gates import check_alignment
-from dm2_backend.algorithms.icp import register
-from dm2_backend.geometry import se3
-from dm2_backend.prepare.types import Frames, Pairwise, Topology
-from dm2_backend.progress import progress
+from dm2_backend.algorithms.pairwise import PairwiseRegistration
 
 
 @dataclass
-class IcpRegistration:
-    """Options; None means derived from the data (``Frames.scale``)."""
+class IcpRegistration(PairwiseRegistration):
+    """The default registration: ICP of each neighbour onto its anchor, gated (see the options)."""
 
     name: ClassVar[str] = "icp"
 
-    #: "auto" (GICP in 3D, 2D point-to-line for planar scans), "point-to-plane", "point-to-point", "gicp"
-    method: str = "auto"
-    #: fine correspondence distance (m); default 3 point spacings; a coarse pass at 4x runs first where the
-    #: fine pass alone ends below 0.8 fitness
-    max_distance: float | None = None
-    #: gates: overlap (the smaller of the two directions' fractions of points with a correspondence);
-    #: inlier rmse (m; default 1.5 point spacings; correspondences spread evenly up to the 3-spacing
-    #: distance give 1.7); free space (fraction of either scan's points lying more than
-    #: ``free_space_margin`` (m) in front of what the other measured along the same bearing; defaults:
-    #: planar 0.15 with 4 fine correspondence distances, 3D 0.1 with one)
-    min_fitness: float = 0.5
-    max_rmse: float | None = None
-    max_free_space: float | None = None
-    free_space_margin: float | None = None
-    iterations: int = 30
-    #: 3D: a pass stops when fitness and inlier rmse change by less than this fraction. Measured on 600 pairs
-    #: of a simulated 3D LiDAR sequence against ground truth: 1e-6 (open3d's usual) and 1e-4 give the same
-    #: relative poses (median error 0.77 / 0.76 cm, 0.037 deg) in 15 and 6 ms a pair
-    tolerance: float = 1e-4
-    #: pairs per chunk (the clouds of at most two chunks are held at once: about 500 frames, 75 MB in 3D; a frame
-    #: of 2,000 simulated 3D LiDAR frames was built 1.5 times on average instead of once)
-    chunk: int = 1024
-    #: start loop pairs from the transform the descriptor topology verified
-    use_loops: bool = True
-    #: threads over pairs; default: the CPU count for planar scans, 1 for 3D (open3d is multi-threaded)
-    workers: int | None = None
-    progress: bool = True
-
-    def run(self, frames: Frames, poses: np.ndarray, topology: Topology) -> Pairwise:
-        self._check(frames)
-        scale = lengths(frames)
-        fine = self.max_distance or fine_distance(scale)
-        max_rmse = self.max_rmse or 1.5 * max(scale["voxel"], scale["spacing"])
-        margin = self.free_space_margin or (4.0 if frames.planar else 1.0) * fine
-        max_free = self.max_free_space or (0.15 if frames.planar else 0.1)
-        groups = np.asarray(topology.groups)
-        n, k = groups.shape
-        rows, cols = np.nonzero(groups >= 0)
-        anchors, neighbours = rows.tolist(), groups[rows, cols].tolist()
-        pairs = sorted({(min(i, j), max(i, j)) for i, j in zip(anchors, neighbours, strict=True)})
-        inits = self._inits(poses, pairs, topology)
-        # open3d runs each 3D ICP on all cores already (measured: 2 threads 61 s vs 1 thread 48 s for 8000
-        # GICP pairs); the numpy/scipy planar ICP gains from threads (1.2-1.4x on 2 cores)
-        workers = self.workers or (min(8, os.cpu_count() or 1) if frames.planar else 1)
-        with ThreadPoolExecutor(workers) as pool:
-
-            def job(pair: tuple[int, int]) -> tuple[Match, float]:
-                a, b = pair
-                m = self._register_pair(frames, a, b, inits[pair], fine)
-                return m, check_alignment(self._clouds[b], self._clouds[a], m, fine, margin)
-
-            jobs = self._chunked(frames, pairs, fine, pool, job)
-            bar = progress(jobs, "pairwise icp", total=len(pairs), unit="pair", enabled=self.progress)
-            results = list(bar)
-        self._clouds = {}
-        out = Pairwise(
-            relative=np.tile(np.eye(4), (n, k, 1, 1)),
-            valid=np.zeros((n, k), bool),
-            fitness=np.zeros((n, k)),
-            rmse=np.full((n, k), np.inf),
-        )
-        by_pair: dict[tuple[int, int], tuple[np.ndarray, str, Match]] = {}
-        for pair, (m, free) in zip(pairs, results, strict=True):
-            reasons = []
-            if m.fitness < self.min_fitness:
-                reasons.append(f"fitness {m.fitness:.2f} < {self.min_fitness:.2f}")
-            if m.rmse > max_rmse:
-                reasons.append(f"rmse {m.rmse:.3f} > {max_rmse:.3f}")
-            if free > max_free:
-                reasons.append(f"free space {free:.2f} > {max_free:.2f}")
-            T = m.T if not reasons else inits[pair]
-            by_pair[pair] = (project_planar(T) if frames.planar else orthonormal(T), "; ".join(reasons), m)
-        for i in range(n):
-            for col in range(k):
-                j = int(groups[i, col])
-                if j < 0:
-                    continue
-                pair = (min(i, j), max(i, j))
-                T, reason, m = by_pair[pair]
-                out.relative[i, col] = T if i < j else se3.inverse(T)
-                out.valid[i, col], out.fitness[i, col], out.rmse[i, col] = not reason, m.fitness, m.rmse
-                if reason:
-                    out.reason[(i, j)] = reason
-        return out
-
-    def _check(self, frames: Frames) -> None:
-        self._method = resolve_method(self.method, frames.planar)
-
-    def _chunked(self, frames: Frames, pairs: list[tuple[int, int]], fine: float, pool: ThreadPoolExecutor, job):
-        """``job`` of every pair, in order, a chunk at a time: the clouds a chunk needs are built before it
-        (those the chunk before it left are kept) and only the ones the next chunk needs are kept after it."""
-        self._clouds = {}
-        size = max(1, self.chunk)
-        for c0 in range(0, len(pairs), size):
-            part = pairs[c0 : c0 + size]
-            need = sorted({f for p in part for f in p})
-            missing = [f for f in need if f not in self._clouds]
-            self._clouds.update(zip(missing, self._build(frames, missing, fine, pool), strict=True))
-            yield from pool.map(job, part)
-            keep = {f for p in pairs[c0 + size : c0 + 2 * size] for f in p}
-            self._clouds = {f: c for f, c in self._clouds.items() if f in keep}
-
-    def _build(self, frames: Frames, used: list[int], fine: float, pool: ThreadPoolExecutor) -> list:
-        """Each of these frames' clouds (normals, KD-tree), built on the pool."""
-        method = self._method
-        return list(pool.map(lambda f: Cloud(frames.points[f], frames.planar, 2.0 * fine).ensure(method), used))
-
-    def _register_pair(self, frames: Frames, a: int, b: int, init: np.ndarray, fine: float) -> Match:
-        """Frame b onto frame a from init: T_b^a with its fitness and rmse. A good initial guess (most
-        pairs) converges in the fine pass alone; otherwise a coarse pass runs first."""
-        src, tgt = self._clouds[b], self._clouds[a]
-        m = register(src, tgt, init, (fine,), self._method, self.iterations, tolerance=self.tolerance)
-        if m.fitness >= 0.8:
-            return m
-        return register(src, tgt, init, (4.0 * fine, fine), self._method, self.iterations, tolerance=self.tolerance)
-
-    def _inits(self, poses: np.ndarray, pairs: list[tuple[int, int]], topology: Topology) -> dict:
-        """T_b^a for each pair (a < b): the verified loop transform if any, else inv(T_a) @ T_b."""
-        loops: dict[tuple[int, int], np.ndarray] = {}
-        if self.use_loops:
-            for e in topology.log:
-                if e.get("accepted") and "relative" in e:
-                    i, j, T = int(e["i"]), int(e["j"]), np.asarray(e["relative"], dtype=np.float64)
-                    loops[(min(i, j), max(i, j))] = T if i < j else se3.inverse(T)
-        return {p: loops.get(p, se3.relative(poses[p[0]], poses[p[1]])) for p in pairs}
-
 
 @dataclass
-class GicpRegistration(IcpRegistration):
+class GicpRegistration(PairwiseRegistration):
     """The ``icp`` registration with open3d's Generalized ICP."""
 
     name: ClassVar[str] = "gicp"

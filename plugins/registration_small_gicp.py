@@ -11,15 +11,15 @@ import numpy as np
 
 from dm2_backend.algorithms.common import Cloud, Match, lengths, project_planar
 from dm2_backend.algorithms.gates import coverage
+from dm2_backend.algorithms.pairwise import PairwiseRegistration
 from dm2_backend.errors import InputError
-from dm2_backend.plugins.registration_icp import IcpRegistration
 from dm2_backend.prepare.types import Frames
 
 TYPES = ("GICP", "VGICP", "ICP", "PLANE_ICP")
 
 
 @dataclass
-class SmallGicpRegistration(IcpRegistration):
+class SmallGicpRegistration(PairwiseRegistration):
     """Options as ``icp``; ``method`` is a small_gicp registration type (GICP, VGICP, ICP, PLANE_ICP)."""
 
     name: ClassVar[str] = "small-gicp"
