@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 from click.testing import CliRunner
@@ -196,3 +197,23 @@ def test_files_added_to_a_finished_run_are_listed_and_locked(tmp_path):
     assert {"report.json", "map.pgm"} <= set(json.loads((out / MARKER).read_text())["files"])
     open_folder(out, "baseline", force=True).release()  # --force now replaces both
     assert not (out / "map.pgm").exists() and not (out / "report.json").exists()
+
+
+def test_two_refines_into_one_folder_at_once(seq, tmp_path):
+    """Two real refine processes into one --out: never both 'wrote'; the folder holds one run, whole."""
+    out = tmp_path / "shared"
+    cmd = [sys.executable, "-m", "dm2_backend", "refine", "--scans", str(seq / "velodyne"), "--poses",
+           str(seq / "warm_start.txt"), "-c", str(seq / "config.yaml"), "--epochs", "1", "-q", "--no-cache",
+           "--force", "--out", str(out)]
+    procs = [subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    results = [(p.wait(300), p.stdout.read(), p.stderr.read()) for p in procs]
+    codes = sorted(code for code, _, _ in results)
+    assert codes in ([0, 0], [0, 2]), results  # [0, 0]: the second started after the first had finished
+    for code, stdout, stderr in results:
+        if code == 2:
+            assert "another dm2 run" in stderr and "wrote" not in stdout
+    report = json.loads((out / "report.json").read_text())
+    marker = json.loads((out / MARKER).read_text())
+    assert marker["command"] == "refine" and {"report.json", "poses.npy", "config.yaml"} <= set(marker["files"])
+    assert report["frames"] == len(np.load(out / "poses.npy")) and not (out / LOCK).exists()
+    assert not list(out.glob(".tmp-*"))
