@@ -24,8 +24,10 @@ class OptimConfig:
     min_epochs: int = 2
     #: stop early once the optimisation has converged: after an epoch whose mean loss fell by less than this
     #: fraction of the previous epoch's and whose poses made no better map than the best so far (the start
-    #: counts), two such epochs in a row (pose warm-up epochs do not count). 0 = run every epoch
-    converge_tol: float = 1e-3
+    #: counts), two such epochs in a row (pose warm-up epochs do not count). 0 = run every epoch (the default: a
+    #: 3D polish changes the loss by under 0.1 % an epoch while the map still sharpens; with 1e-3, sim-3d-500
+    #: stopped after 4 of 12 epochs, its ATE still falling (0.0366 -> 0.0361 m), and returned its start)
+    converge_tol: float = 0.0
     #: torch CPU threads; the steps are many small ops, where one thread beats two (0.15 s vs 1.0 s a step on
     #: 7k ACES frames while the other core is busy), 0 keeps torch's default
     threads: int = 1
