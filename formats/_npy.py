@@ -106,6 +106,18 @@ def npy_shape(path: str | Path) -> tuple[tuple[int, ...], np.dtype]:
 MAX_NPZ_BYTES = 2 << 30
 
 
+def sniff_shape(path: Path, accept) -> bool:
+    """Whether ``path`` is an ``.npy`` file whose header declares a numeric array of a shape ``accept`` takes
+    (only the header is read)."""
+    if not path.is_file() or path.suffix.lower() != ".npy":
+        return False
+    try:
+        shape, dtype = npy_shape(path)
+    except InputError:
+        return False
+    return dtype.kind in "iuf" and bool(accept(shape))
+
+
 def load_npz(path: str | Path) -> dict[str, np.ndarray]:
     """All arrays of an .npz file (name without ``.npy`` -> array); checked headers, sizes, no pickles."""
     path = Path(path)

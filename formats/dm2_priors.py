@@ -35,7 +35,7 @@ import numpy as np
 
 from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError
-from dm2_backend.formats._npy import load_npy, npy_shape
+from dm2_backend.formats._npy import load_npy, npy_shape, sniff_shape
 from dm2_backend.formats.registry import ReadOptions, TrajectoryFormat, trajectory_format
 from dm2_backend.geometry import se3
 from dm2_backend.trajectory import Trajectory, validate_poses
@@ -180,13 +180,7 @@ def _write(traj: Trajectory, path: Path, options: ReadOptions) -> None:
 
 def sniff(path: Path) -> bool:
     """An .npy file whose header declares a numeric (N, 6) array (only the header is read)."""
-    if not path.is_file() or path.suffix.lower() != ".npy":
-        return False
-    try:
-        shape, dtype = npy_shape(path)
-    except InputError:
-        return False
-    return len(shape) == 2 and shape[1] == 6 and dtype.kind in "iuf"
+    return sniff_shape(path, lambda shape: len(shape) == 2 and shape[1] == 6)
 
 
 def describe(path: Path) -> list[tuple[str, str]]:

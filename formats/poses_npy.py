@@ -13,7 +13,7 @@ import numpy as np
 
 from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError
-from dm2_backend.formats._npy import load_npy, npy_shape
+from dm2_backend.formats._npy import load_npy, sniff_shape
 from dm2_backend.formats.registry import ReadOptions, TrajectoryFormat, trajectory_format
 from dm2_backend.geometry import se3
 from dm2_backend.trajectory import Trajectory
@@ -49,13 +49,7 @@ def write_poses_npy(traj: Trajectory, path: str | Path, options: ReadOptions | N
 
 def sniff(path: Path) -> bool:
     """An .npy file whose header declares a numeric (N, 4, 4) array (only the header is read)."""
-    if not path.is_file() or path.suffix.lower() != ".npy":
-        return False
-    try:
-        shape, dtype = npy_shape(path)
-    except InputError:
-        return False
-    return len(shape) == 3 and shape[1:] == (4, 4) and dtype.kind in "iuf"
+    return sniff_shape(path, lambda shape: len(shape) == 3 and shape[1:] == (4, 4))
 
 
 FORMAT = trajectory_format(
