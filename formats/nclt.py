@@ -263,22 +263,22 @@ def _at_scans(traj: Trajectory, root: Path, source: Path) -> Trajectory:
     return sampled
 
 
+def _read_session_csv(path: str | Path, find, options: ReadOptions | None) -> Trajectory:
+    root = _root(Path(path))
+    csv = find(root)
+    traj = _at_scans(read_nclt_csv(csv, options), root, csv)
+    traj.meta["file"] = str(csv)
+    return traj
+
+
 def read_session(path: str | Path, options: ReadOptions | None = None) -> Trajectory:
     """The session's ground truth in the Velodyne frame (at the scan stamps when there are scans)."""
-    root = _root(Path(path))
-    gt = find_groundtruth(root)
-    traj = _at_scans(read_nclt_csv(gt, options), root, gt)
-    traj.meta["file"] = str(gt)
-    return traj
+    return _read_session_csv(path, find_groundtruth, options)
 
 
 def read_session_odometry(path: str | Path, options: ReadOptions | None = None) -> Trajectory:
     """The session's odometry in the Velodyne frame (at the scan stamps when there are scans)."""
-    root = _root(Path(path))
-    odom = find_odometry(root)
-    traj = _at_scans(read_nclt_csv(odom, options), root, odom)
-    traj.meta["file"] = str(odom)
-    return traj
+    return _read_session_csv(path, find_odometry, options)
 
 
 def open_session(path: Path, options: ReadOptions) -> ScanSequence:

@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from dm2_backend import __version__
-from dm2_backend.atomic import atomic_write
+from dm2_backend.pipeline.outputs import write_report
 from dm2_backend.prepare.steps import Prepared
 
 
@@ -63,13 +60,4 @@ class RunReport:
         return {**doc, **self.details}
 
     def write(self, path: Path) -> None:
-        with atomic_write(path) as fh:
-            json.dump(self.to_dict(), fh, indent=2, default=_json_default)
-
-
-def _json_default(v):
-    if isinstance(v, np.generic):
-        return v.item()
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    return str(v)
+        write_report(path, self.to_dict())
