@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import os
+import time
+import types
 from pathlib import Path
 
 import numpy as np
@@ -228,3 +230,24 @@ def test_nproc_must_be_positive(tmp_path):
     with pytest.raises(InputError, match="nproc"):
         config.load(None, {"nproc": 0})
     assert config.load(None)["nproc"] == 1
+
+
+def stuck_worker(rank: int, job) -> None:
+    """Rank 0 fails but cannot exit (a non-daemon thread, like a gloo thread waiting on a peer); rank 1 waits in
+    what would be a collective."""
+    import threading
+    import time
+
+    if rank == 0:
+        threading.Thread(target=time.sleep, args=(3600,), daemon=False).start()
+        raise RuntimeError("rank 0 broke")
+    time.sleep(3600)
+
+
+def test_a_failed_rank_that_cannot_exit_does_not_hang_the_run(tmp_path, monkeypatch):
+    monkeypatch.setattr(parallel, "FAILED_RANK_GRACE_S", 2.0)
+    fake = types.SimpleNamespace(world=2, result=tmp_path / "result.pt")
+    t0 = time.monotonic()
+    with pytest.raises(RuntimeError, match="rank 0 failed:(.|\n)*rank 0 broke"):
+        parallel.spawn(fake, stuck_worker)
+    assert time.monotonic() - t0 < 60

@@ -16,6 +16,7 @@ import pickle
 import resource
 import shutil
 import tempfile
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -173,6 +174,10 @@ def run_rank(rank: int, job: Job) -> OptimResult:
         td.destroy_process_group()
 
 
+#: seconds a failed rank may take to exit before every rank is stopped
+FAILED_RANK_GRACE_S = 10.0
+
+
 def spawn(job: Job, worker: Callable[[int, Job], None] = run_rank) -> dict:
     """Run ``worker`` in ``job.world`` processes; returns what rank 0 left. A failing rank stops the others
     and raises here (a RuntimeError with the errors of the ranks that failed, rank 0's first); so does Ctrl-C."""
@@ -181,8 +186,14 @@ def spawn(job: Job, worker: Callable[[int, Job], None] = run_rank) -> dict:
     mp.get_context("forkserver").set_forkserver_preload([__name__, "torch._dynamo", "dm2_backend.pipeline.live"])
     ctx = mp.start_processes(worker, args=(job,), nprocs=job.world, join=False, start_method="forkserver")
     try:
-        while not ctx.join():
-            pass
+        failed_at = None
+        while not ctx.join(timeout=1.0):
+            # a rank that failed (its error file written) but hangs on its way out (a gloo thread still waiting on
+            # a peer inside a collective) would keep join() waiting for ever: stop them all after a grace period
+            if failed_at is None and any(os.path.exists(path) for path in ctx.error_files):
+                failed_at = time.monotonic()
+            elif failed_at is not None and time.monotonic() - failed_at > FAILED_RANK_GRACE_S:
+                raise RuntimeError(_failures(ctx) or "a rank failed and did not exit")
     except ProcessException as exc:
         raise RuntimeError(_failures(ctx) or str(exc)) from None
     finally:
