@@ -94,6 +94,17 @@ def load_npy(path: str | Path) -> np.ndarray:
         raise InputError(path, "no such file") from None
 
 
+def load_numeric_npy(path: str | Path) -> np.ndarray:
+    """A user's ``.npy`` file as a numeric array (:func:`load_npy`'s checks); :class:`InputError` otherwise."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "no such file" if not path.exists() else "is not a file")
+    array = load_npy(path)  # checked header and size, never a pickle
+    if array.dtype.kind not in "iuf":
+        raise InputError(path, "not a numeric .npy array")
+    return array
+
+
 def npy_shape(path: str | Path) -> tuple[tuple[int, ...], np.dtype]:
     """Shape and dtype from a .npy header, without reading the data."""
     path = Path(path)

@@ -35,7 +35,7 @@ import numpy as np
 
 from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError
-from dm2_backend.formats._npy import load_npy, npy_shape, sniff_shape
+from dm2_backend.formats._npy import load_numeric_npy, npy_shape, sniff_shape
 from dm2_backend.formats.registry import ReadOptions, TrajectoryFormat, trajectory_format
 from dm2_backend.geometry import se3
 from dm2_backend.trajectory import Trajectory, validate_poses
@@ -43,16 +43,6 @@ from dm2_backend.trajectory import Trajectory, validate_poses
 INIT_POSE = "init_pose.npy"
 GROUP_MATRIX = "group_matrix.npy"
 PAIRWISE_POSE = "pairwise_pose.npy"
-
-
-def _load(path: str | Path) -> np.ndarray:
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "no such file" if not path.exists() else "is not a file")
-    array = load_npy(path)  # checked header and size, never a pickle
-    if array.dtype.kind not in "iuf":
-        raise InputError(path, "not a numeric .npy array")
-    return array
 
 
 def _save(path: str | Path, array: np.ndarray) -> None:
@@ -69,7 +59,7 @@ def _check_finite(path: Path, array: np.ndarray, what: str) -> None:
 def read_init_pose(path: str | Path) -> np.ndarray:
     """Poses (N,4,4) of an ``init_pose.npy`` ((N,6) ``x y z`` + Euler "XYZ")."""
     path = Path(path)
-    array = _load(path)
+    array = load_numeric_npy(path)
     if array.ndim != 2 or array.shape[1] != 6 or len(array) == 0:
         raise InputError(path, f"shape {array.shape}, expected (N, 6): x y z + Euler XYZ angles")
     _check_finite(path, array, "row")
@@ -86,7 +76,7 @@ def write_init_pose(poses: np.ndarray, path: str | Path, dtype: type = np.float6
 def read_group_matrix(path: str | Path) -> np.ndarray:
     """Groups (N, G-1) int (neighbours of anchor i, -1 pads) of a ``group_matrix.npy`` (N, G)."""
     path = Path(path)
-    array = _load(path)
+    array = load_numeric_npy(path)
     if array.ndim != 2 or array.shape[1] < 1 or len(array) == 0:
         raise InputError(path, f"shape {array.shape}, expected (N, G): anchor then neighbours per row")
     _check_finite(path, array, "row")
@@ -121,7 +111,7 @@ def write_group_matrix(groups: np.ndarray, path: str | Path) -> None:
 def read_pairwise_pose(path: str | Path) -> np.ndarray:
     """``relative`` (N, k, 4, 4) = T_j^i (neighbour j in anchor i's frame) of a ``pairwise_pose.npy``."""
     path = Path(path)
-    array = _load(path)
+    array = load_numeric_npy(path)
     if array.ndim != 3 or array.shape[2] != 6 or len(array) == 0:
         old = array.ndim == 3 and array.shape[2] == 4
         hint = " (the old x y z yaw layout is not supported)" if old else ""

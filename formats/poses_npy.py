@@ -13,7 +13,7 @@ import numpy as np
 
 from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError
-from dm2_backend.formats._npy import load_npy, sniff_shape
+from dm2_backend.formats._npy import load_numeric_npy, sniff_shape
 from dm2_backend.formats.registry import ReadOptions, TrajectoryFormat, trajectory_format
 from dm2_backend.geometry import se3
 from dm2_backend.trajectory import Trajectory
@@ -22,11 +22,7 @@ from dm2_backend.trajectory import Trajectory
 def read_poses_npy(path: str | Path, options: ReadOptions | None = None) -> Trajectory:
     """Poses (N,4,4) of an ``.npy`` file; :class:`InputError` naming the pose for anything else."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "no such file" if not path.exists() else "is not a file")
-    array = load_npy(path)  # checked header and size, never a pickle
-    if array.dtype.kind not in "iuf":
-        raise InputError(path, "not a numeric .npy array")
+    array = load_numeric_npy(path)
     if array.ndim != 3 or array.shape[1:] != (4, 4) or len(array) == 0:
         raise InputError(path, f"shape {array.shape}, expected (N, 4, 4): one 4x4 pose per scan")
     poses = array.astype(np.float64)
