@@ -6,7 +6,8 @@ frame, voxel-down-sampled. The prediction T_{i-1} @ delta (delta: the last incre
 trajectory's) starts a coarse-to-fine ICP; T_i is its result (projected to x, y, yaw for planar data),
 or the prediction when the fitness is too low.
 
-With ``fuse: auto``, planar scans with a given trajectory (wheel odometry: CARMEN logs) fuse the two per step: the
+By default (``fuse: auto``), planar scans with a given trajectory (the wheel odometry a CARMEN log carries, or
+``--poses``) fuse the two per step (``fuse: off``: plain ICP from the odometry's prediction): the
 odometry increment is the initial guess and a prior, and each scan match passes a degeneracy test before
 it replaces the odometry (:meth:`IcpWarmStart._fused_step`):
 
@@ -81,7 +82,7 @@ class IcpWarmStart:
     prior_weight: float = 0.01
     #: planar scans with a given trajectory: fuse scan matching with its increments and test each match
     #: for degeneracy ("auto": when the given increments are the prediction; "off": plain ICP as above)
-    fuse: str = "off"
+    fuse: str = "auto"
     #: (fuse) a direction (the weakest translation direction of the match's information, or yaw) comes from
     #: the odometry when sliding the match one fine distance along it (a turn moving points at the median
     #: range as far) moves less than this share of the scan off the map

@@ -86,7 +86,10 @@ def prepare_run(kw: dict, overrides: dict):
     if kw["seed"] is not None:
         overrides["seed"] = kw["seed"]
     cfg = config.load(kw["config_path"], overrides)
-    if not kw["warm_start"] and inputs.given is None and cfg["warm_start"]["name"] == "poses":
+    if not kw["warm_start"] and cfg["warm_start"]["name"] == "poses" and (
+            inputs.given is None or (inputs.given_path is None and inputs.scans.planar)):
+        # no trajectory to refine, or only the wheel odometry a 2D laser log carries: the icp warm start
+        # (which fuses that odometry with scan matching)
         cfg["warm_start"] = {"name": "icp", "options": {}}
     cache = None if kw["no_cache"] else (kw["cache_dir"] or default_cache_dir())
     return inputs, cfg, cache
