@@ -1,6 +1,9 @@
 """Correlative scan matching in 2D (Olson 2009) with a two-level branch and bound: a global search over
 translation and rotation for the pose that puts the most source points on target structure, and the
-best clearly different alignment (the runner-up), which exposes ambiguous matches such as corridors.
+best clearly different alignment (the runner-up), which exposes ambiguous matches such as corridors, and
+whether the ambiguity runs along one direction only (``Correlation.axis``: every alignment scoring near the
+best lies on one line through it at the same heading, as in a featureless corridor), so that the match
+still fixes the pose across that line and in yaw.
 
 The target becomes a likelihood grid ``exp(-d^2 / 2 sigma^2)`` (d: distance to the nearest target point,
 an exact Euclidean distance transform). For every rotation, blocks of ``block x block`` translations are
@@ -30,6 +33,10 @@ class Correlation:
     #: none reaches ``ratio * score`` (the search does not look further)
     runner_up: float
     runner_up_pose: tuple[float, float, float] | None = None
+    #: unit direction (target frame) along which every alignment scoring at least ``ratio`` of the best lies,
+    #: when they all do (a line through the best, within ``distinct_t / 2`` across it and ``distinct_yaw`` of
+    #: its heading) and one of them is distinct; None otherwise
+    axis: tuple[float, float] | None = None
 
 
 class LikelihoodGrid:
@@ -150,4 +157,20 @@ def match(
             runner = float(masked[rb, rc])
             o2 = offsets[rb, rc]
             runner_pose = (init[0] + o2[0] * res, init[1] + o2[1] * res, float(yaws[angles[rb]]))
-    return Correlation(*pose, score=score, runner_up=runner, runner_up_pose=runner_pose)
+    axis = _ridge_axis(scores, offsets - off, se3.wrap_angle(yaws[angles] - yaws[a]), ratio * score, res, dt, dy)
+    return Correlation(*pose, score=score, runner_up=runner, runner_up_pose=runner_pose,
+                       axis=axis if runner > 0 and runner >= ratio * score else None)
+
+
+def _ridge_axis(scores: np.ndarray, offsets: np.ndarray, dyaw: np.ndarray, level: float, res: float,
+                distinct_t: float, distinct_yaw: float) -> tuple[float, float] | None:
+    """Direction of the line on which every alignment scoring at least ``level`` lies (``offsets`` in cells
+    and ``dyaw`` relative to the best), or None when they spread across it or in heading."""
+    near = scores >= level
+    if np.abs(dyaw[np.any(near, axis=1)]).max() > distinct_yaw:
+        return None
+    d = offsets[near].astype(np.float64) * res  # (n, 2) metres from the best
+    _, vec = np.linalg.eigh(d.T @ d)
+    if np.abs(d @ vec[:, 0]).max() > distinct_t / 2:
+        return None
+    return float(vec[0, 1]), float(vec[1, 1])
