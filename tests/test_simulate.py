@@ -122,3 +122,23 @@ def test_cli_writes_a_labelled_folder_and_refuses_to_overwrite(tmp_path):
     assert seq.planar or np.all(seq[0].points[:, 2] == 0)
     result = CliRunner().invoke(cli, ["simulate", "-n", "4", "-o", str(out / "README.txt")], obj={})
     assert result.exit_code == 2 and "not a folder" in result.output
+
+
+def test_cli_simulates_the_corridor_ring(tmp_path):
+    out = tmp_path / "corridors"
+    args = ["simulate", "--scene", "corridors", "-n", "40", "--seed", "3", "-o", str(out), "-q"]
+    result = CliRunner().invoke(cli, args, obj={})
+    assert result.exit_code == 0, result.output
+    info = json.loads((out / "info.json").read_text())
+    assert info["simulated"] and info["settings"]["scene"] == "corridors" and info["frames"] == 40
+    seq = open_scans(out / "velodyne", None, ReadOptions())
+    assert len(seq) == 40
+    pts = seq[5].points
+    assert np.all(pts[:, 2] == 0) and pts[:, 0].min() >= 0  # planar, the front half only
+    assert np.abs(pts[:, 1]).max() < 8.0 + 1e-3  # within range; the corridor walls 1 m either side dominate
+    assert np.median(np.abs(pts[:, 1])) == pytest.approx(1.0, abs=0.3)
+    gt = read_trajectory(out / "poses.txt")
+    warm = read_trajectory(out / "warm_start.txt")
+    steps = np.linalg.norm(np.diff(gt.poses[:, :3, 3], axis=0), axis=1)
+    assert np.allclose(steps, 0.25, atol=0.02)  # on the straight; one every 0.25 m
+    assert 0 < np.abs(warm.poses[:, :2, 3] - gt.poses[:, :2, 3]).max() < 2.0  # drifting odometry

@@ -16,6 +16,10 @@ from dm2_backend.pipeline.run_folder import run_folder
               help="Scene, path, noise and drift seed.")
 @click.option("--path", "path_kind", type=click.Choice(["loop", "eight"]), default="loop", show_default=True,
               help="Drive laps of a loop or of a figure-eight.")
+@click.option("--scene", type=click.Choice(["street", "corridors"]), default="street", show_default=True,
+              help="street: buildings, walls, poles and cars along a street; corridors: a ring of featureless "
+                   "corridors for a front-facing 2D laser (implies --planar; frames every 0.25 m, 8 m range; "
+                   "--path, --laps, --extent and the LiDAR options do not apply).")
 @click.option("--laps", type=click.FloatRange(min=0, min_open=True), default=2.0, show_default=True)
 @click.option("--extent", type=click.FloatRange(min=10), default=40.0, show_default=True,
               help="Half size of the scene (m); the street's radius is 0.7 x extent.")
@@ -36,23 +40,31 @@ from dm2_backend.pipeline.run_folder import run_folder
               help="Fraction of returns lost at random.")
 @click.option("--height", type=click.FloatRange(min=0), default=None,
               help="Sensor height above the ground (m) [default: 1.8; 0.5 with --planar].")
-@click.option("--yaw-bias", type=float, default=0.00035, show_default=True,
-              help="Warm-start drift: yaw bias (rad per metre driven).")
-@click.option("--yaw-noise", type=click.FloatRange(min=0), default=0.001, show_default=True,
-              help="Warm-start drift: yaw random walk (rad per sqrt(metre)).")
-@click.option("--trans-noise", type=click.FloatRange(min=0), default=0.02, show_default=True,
-              help="Warm-start drift: translation noise (fraction of each step).")
+@click.option("--yaw-bias", type=float, default=None,
+              help="Warm-start drift: yaw bias (rad per metre driven) [default: 0.00035; 0.004 for corridors].")
+@click.option("--yaw-noise", type=click.FloatRange(min=0), default=None,
+              help="Warm-start drift: yaw random walk (rad per sqrt(metre)) [default: 0.001; 0.004 for "
+                   "corridors].")
+@click.option("--trans-noise", type=click.FloatRange(min=0), default=None,
+              help="Warm-start drift: translation noise (fraction of each step) [default: 0.02; 0.03 for "
+                   "corridors].")
 @click.option("--force", is_flag=True, help="Overwrite a previous simulation in --out.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def command(frames, out, seed, path_kind, laps, extent, rate, planar, beams, columns, fov_up, fov_down,
+def command(frames, out, seed, path_kind, scene, laps, extent, rate, planar, beams, columns, fov_up, fov_down,
             max_range, range_noise, dropout, height, yaw_bias, yaw_noise, trans_noise, force, quiet) -> None:
     """Simulate a LiDAR sequence into a KITTI-odometry-style folder (labelled SIMULATED).
 
     Writes velodyne/NNNNNN.bin, times.txt, poses.txt (ground truth, LiDAR frame), warm_start.txt (a
     drifting odometry to refine, KITTI format), info.json (all settings) and README.txt.
     """
+    if scene == "corridors":
+        return corridors(frames, out, seed, rate, max_range, yaw_bias, yaw_noise, trans_noise, force)
     from dm2_backend.simulate.lidar import LidarModel
     from dm2_backend.simulate.sequence import SimSettings, generate
+
+    yaw_bias = 0.00035 if yaw_bias is None else yaw_bias
+    yaw_noise = 0.001 if yaw_noise is None else yaw_noise
+    trans_noise = 0.02 if trans_noise is None else trans_noise
 
     if fov_up < fov_down:
         raise click.BadParameter("must not be below --fov-down", param_hint="--fov-up")
@@ -73,4 +85,19 @@ def command(frames, out, seed, path_kind, laps, extent, rate, planar, beams, col
     ate = info["warm_start"]["ate_rmse_m"]
     click.echo(f"{info['frames']} frames, {info['points_per_frame']['mean']:.0f} points per frame, "
                f"{info['path_length_m']:.0f} m path; warm start ATE {ate:.2f} m; {info['seconds']:.1f} s")
+    click.echo(f"wrote {out} (SIMULATED; see README.txt)")
+
+
+def corridors(frames, out, seed, rate, max_range, yaw_bias, yaw_noise, trans_noise, force) -> None:
+    """``--scene corridors``: the corridor ring of :mod:`dm2_backend.simulate.corridor`."""
+    from dm2_backend.simulate.corridor import write_corridors
+
+    drift = {k: v for k, v in (("yaw_bias", yaw_bias), ("yaw_noise", yaw_noise), ("trans_noise", trans_noise))
+             if v is not None}
+    with run_folder(out, "simulate", force=force):
+        click.echo(f"simulating {frames} planar laser frames in a ring of corridors (seed {seed}) into {out}")
+        info = write_corridors(out, frames, seed, rate, max_range or 8.0, **drift)
+    click.echo(f"{frames} frames, {info['points_per_frame']['mean']:.0f} points per frame, "
+               f"{info['path_length_m']:.0f} m path; odometry off by up to "
+               f"{info['warm_start']['max_position_error_m']:.2f} m; {info['seconds']:.1f} s")
     click.echo(f"wrote {out} (SIMULATED; see README.txt)")
