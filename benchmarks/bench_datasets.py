@@ -79,6 +79,74 @@ def carmen(name: str) -> Callable[[Env], Inputs]:
     return load
 
 
+#: odometry degradation of the ``*-degraded`` cases, per metre driven: yaw bias (rad/m, a wheel base 2 % off on a
+#: ~0.5 m track), yaw noise (rad/sqrt(m)), translation scale error and noise (fractions)
+DEGRADE = {"yaw_bias": 0.04, "yaw_noise": 0.02, "scale": 0.05, "trans_noise": 0.05, "seed": 7}
+
+
+def degrade(poses: np.ndarray, yaw_bias: float, yaw_noise: float, scale: float, trans_noise: float,
+            seed: int) -> np.ndarray:
+    """The odometry re-chained with its increments spoiled in proportion to their length (a robot standing
+    still keeps still): yaw bias and noise, a scale error and noise on translation."""
+    from dm2_backend.geometry import se3
+
+    rng = np.random.default_rng(seed)
+    inc = se3.to_xy_yaw(se3.relative(poses[:-1], poses[1:]))
+    d = np.hypot(inc[:, 0], inc[:, 1])
+    inc[:, 2] += yaw_bias * d + yaw_noise * np.sqrt(d) * rng.normal(size=len(d))
+    inc[:, :2] *= (1 + scale + trans_noise * rng.normal(size=(len(d), 1)))
+    out = [poses[0]]
+    for T in se3.from_xy_yaw(inc):
+        out.append(out[-1] @ T)
+    return np.stack(out)
+
+
+def carmen_degraded(name: str) -> Callable[[Env], Inputs]:
+    """The log with its odometry degraded (:data:`DEGRADE`), written into the cache as a CARMEN log of the same
+    dialect (scans untouched); run as a user would: ``dm2 refine --scans LOG --relations REL`` (the default
+    warm start for a log that carries odometry)."""
+    def load(env: Env) -> Inputs:
+        from dm2_backend.formats import ReadOptions
+        from dm2_backend.formats.carmen import write_carmen
+        from dm2_backend.pipeline.inputs import load_inputs
+        from dm2_backend.trajectory import Trajectory
+
+        log, rel = DATA / "carmen" / f"{name}.clf.bz2", DATA / "carmen" / f"{name}.relations"
+        _need(log, rel)
+        out = env.cache / f"{name}-degraded-{hashlib.sha1(json.dumps(DEGRADE).encode()).hexdigest()[:8]}.clf.bz2"
+        from dm2_backend.evaluation.relations import load_relations, relations_error
+
+        odo = load_inputs(log, None, None, None, ReadOptions()).given
+        if not out.is_file():
+            write_carmen(out, Trajectory(degrade(odo.poses, **DEGRADE), odo.timestamps), log,
+                         overwrite_odometry=True)
+        spoiled = load_inputs(out, None, None, None, ReadOptions()).given  # as dm2 reads it back
+        relations = load_relations(rel)
+        error = {k: round(relations_error(t, relations).stats["trans_mean"], 4) for k, t in
+                 (("odometry_relations_m", odo), ("degraded_odometry_relations_m", spoiled))}
+        return Inputs(["-s", str(out), "--relations", str(rel)], len(odo),
+                      {"scans": f"{log} with the odometry degraded ({DEGRADE}), written to {out}",
+                       "relations": str(rel), "warm_start": "default (icp fusing the odometry)", **error})
+    return load
+
+
+def corridors(frames: int) -> Callable[[Env], Inputs]:
+    """``dm2 simulate --scene corridors -n FRAMES`` into the cache; refined from its drifting odometry with the
+    icp warm start (``--poses warm_start.txt --warm-start icp``)."""
+    def load(env: Env) -> Inputs:
+        out = env.cache / f"corridors-{frames}-{simulator_hash()}"
+        if not (out / "info.json").is_file():
+            cmd = [sys.executable, "-m", "dm2_backend", "simulate", "--scene", "corridors", "-n", str(frames),
+                   "--out", str(out), "--force", "-q"]
+            subprocess.run(cmd, check=True, capture_output=env.quiet)
+        info = json.loads((out / "info.json").read_text())
+        return Inputs(["-s", str(out / "velodyne"), "-p", str(out / "warm_start.txt"), "--warm-start", "icp",
+                       "--gt", str(out / "poses.txt")], frames,
+                      {"simulated": True, "folder": str(out), "odometry_max_error_m":
+                       info["warm_start"]["max_position_error_m"]})
+    return load
+
+
 def redkitchen(env: Env) -> Inputs:
     folder = DATA / "depth3d" / "redkitchen_000-499"
     _need(folder)
@@ -212,6 +280,13 @@ DATASETS: dict[str, Dataset] = {d.name: d for d in [
             "poses; no ground truth", "map", balm),
     Dataset("deepmapping2d", "DeepMapping 2D simulated set v1_pose0 (256 scans), icp warm start", "ape",
             deepmapping2d),
+    Dataset("aces-degraded", "ACES with its odometry degraded (yaw bias 0.04 rad/m, 5 % scale error, noise), "
+            "default warm start", "relations", carmen_degraded("aces")),
+    Dataset("intel-degraded", "Intel with its odometry degraded (as aces-degraded), default warm start",
+            "relations", carmen_degraded("intel")),
+    Dataset("corridors-560", "SIMULATED ring of featureless corridors, front-facing 2D laser of 8 m range, 560 "
+            "frames (dm2 simulate --scene corridors), icp warm start fusing its drifting odometry", "ape",
+            corridors(560), real=False),
     _sim(500, True), _sim(2000, True),
     _sim(200, False), _sim(500, False), _sim(2000, False), _sim(5000, False),
     *(_huge(n, planar) for n in (2000, 10000, 20000, 40000) for planar in (False, True)),

@@ -56,6 +56,13 @@ SETS: dict[str, dict] = {
         "epochs": None,
         "timeout": 3600,
     },
+    # where 2D scan matching and loop closure break: corridors, degraded odometry (issue: 2D laser logs that break)
+    "corridors": {
+        "cases": {"corridors-560": ["dm2 refine", "gtsam"], "aces-degraded": ["dm2 refine", "gtsam"],
+                  "intel-degraded": ["dm2 refine", "gtsam"]},
+        "epochs": None,
+        "timeout": 3600,
+    },
     "freiburg-ablations": {
         "cases": {"aces": ["L-Net poses", "no consistency"]},
         "epochs": None,
