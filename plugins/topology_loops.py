@@ -127,6 +127,10 @@ class LoopsTopology:
         bad = [f"{n}={getattr(self, n)}" for n in lengths_ if getattr(self, n) is not None and not getattr(self, n) > 0]
         bad += [f"{n}={getattr(self, n)}" for n in ("candidates", "consistency_window") if getattr(self, n) < 1]
         bad += [f"{n}={getattr(self, n)}" for n in ("drift", "yaw_drift", "cycle_drift") if getattr(self, n) < 0]
+        if not 0 < self.max_ambiguity <= 1:
+            bad.append(f"max_ambiguity={self.max_ambiguity} (a ratio in (0, 1])")
+        if not 0 <= self.weak_fitness <= self.min_fitness:
+            bad.append(f"weak_fitness={self.weak_fitness} (between 0 and min_fitness={self.min_fitness})")
         if bad:
             raise InputError(None, f"place recognition loops: invalid options {', '.join(bad)}")
 
@@ -179,13 +183,17 @@ class LoopsTopology:
                     continue
                 new = Closure(a, b, np.array(entry["z"]), entry, weak=bool(entry.get("weak")),
                               axis=np.array(entry["axis"]) if "axis" in entry else None)
-                trusted = self._consistent(new, pending + graph.closures, odo, kpath)
-                if not confirms(new, trusted):
-                    trusted = []
-                entry["accepted"] = bool(trusted)
+                agreeing = self._consistent(new, pending + graph.closures, odo, kpath)
+                trusted = confirms(new, agreeing)
+                entry["accepted"] = trusted
                 if trusted:
-                    promote = [c for c in pending if c in trusted]  # Closure compares by identity
-                    pending = [c for c in pending if c not in trusted]
+                    # a pending closure that agrees with the new one is trusted with it when the new one and the
+                    # others that agree with it are enough for it too (a weak one needs more); Closure compares
+                    # by identity
+                    others = pending + graph.closures
+                    promote = [c for c in pending if c in agreeing and confirms(
+                        c, [new] + self._consistent(c, [o for o in others if o is not c], odo, kpath))]
+                    pending = [c for c in pending if c not in promote]
                     for c in promote:
                         c.entry.update(accepted=True, reason=f"{c.entry['reason']}; confirmed by a later closure")
                     graph.close(promote + [new])
@@ -265,7 +273,7 @@ class LoopsTopology:
         failed = self._gates(a, b, m, entry, across)
         weak = len(failed) == 1 and failed[0].startswith("overlap") and entry["overlap"] >= self.weak_fitness
         entry["verified"] = not failed or weak
-        entry["weak"] = weak or across
+        entry["weak"] = entry["verified"] and (weak or across)
         if across and entry["verified"]:
             entry["reason"] = (f"verified across a corridor (free along {entry['axis']}; {reasons[0]})"
                                + (f"; weak: {failed[0]}" if weak else ""))

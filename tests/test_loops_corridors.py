@@ -10,6 +10,7 @@ from plugins_scenes import frames_from
 
 from dm2_backend.algorithms import correlative as cm
 from dm2_backend.algorithms.loop_graph import Closure, KeyframeGraph, closure_error, confirms, cycle_error
+from dm2_backend.geometry import se3
 from dm2_backend.plugins.topology_loops import LoopsTopology
 from dm2_backend.plugins.warm_start_icp import IcpWarmStart
 from dm2_backend.simulate.corridor import corridor_sequence
@@ -59,6 +60,9 @@ def test_cycle_check_and_residual_leave_a_corridor_closures_axis_out():
     assert cycle_error(odo, plain, Closure(1, 3, np.array([20.0, 0.0, np.pi])))[0] == pytest.approx(np.hypot(0.3, 0.2))
     crossing = Closure(1, 3, np.array([20.0, 0.0, np.pi]), axis=np.array([0.0, 1.0]))
     assert cycle_error(odo, c1, crossing)[0] == np.inf  # two crossing axes cannot check each other
+    tilted = Closure(1, 3, np.array([20.0, 0.0, np.pi]), axis=np.array([np.cos(0.17), np.sin(0.17)]))  # 10 deg
+    et = cycle_error(odo, c1, tilted)[0]  # nearly parallel: one axis dropped, the rest still checked
+    assert 0.15 < et < 0.25
     sigma = np.array([0.1, 0.1, 0.01])
     poses = odo.copy()
     assert closure_error(poses, c1, sigma) == pytest.approx(0.2 / 0.1)
@@ -86,6 +90,17 @@ def test_graph_settles_a_corridor_closure_along_its_axis():
     assert g.estimate[10, 0] == pytest.approx(10.0, abs=0.05)  # the bogus along value (7 m) is ignored
 
 
+def test_corridor_closure_information_turns_with_the_measured_heading():
+    """Keyframe b turned 45 degrees from a: the free axis (a's x) must stay free in the factor's residual frame
+    (b's measured frame), or the bogus along value would pull b back along x."""
+    odo = np.array([[x, 0.0, 0.0] for x in range(10)] + [[10.0, 0.0, np.pi / 4]])
+    g = KeyframeGraph(odo, np.tile([0.05, 0.05, 0.002], (10, 1)), np.array([0.05, 0.05, 0.005]))
+    g.extend(10)
+    g.close([Closure(0, 10, np.array([7.0, 0.1, np.pi / 4]), axis=np.array([1.0, 0.0]))])
+    assert g.estimate[10, 0] == pytest.approx(10.0, abs=0.05)
+    assert 0.08 < g.estimate[10, 1] < 0.105
+
+
 @pytest.fixture(scope="module")
 def ring():
     scans, truth, odometry = corridor_sequence()
@@ -109,9 +124,18 @@ def test_corridor_ring_closes_across_corridors(ring):
         d = np.array(e["z"][:2]) - rel[:2, 3]
         u = np.array(e["axis"])
         assert np.linalg.norm(d - (d @ u) * u) < 0.03  # certain across
-        assert abs(np.degrees(e["z"][2] - np.arctan2(rel[1, 0], rel[0, 0]))) < 0.5
+        assert abs(np.degrees(se3.wrap_angle(e["z"][2] - np.arctan2(rel[1, 0], rel[0, 0])))) < 0.5
         assert "across a corridor" in e["reason"]
     assert _ate(topo.poses, truth) < 0.8 * _ate(warm, truth)
     off = LoopsTopology(progress=False, across_corridors=False).run(frames, warm)
     assert not any("axis" in e for e in off.log[1:])
     assert sum(bool(e.get("accepted")) for e in off.log[1:]) < len(accepted)
+
+
+@pytest.mark.parametrize("option", [{"max_ambiguity": 1.2}, {"weak_fitness": 0.6}, {"weak_fitness": -0.1}])
+def test_loops_refuses_bad_ambiguity_and_weak_settings(ring, option):
+    from dm2_backend.errors import InputError
+
+    frames, _, warm = ring
+    with pytest.raises(InputError, match=next(iter(option))):
+        LoopsTopology(progress=False, **option).run(frames, warm)

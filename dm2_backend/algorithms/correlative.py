@@ -157,9 +157,10 @@ def match(
             runner = float(masked[rb, rc])
             o2 = offsets[rb, rc]
             runner_pose = (init[0] + o2[0] * res, init[1] + o2[1] * res, float(yaws[angles[rb]]))
-    axis = _ridge_axis(scores, offsets - off, se3.wrap_angle(yaws[angles] - yaws[a]), ratio * score, res, dt, dy)
-    return Correlation(*pose, score=score, runner_up=runner, runner_up_pose=runner_pose,
-                       axis=axis if runner > 0 and runner >= ratio * score else None)
+    axis = None
+    if runner > 0 and runner >= ratio * score:  # ambiguous: does the ambiguity run along one line?
+        axis = _ridge_axis(scores, offsets - off, se3.wrap_angle(yaws[angles] - yaws[a]), ratio * score, res, dt, dy)
+    return Correlation(*pose, score=score, runner_up=runner, runner_up_pose=runner_pose, axis=axis)
 
 
 def _ridge_axis(scores: np.ndarray, offsets: np.ndarray, dyaw: np.ndarray, level: float, res: float,
@@ -167,7 +168,7 @@ def _ridge_axis(scores: np.ndarray, offsets: np.ndarray, dyaw: np.ndarray, level
     """Direction of the line on which every alignment scoring at least ``level`` lies (``offsets`` in cells
     and ``dyaw`` relative to the best), or None when they spread across it or in heading."""
     near = scores >= level
-    if np.abs(dyaw[np.any(near, axis=1)]).max() > distinct_yaw:
+    if not near.any() or np.abs(dyaw[np.any(near, axis=1)]).max() > distinct_yaw:
         return None
     d = offsets[near].astype(np.float64) * res  # (n, 2) metres from the best
     _, vec = np.linalg.eigh(d.T @ d)

@@ -35,7 +35,7 @@ class Closure:
     b: int  # keyframe index (later)
     z: np.ndarray  # (x, y, yaw) of b in a's frame
     entry: dict = field(default_factory=dict)  # its record in the topology log
-    weak: bool = False  # passed its gates only narrowly: needs more agreement before it is trusted
+    weak: bool = False  # needs more agreement before it is trusted: a narrow overlap, or across a corridor
     axis: np.ndarray | None = None  # (2,) unit direction in a's frame that the closure leaves free (a corridor)
 
 
@@ -142,13 +142,13 @@ def closure_noise(c: Closure, sigma: np.ndarray) -> gtsam.noiseModel.Base:
 
 
 def _drop_free(d: np.ndarray, axes: list[np.ndarray]) -> np.ndarray:
-    """``d`` (2,) without its components along ``axes`` (unit vectors; a second one parallel to the first adds
-    nothing, one that crosses it leaves nothing)."""
+    """``d`` (2,) without its components along ``axes`` (unit vectors); an axis within ``CROSSING_DEG`` of one
+    already dropped counts as parallel to it and adds nothing (:func:`cycle_error` refuses axes that cross)."""
     basis: list[np.ndarray] = []
     for u in axes:
         for b in basis:
             u = u - (u @ b) * b
-        if np.linalg.norm(u) > 0.1:
+        if np.linalg.norm(u) > np.sin(np.radians(CROSSING_DEG)):
             basis.append(u / np.linalg.norm(u))
     for b in basis:
         d = d - (d @ b) * b
