@@ -78,6 +78,14 @@ def load(path: str | Path | None, overrides: dict | None = None) -> dict:
     return cfg
 
 
+def sets(path: str | Path | None, section: str) -> bool:
+    """Whether the YAML config at ``path`` (already read by :func:`load`) sets ``section`` itself."""
+    if path is None:
+        return False
+    user = yaml.safe_load(Path(path).read_text(encoding="utf-8")) or {}
+    return isinstance(user, dict) and section in user
+
+
 def dump(cfg: dict, path: str | Path) -> None:
     with atomic_write(path) as fh:
         yaml.safe_dump(cfg, fh, sort_keys=False)

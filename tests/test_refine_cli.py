@@ -279,3 +279,24 @@ def test_cuda_without_a_device_is_one_line_before_any_work(seq, tmp_path, monkey
                     "--out", str(tmp_path / "r"))
     one_error_line(result, "--device cuda", "no CUDA device")
     assert not (tmp_path / "r").exists()
+
+
+def test_default_warm_start_fuses_a_logs_odometry(tmp_path):
+    """No --poses: icp; a 2D log's own odometry: icp (it fuses the odometry) unless a warm start was asked for;
+    a trajectory given with --poses, or 3D scans with carried odometry: poses."""
+    from types import SimpleNamespace
+
+    from dm2_backend.cli.refine import default_to_icp
+
+    cfg = config.load(None, {})
+    planar, lidar = SimpleNamespace(planar=True), SimpleNamespace(planar=False)
+    log = SimpleNamespace(given=object(), given_path=None, scans=planar)
+    assert default_to_icp(cfg, SimpleNamespace(given=None, given_path=None, scans=lidar), False)
+    assert default_to_icp(cfg, log, False)
+    assert not default_to_icp(cfg, log, True)  # --warm-start poses, or warm_start in the config
+    assert not default_to_icp(cfg, SimpleNamespace(given=object(), given_path=Path("p.txt"), scans=planar), False)
+    assert not default_to_icp(cfg, SimpleNamespace(given=object(), given_path=None, scans=lidar), False)
+    yaml_file = tmp_path / "c.yaml"
+    yaml_file.write_text("warm_start:\n  name: poses\n")
+    assert config.sets(yaml_file, "warm_start") and not config.sets(yaml_file, "optimiser")
+    assert not config.sets(None, "warm_start")

@@ -70,6 +70,16 @@ def run_options(f=None, *, scans_required: bool = True):
     return f
 
 
+def default_to_icp(cfg: dict, inputs, asked: bool) -> bool:
+    """Whether the run starts from the ``icp`` warm start instead of the default ``poses``: when there is no
+    trajectory to refine, or (unless a warm start was ``asked`` for on the command line or in the config) only
+    the wheel odometry a 2D laser log carries, which the icp warm start fuses with scan matching."""
+    if cfg["warm_start"]["name"] != "poses":
+        return False
+    carried_odometry = inputs.given is not None and inputs.given_path is None and inputs.scans.planar
+    return inputs.given is None or (carried_odometry and not asked)
+
+
 def prepare_run(kw: dict, overrides: dict):
     """Read the inputs and the effective config of a run from the shared options."""
     calib = kw["calib"] or kitti_calibration(kw)
@@ -86,10 +96,7 @@ def prepare_run(kw: dict, overrides: dict):
     if kw["seed"] is not None:
         overrides["seed"] = kw["seed"]
     cfg = config.load(kw["config_path"], overrides)
-    if not kw["warm_start"] and cfg["warm_start"]["name"] == "poses" and (
-            inputs.given is None or (inputs.given_path is None and inputs.scans.planar)):
-        # no trajectory to refine, or only the wheel odometry a 2D laser log carries: the icp warm start
-        # (which fuses that odometry with scan matching)
+    if default_to_icp(cfg, inputs, bool(kw["warm_start"]) or config.sets(kw["config_path"], "warm_start")):
         cfg["warm_start"] = {"name": "icp", "options": {}}
     cache = None if kw["no_cache"] else (kw["cache_dir"] or default_cache_dir())
     return inputs, cfg, cache
