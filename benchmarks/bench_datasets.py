@@ -79,8 +79,8 @@ def carmen(name: str) -> Callable[[Env], Inputs]:
     return load
 
 
-#: odometry degradation of the ``*-degraded`` cases, per metre driven: yaw bias (rad/m, a wheel base 2 % off on a
-#: ~0.5 m track), yaw noise (rad/sqrt(m)), translation scale error and noise (fractions)
+#: odometry degradation of the ``*-degraded`` cases, per metre driven: yaw bias (rad/m: left and right wheel radii
+#: 2 % apart on a 0.5 m track), yaw noise (rad/sqrt(m)), translation scale error and noise (fractions)
 DEGRADE = {"yaw_bias": 0.04, "yaw_noise": 0.02, "scale": 0.05, "trans_noise": 0.05, "seed": 7}
 
 

@@ -18,8 +18,8 @@ from dm2_backend.pipeline.run_folder import run_folder
               help="Drive laps of a loop or of a figure-eight.")
 @click.option("--scene", type=click.Choice(["street", "corridors"]), default="street", show_default=True,
               help="street: buildings, walls, poles and cars along a street; corridors: a ring of featureless "
-                   "corridors for a front-facing 2D laser (implies --planar; frames every 0.25 m, 8 m range; "
-                   "--path, --laps, --extent and the LiDAR options do not apply).")
+                   "corridors for a front-facing 2D laser (planar; a frame every 0.25 m; --range default 8 m; "
+                   "--rate, --seed and the drift options apply, the other path and LiDAR options do not).")
 @click.option("--laps", type=click.FloatRange(min=0, min_open=True), default=2.0, show_default=True)
 @click.option("--extent", type=click.FloatRange(min=10), default=40.0, show_default=True,
               help="Half size of the scene (m); the street's radius is 0.7 x extent.")
