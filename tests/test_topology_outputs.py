@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from optim_cases import planar_case
 
+from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.topology_log import DROPPED, candidates, document, pairs_by_status
 from dm2_backend.geometry import se3
 from dm2_backend.pipeline import outputs
@@ -100,3 +101,15 @@ def test_written_files_match_the_loops_log(loops_topology, tmp_path):
     labels = [c.get_label() for c in ax.collections]
     assert f"loop edges ({doc['edges']['loop']})" in labels
     assert any(lb.startswith(f"accepted closures ({doc['counts']['accepted']})") for lb in labels)
+
+
+def test_closures_across_a_corridor_are_drawn_apart(tmp_path):
+    topo = fake_topology()
+    topo.log[4] = {**topo.log[4], "axis": [1.0, 0.0], "reason": "verified across a corridor"}  # the accepted one
+    topo.log.append({"i": 5, "j": 35, "score": 0.9, "verified": True, "accepted": True, "reason": "verified",
+                     "z": [0, 0, 0]})
+    pairs = pairs_by_status(document(topo))
+    assert pairs["across"].tolist() == [[3, 33]] and pairs["accepted"].tolist() == [[5, 35]]
+    fig = plots.topology_figure(topo.poses[:, :3, 3], pairs, topo.edges[:2])
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert "accepted across a corridor (free along it) (1)" in labels and "accepted closures (1)" in labels

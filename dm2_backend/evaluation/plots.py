@@ -221,6 +221,7 @@ CLOSURE_STYLE = {
     "verified": ("tab:red", 1.0, "dashed", 0.8, "verified, not accepted"),
     "dropped": ("tab:red", 1.2, "solid", 0.9, "dropped by the final solve"),
     "accepted": ("tab:green", 1.4, "solid", 0.9, "accepted closures"),
+    "across": ("tab:cyan", 1.4, "dotted", 0.9, "accepted across a corridor (free along it)"),
 }
 
 

@@ -79,6 +79,10 @@ def document(topology: Topology) -> dict:
 
 
 def pairs_by_status(doc: dict) -> dict[str, np.ndarray]:
-    """``status -> (M,2)`` frame pairs of a :func:`document`'s candidates."""
-    return {s: np.array([(c["i"], c["j"]) for c in doc["candidates"] if c["status"] == s], dtype=int).reshape(-1, 2)
-            for s in STATUSES}
+    """``status -> (M,2)`` frame pairs of a :func:`document`'s candidates; accepted closures across a corridor
+    (with a free ``axis``) under ``"across"`` rather than ``"accepted"``."""
+    def kind(c: dict) -> str:
+        return "across" if c["status"] == "accepted" and c.get("axis") is not None else c["status"]
+
+    return {s: np.array([(c["i"], c["j"]) for c in doc["candidates"] if kind(c) == s], dtype=int).reshape(-1, 2)
+            for s in (*STATUSES, "across")}

@@ -36,7 +36,7 @@ MAX_MAP_POINTS = 500_000
 SCAN_POINTS = 4000
 COLOURS = {"warm_start": (230, 140, 30), "refined": (40, 120, 230), "ground_truth": (60, 180, 75),
            "accepted": (40, 200, 60), "dropped": (240, 160, 0), "verified": (150, 150, 150),
-           "rejected": (220, 40, 40)}
+           "rejected": (220, 40, 40), "across": (40, 190, 210)}
 
 
 def require_rerun():
