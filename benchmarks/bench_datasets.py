@@ -106,6 +106,7 @@ def carmen_degraded(name: str) -> Callable[[Env], Inputs]:
     dialect (scans untouched); run as a user would: ``dm2 refine --scans LOG --relations REL`` (the default
     warm start for a log that carries odometry)."""
     def load(env: Env) -> Inputs:
+        from dm2_backend.evaluation.relations import load_relations, relations_error
         from dm2_backend.formats import ReadOptions
         from dm2_backend.formats.carmen import write_carmen
         from dm2_backend.pipeline.inputs import load_inputs
@@ -114,8 +115,6 @@ def carmen_degraded(name: str) -> Callable[[Env], Inputs]:
         log, rel = DATA / "carmen" / f"{name}.clf.bz2", DATA / "carmen" / f"{name}.relations"
         _need(log, rel)
         out = env.cache / f"{name}-degraded-{hashlib.sha1(json.dumps(DEGRADE).encode()).hexdigest()[:8]}.clf.bz2"
-        from dm2_backend.evaluation.relations import load_relations, relations_error
-
         odo = load_inputs(log, None, None, None, ReadOptions()).given
         if not out.is_file():
             write_carmen(out, Trajectory(degrade(odo.poses, **DEGRADE), odo.timestamps), log,

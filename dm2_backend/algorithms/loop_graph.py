@@ -180,7 +180,7 @@ def cycle_error(odometry: np.ndarray, c1: Closure, c2: Closure) -> tuple[float, 
     axes = [c1.axis] if c1.axis is not None else []
     if c2.axis is not None:
         axes.append(_rotate(a2.theta(), c2.axis))
+    turn = abs(float(se3.wrap_angle(other.theta() - via.theta())))
     if len(axes) == 2 and abs(axes[0][0] * axes[1][1] - axes[0][1] * axes[1][0]) > np.sin(np.radians(CROSSING_DEG)):
-        return float("inf"), abs(float(se3.wrap_angle(other.theta() - via.theta())))
-    d = _drop_free(d, axes)
-    return float(np.linalg.norm(d)), abs(float(se3.wrap_angle(other.theta() - via.theta())))
+        return float("inf"), turn
+    return float(np.linalg.norm(_drop_free(d, axes))), turn

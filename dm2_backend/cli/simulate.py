@@ -62,10 +62,6 @@ def command(frames, out, seed, path_kind, scene, laps, extent, rate, planar, bea
     from dm2_backend.simulate.lidar import LidarModel
     from dm2_backend.simulate.sequence import SimSettings, generate
 
-    yaw_bias = 0.00035 if yaw_bias is None else yaw_bias
-    yaw_noise = 0.001 if yaw_noise is None else yaw_noise
-    trans_noise = 0.02 if trans_noise is None else trans_noise
-
     if fov_up < fov_down:
         raise click.BadParameter("must not be below --fov-down", param_hint="--fov-up")
     lidar = LidarModel(
@@ -75,9 +71,10 @@ def command(frames, out, seed, path_kind, scene, laps, extent, rate, planar, bea
         range_noise=range_noise, dropout=dropout,
         height=height if height is not None else (0.5 if planar else 1.8), planar=planar,
     )
+    drift = {k: v for k, v in (("yaw_bias", yaw_bias), ("yaw_sigma", yaw_noise), ("trans_sigma", trans_noise))
+             if v is not None}  # the rest: SimSettings' defaults
     settings = SimSettings(frames=frames, seed=seed, extent=extent, laps=laps, path=path_kind, rate_hz=rate,
-                           planar=planar, lidar=lidar, yaw_bias=yaw_bias, yaw_sigma=yaw_noise,
-                           trans_sigma=trans_noise)
+                           planar=planar, lidar=lidar, **drift)
     kind = "planar laser" if planar else f"{beams}-beam LiDAR"
     with run_folder(out, "simulate", force=force):
         click.echo(f"simulating {frames} {kind} frames ({laps:g} laps of a {path_kind}, seed {seed}) into {out}")
