@@ -26,7 +26,6 @@ writes as ``warm_start.json``."""
 
 from __future__ import annotations
 
-import logging
 from collections import deque
 from dataclasses import dataclass
 from typing import ClassVar
@@ -49,8 +48,6 @@ from dm2_backend.geometry import se3
 from dm2_backend.prepare.types import Frames
 from dm2_backend.progress import progress
 from dm2_backend.trajectory import Trajectory
-
-log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -132,10 +129,6 @@ class IcpWarmStart:
                 last_key = poses[i]
                 target = self._map(keyframes, frames.planar, voxel, fine)
         self.report = self._fusion_report(poses) if fuse else {"fused": False, "rejected": len(self.rejected)}
-        if fuse:
-            log.info("icp warm start: %s of %d steps from the scan match, %s; %s", self.report["sources"]["scan"],
-                     n - 1, ", ".join(f"{v} {k}" for k, v in list(self.report["sources"].items())[1:]),
-                     ", ".join(f"{k}: {v}" for k, v in self.report["reasons"].items()) or "no fallback")
         return poses
 
     def _plain_step(self, i, source, target, previous, predicted, distances, method, planar, velocity) -> np.ndarray:
@@ -282,11 +275,16 @@ class IcpWarmStart:
             key = r.split(" (")[0].split(":")[0]
             kinds[key] = kinds.get(key, 0) + 1
         r = lambda a: [None if not np.isfinite(v) else round(float(v), 4) for v in a]  # noqa: E731
+        reasons = dict(sorted(kinds.items(), key=lambda kv: -kv[1]))
+        summary = (f"icp warm start: {counts['scan']} of {len(src)} steps from the scan match, "
+                   + ", ".join(f"{v} {k}" for k, v in list(counts.items())[1:]) + "; "
+                   + (", ".join(f"{k}: {v}" for k, v in reasons.items()) or "no fallback"))
         return {
             "fused": True,
+            "summary": summary,  # printed by the preparation, whether computed or read from the cache
             "steps": int(len(src)),
             "sources": counts,
-            "reasons": dict(sorted(kinds.items(), key=lambda kv: -kv[1])),
+            "reasons": reasons,
             "settings": {"min_fitness": self.min_fitness, "min_constraint": self.min_constraint,
                          "gate": self.gate, "better_fitness": self.better_fitness,
                          "fine_distance_m": round(self._fine, 4), "range_median_m": round(self._reach, 4)},

@@ -11,6 +11,7 @@ share their pages.
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 import time
 from dataclasses import dataclass, field
@@ -26,6 +27,8 @@ from dm2_backend.prepare.cache_keys import code_fingerprint, source_key, step_ke
 from dm2_backend.prepare.types import Frames, Pairwise, Topology
 from dm2_backend.scans import DEPTH_CAMERA, ScanSequence
 from dm2_backend.trajectory import Trajectory
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -183,6 +186,8 @@ def prepare(
         warm = plugin.run(frames, given)
         warm_report = getattr(plugin, "report", None)
         cache.put(name, {"poses": warm}, {"report": warm_report} if warm_report else None)
+    if warm_report and warm_report.get("summary"):
+        log.info("%s", warm_report["summary"])
     timings["warm_start"] = time.perf_counter() - t
 
     pr = resolve_auto(cfg["place_recognition"], scans.sensor == DEPTH_CAMERA, warm, frames.planar)
