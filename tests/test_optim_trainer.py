@@ -387,3 +387,22 @@ def test_converged_run_stops_early_and_traces(case):
     full = Optimiser(case.frames, case.warm, case.topology, case.pairwise, small_config(epochs=6, converge_tol=0.0),
                      device="cpu", map_metric=flat_map, progress=False).run()
     assert len(full.history) == 6 and not any("converged" in row for row in full.history)
+
+
+def test_chamfer_matches_brute_force_nearest_points(case):
+    """The per-frame KD-trees find, for every pair, the same nearest points as comparing all points."""
+    opt = optimiser(case)
+    T = torch.from_numpy(case.gt @ se3.from_xyz_euler(np.full((len(case.gt), 6), 0.01)))
+    idx = np.arange(opt.n)
+    world = se3_torch.transform(T.float(), opt.points)
+    got = float(opt._chamfer(idx, opt.groups, idx, T, world, torch.from_numpy(idx)))
+    cut, total = opt.derived["chamfer_truncate"], {0: [], 1: []}
+    for a, row in zip(idx, opt.groups, strict=True):
+        for j in row:
+            if j < 0 or j == a:
+                continue
+            d = torch.cdist(world[a], world[j])  # (M, M)
+            total[0].append(d.min(1).values.clamp(max=cut))
+            total[1].append(d.min(0).values.clamp(max=cut))
+    want = float(torch.cat(total[0]).mean() + torch.cat(total[1]).mean())
+    assert got == pytest.approx(want, rel=1e-5)

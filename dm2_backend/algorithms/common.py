@@ -99,6 +99,9 @@ class Cloud:
         self._tree: cKDTree | None = None
         self._normals: np.ndarray | None = None
         self._covariances = False
+        #: what other modules derive from the points and keep with the cloud (e.g. the free-space gate's depth
+        #: image), keyed by what it is
+        self.derived: dict = {}
         if planar:
             self.xy = np.ascontiguousarray(self.points[:, :2])
             self.pcd = None

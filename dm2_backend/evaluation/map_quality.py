@@ -25,6 +25,7 @@ from dm2_backend.errors import InputError
 from dm2_backend.prepare.frames import point_spacing
 from dm2_backend.progress import progress as progress_of
 from dm2_backend.scans import ScanSequence
+from dm2_backend.threads import ordered_map
 from dm2_backend.trajectory import Trajectory, associate_by_time
 
 DEFINITION = ("mean over sampled map points of 1/2 ln det(2 pi e Sigma) (map_entropy, nats) and of the "
@@ -86,8 +87,8 @@ class MapSampler:
         settings = settings or MapSettings()
         voxel, radius = derive(scans, settings)
         budget = max(1, settings.max_points // max(len(scans), 1))
-        clouds = [_thin(voxelise(scan.points, voxel), budget)
-                  for scan in progress_of(scans, "map scans", total=len(scans), unit="scan", enabled=progress)]
+        bar = progress_of(scans, "map scans", total=len(scans), unit="scan", enabled=progress)
+        clouds = list(ordered_map(lambda scan: _thin(voxelise(scan.points, voxel), budget), bar))
         return cls(clouds, scans.planar, voxel, radius, settings)
 
     def world(self, poses: np.ndarray) -> np.ndarray:

@@ -8,13 +8,24 @@ import open3d as o3d
 from dm2_backend.prepare.types import Frames
 from dm2_backend.progress import progress as progress_of
 from dm2_backend.scans import ScanSequence
+from dm2_backend.threads import ordered_map
 
 
 def downsample(points: np.ndarray, voxel: float, max_points: int, rng: np.random.Generator) -> np.ndarray:
     """Voxel-grid down-sample (open3d), then cap the count by random sampling."""
+    return cap(voxel_grid(points, voxel, max_points), max_points, rng)
+
+
+def voxel_grid(points: np.ndarray, voxel: float, max_points: int) -> np.ndarray:
+    """The centroid of each occupied voxel (open3d), when there are more than ``max_points`` points."""
     if voxel > 0 and len(points) > max_points:
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
         points = np.asarray(pcd.voxel_down_sample(voxel).points, dtype=np.float32)
+    return points
+
+
+def cap(points: np.ndarray, max_points: int, rng: np.random.Generator) -> np.ndarray:
+    """At most ``max_points`` of the points, a random subset in their order (float32, contiguous)."""
     if len(points) > max_points:
         points = points[np.sort(rng.choice(len(points), max_points, replace=False))]
     return np.ascontiguousarray(points, dtype=np.float32)
@@ -56,10 +67,9 @@ def load_frames(
     if voxel is None:
         voxel = 0.0 if seq.planar else scale["range_median"] / 40.0
     rng = np.random.default_rng(seed)
-    points = [
-        downsample(scan.points, voxel, max_points, rng)
-        for scan in progress_of(seq, "load scans", total=len(seq), unit="scan", enabled=progress)
-    ]
+    scans = progress_of(seq, "load scans", total=len(seq), unit="scan", enabled=progress)
+    # the voxel grids on threads while the next scans are read; the random caps in order, as one loop draws them
+    points = [cap(p, max_points, rng) for p in ordered_map(lambda s: voxel_grid(s.points, voxel, max_points), scans)]
     sub = points[:: max(1, len(points) // 20)]
     scale["voxel"] = float(voxel)
     scale["spacing"] = float(np.median([point_spacing(p) for p in sub]))
