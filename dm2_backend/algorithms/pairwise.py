@@ -59,6 +59,12 @@ class PairwiseRegistration:
     max_free_space: float | None = None
     free_space_margin: float | None = None
     iterations: int = 30
+    #: planar point-to-line: Cauchy reweighting of the residuals with this threshold in robust standard
+    #: deviations (0: plain least squares; see ``icp.icp_2d``). Measured on 200 pairs two frames apart of a
+    #: simulated planar street sequence (2,000 frames, seed 11) against ground truth: along-track bias
+    #: 2.6 -> 0.1 mm, spread 12 -> 5.3 mm, yaw spread 0.061 -> 0.028 deg; the bias, summed over thousands of
+    #: consecutive pairs, had bent the gtsam pose graph (0.087 m loop-closed -> 0.20 m)
+    robust_k: float = 2.3849
     #: 3D: a pass stops when fitness and inlier rmse change by less than this fraction. Measured on 600 pairs
     #: of a simulated 3D LiDAR sequence against ground truth: 1e-6 (open3d's usual) and 1e-4 give the same
     #: relative poses (median error 0.77 / 0.76 cm, 0.037 deg) in 15 and 6 ms a pair
@@ -155,10 +161,11 @@ class PairwiseRegistration:
         """Frame b onto frame a from init: T_b^a with its fitness and rmse. A good initial guess (most
         pairs) converges in the fine pass alone; otherwise a coarse pass runs first."""
         src, tgt = self._clouds[b], self._clouds[a]
-        m = register(src, tgt, init, (fine,), self._method, self.iterations, tolerance=self.tolerance)
+        kw = {"tolerance": self.tolerance, "robust_k": self.robust_k}
+        m = register(src, tgt, init, (fine,), self._method, self.iterations, **kw)
         if m.fitness >= 0.8:
             return m
-        return register(src, tgt, init, (4.0 * fine, fine), self._method, self.iterations, tolerance=self.tolerance)
+        return register(src, tgt, init, (4.0 * fine, fine), self._method, self.iterations, **kw)
 
     def _inits(self, poses: np.ndarray, pairs: list[tuple[int, int]], topology: Topology) -> dict:
         """T_b^a for each pair (a < b): the verified loop transform if any, else inv(T_a) @ T_b."""
