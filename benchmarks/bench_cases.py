@@ -20,6 +20,8 @@ class Method:
     command: list[str]  # dm2 sub-command and its positional arguments; [] = the warm start itself
     config: dict | None = None  # YAML config overrides (the ablations)
     description: str = ""
+    #: started from the ground truth (``--poses`` = the ``--gt`` file): the floor of the objective
+    from_truth: bool = False
 
 
 METHODS: dict[str, Method] = {m.name: m for m in [
@@ -42,6 +44,18 @@ METHODS: dict[str, Method] = {m.name: m for m in [
            "3D ablation: BCE + Euclidean Chamfer + consistency (the paper) from the pose-graph start"),
     Method("prepared start", ["refine"], {"optimiser": {"start": "prepared"}},
            "3D ablation: from the prepared (loop-closed) poses instead of the pose graph (optimiser.start=prepared)"),
+    Method("from truth", ["refine"], description="dm2 refine started from the ground truth (--poses = --gt): "
+           "where the objective leaves the truth, the noise floor", from_truth=True),
+    Method("graph start", ["refine"], {"optimiser": {"dense": False, "first_order": False}},
+           "3D ablation: the start alone (pose graph or loop-closed, the sharper map), no optimisation"),
+    Method("dense + first-order", ["refine"], {"optimiser": {"first_order": True}},
+           "3D ablation: the first-order epochs (point-to-plane Chamfer) after the dense stage"),
+    Method("dense + BCE", ["refine"], {"optimiser": {"first_order": True, "use_bce": True}},
+           "3D ablation: the first-order epochs with the M-Net BCE after the dense stage"),
+    Method("dense + consistency", ["refine"], {"optimiser": {"first_order": True, "use_consistency": True}},
+           "3D ablation: the first-order epochs with the consistency loss after the dense stage"),
+    Method("no dense", ["refine"], {"optimiser": {"dense": False}},
+           "3D ablation: the first-order epochs alone from the start (dm2 before the dense stage)"),
     Method("gtsam", ["baseline", "gtsam"], description="dm2 baseline gtsam (same preparation)"),
     Method("g2o", ["baseline", "g2o"], description="dm2 baseline g2o (same preparation)"),
     Method("multiway", ["baseline", "multiway"], description="dm2 baseline multiway (Open3D)"),
@@ -82,6 +96,11 @@ def run_case(method: Method, input_args: list[str], run_dir: Path, cache_dir: Pa
              timeout: float) -> dict:
     """One case: returns status, metrics and timings from its report.json, wall time and peak RSS."""
     run_dir.mkdir(parents=True, exist_ok=True)
+    if method.from_truth:
+        if "--gt" not in input_args or "-p" not in input_args:
+            return {"status": "not available", "reason": "needs a --gt trajectory file and --poses"}
+        input_args = list(input_args)
+        input_args[input_args.index("-p") + 1] = input_args[input_args.index("--gt") + 1]
     cmd = [sys.executable, "-m", "dm2_backend", *method.command, *input_args, "--out", str(run_dir / "run"),
            "--cache-dir", str(cache_dir), "-q", "--force"]
     if method.config:

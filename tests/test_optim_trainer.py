@@ -79,7 +79,7 @@ def test_refine_lowers_ate_with_icp_pairwise(case, full_run):
     np.testing.assert_allclose(result.poses[0], case.warm[0], atol=1e-9)  # the gauge: frame 0 stays put
     assert (folder / CHECKPOINT).is_file()
     assert set(result.derived) == {"unit", "finest_cell", "free_margin", "chamfer_truncate",
-                                   "step_translation", "step_rotation", "epochs", "drift", "lr_pose",
+                                   "step_translation", "step_rotation", "epochs", "first_order", "drift", "lr_pose",
                                    "start_disagreement", "locally_accurate_start", "use_bce", "use_consistency",
                                    "chamfer_metric", "pose_warmup", "pose_warmup_steps", "polish",
                                    "points_per_frame", "max_disagreement"}

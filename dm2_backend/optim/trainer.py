@@ -129,11 +129,14 @@ class Optimiser:
         dist: distributed.Dist | None = None,
         from_graph: bool = False,
         trace_metric: Callable[[np.ndarray], float] | None = None,
+        dense: bool = False,
     ) -> None:
         """``metric``: accuracy against ground truth, shown and recorded per epoch, never used to choose;
         ``map_metric``: the map entropy of poses (lower = sharper), recorded per epoch and, with
         ``cfg.select == "map"``, what chooses the returned poses among the start and the epochs;
         ``from_graph``: ``warm_start`` is the pose-graph solution (locally accurate by construction);
+        ``dense``: ``warm_start`` is the dense stage's result (then the first-order epochs run only when
+        ``cfg.first_order`` asks for them);
         ``trace_metric``: the accuracy recorded a few times per epoch with the loss (each epoch row's ``trace``);
         ``samples``: the points of :func:`sample_points` computed ahead (a memory-mapped array shared by the
         ranks); ``dist``: this process's rank when several optimise together (see ``distributed``)."""
@@ -205,7 +208,10 @@ class Optimiser:
         self.epochs = cfg.epochs
         if cfg.max_steps > 0:  # long sequences: fewer passes, the same step budget, but at least min_epochs
             self.epochs = max(min(cfg.epochs, cfg.min_epochs), min(cfg.epochs, cfg.max_steps // self.steps_per_epoch))
-        self.derived["epochs"] = self.epochs
+        first_order = cfg.first_order if cfg.first_order is not None else not dense
+        if not first_order:
+            self.epochs = 0
+        self.derived.update(epochs=self.epochs, first_order=first_order)
         total = max(1, self.epochs * self.steps_per_epoch)
         warmup = int(round(self.derived["pose_warmup"] * self.steps_per_epoch)) if self.derived["drift"] is False else 0
         self.derived["pose_warmup_steps"] = warmup
@@ -454,7 +460,9 @@ class Optimiser:
                            _selection(best, by_map, rejected))
 
 
-def _selection(best: dict, by_map: bool, rejected: int = 0) -> str:
+def _selection(best: dict, by_map: bool, rejected: int = 0, epochs: int = 1) -> str:
+    if epochs == 0:
+        return "the start: first-order epochs off (optimiser.first_order)"
     note = f"; {rejected} diverged epochs rejected" if rejected else ""
     return _chosen(best, by_map) + note
 

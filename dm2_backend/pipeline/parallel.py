@@ -121,7 +121,8 @@ def build(prep: Prepared, start: Start, ocfg: OptimConfig, cfg: dict, watch: Wat
     return Optimiser(prep.frames, start.poses, prep.topology, prep.pairwise, ocfg, seed=cfg["seed"],
                      device=device, metric=watch.metric, map_metric=watch.map_metric,
                      progress=progress and dist.rank == 0, samples=samples, dist=dist,
-                     from_graph=start.name == "graph", trace_metric=watch.trace)
+                     from_graph=start.locally_accurate, trace_metric=watch.trace,
+                     dense=bool(start.dense))
 
 
 def optimise_rank(prep: Prepared, start: Start, samples: str, ocfg: OptimConfig, cfg: dict, sess: Session,

@@ -13,7 +13,7 @@ from dm2_backend.pipeline.inputs import RunInputs
 from dm2_backend.pipeline.live import live_metric
 from dm2_backend.pipeline.run_report import RunReport
 from dm2_backend.pipeline.run_writer import map_entropy, map_sampler, output_timestamps, write_run
-from dm2_backend.pipeline.start import choose_start
+from dm2_backend.pipeline.start import choose_start, dense_start
 
 log = logging.getLogger(__name__)
 
@@ -34,10 +34,14 @@ def refine(inputs: RunInputs, cfg: dict, out: Path, cache_dir: Path | None, resu
         t_map = time.perf_counter()
         sampler = map_sampler(inputs, progress) if lead else None
         start = choose_start(prep, ocfg, sampler) if lead else None
-        if sess.mode == "torchrun":
-            start = distributed.broadcast(start)
         t_map = time.perf_counter() - t_map
         metric = live_metric(inputs, stamps) if lead else None
+        t_dense = time.perf_counter()
+        if lead:
+            start = dense_start(inputs.scans, prep, start, ocfg, cfg["seed"], progress, metric)
+        if sess.mode == "torchrun":
+            start = distributed.broadcast(start)
+        t_dense = time.perf_counter() - t_dense
         watch = parallel.Watch(metric, map_entropy(sampler), metric) if lead else None
         extra = {}
         if sess.mode == "single":
@@ -58,6 +62,7 @@ def refine(inputs: RunInputs, cfg: dict, out: Path, cache_dir: Path | None, resu
             return None
         timings = dict(prep.timings)
         timings["start"] = t_map
+        timings["dense"] = t_dense
         timings["optimise"] = time.perf_counter() - t_opt
         timings["total"] = time.perf_counter() - t_start
         extra.update(best_epoch=result.best_epoch, selection=result.selection, start=start.summary(),

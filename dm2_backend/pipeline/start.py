@@ -11,6 +11,8 @@ entropy, no ground truth), so a graph bent by a wrong registration does not star
 from __future__ import annotations
 
 import logging
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -20,8 +22,11 @@ from dm2_backend.baselines.graph import build_graph
 from dm2_backend.baselines.options import SolverOptions
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation.map_quality import MapSampler
-from dm2_backend.optim.config import OptimConfig
+from dm2_backend.optim.config import OptimConfig, dense_voxel
+from dm2_backend.optim.dense import refine_dense
+from dm2_backend.optim.planes import agreement_score, cells_from_scans
 from dm2_backend.prepare.steps import Prepared
+from dm2_backend.scans import ScanSequence
 
 log = logging.getLogger(__name__)
 
@@ -31,15 +36,22 @@ GRAPH_SOLVER = SolverOptions(robust="cauchy")
 
 @dataclass
 class Start:
-    """The optimiser's start: ``name`` "graph" or "prepared", and why."""
+    """The optimiser's start: ``name`` "graph" or "prepared", and why; ``dense`` what the dense stage did from
+    there (empty when it did not run; ``poses`` are then its result)."""
 
     poses: np.ndarray
     name: str
     why: str
     map_entropy: dict[str, float] = field(default_factory=dict)  # candidate -> mean map entropy
+    dense: dict = field(default_factory=dict)
+
+    @property
+    def locally_accurate(self) -> bool:
+        """The pose-graph solution, or the dense stage's result: both agree with the registrations."""
+        return self.name == "graph" or bool(self.dense)
 
     def summary(self) -> dict:
-        return {"name": self.name, "why": self.why, "map_entropy": self.map_entropy}
+        return {"name": self.name, "why": self.why, "map_entropy": self.map_entropy, "dense": self.dense}
 
 
 def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None) -> Start:
@@ -69,3 +81,28 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None) -
     if scores["graph"] <= scores["prepared"]:
         return Start(solved, "graph", "the pose-graph solution makes the sharper map", scores)
     return Start(prepared, "prepared", "the pose-graph solution makes a blurrier map", scores)
+
+
+def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimConfig, seed: int = 0,
+                progress: bool = False, trace: Callable[[np.ndarray], float] | None = None) -> Start:
+    """``start`` refined by the dense stage (``cfg.dense``; None: 3D data only): every scan's points against the
+    planes many frames share, jointly with the pose graph's factors (:mod:`dm2_backend.optim.dense`)."""
+    if not (cfg.dense if cfg.dense is not None else not prep.frames.planar) or prep.frames.planar:
+        return start
+    voxel = dense_voxel(cfg, prep.frames.scale)
+    t = time.perf_counter()
+    cells = cells_from_scans(scans, voxel / 4.0, cfg.dense_cells_per_frame, cfg.dense_max_cells, seed, progress)
+    t_cells = time.perf_counter() - t
+    graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise)
+    result = refine_dense(cells, graph, start.poses, voxel, cfg.dense_rounds, progress=progress, trace=trace)
+    # never worse than where it started, judged without ground truth: each frame against the map the others make
+    candidates = {"warm start": prep.warm_start, start.name: start.poses, "dense": result.poses}
+    agreement = agreement_score(cells, candidates, voxel)
+    chosen = min(agreement, key=agreement.get)
+    summary = {"voxel_m": voxel, "cells": len(cells), "cells_seconds": t_cells, "seconds": result.seconds,
+               "rounds": len(result.history), "stopped": result.stopped, "history": result.history,
+               "agreement_m2": agreement, "returned": chosen}
+    log.info("dense: %d cells of %.3g m, %s; returned %s (frames' disagreement with the others' planes: %s)",
+             len(cells), voxel / 4.0, result.stopped, chosen,
+             ", ".join(f"{k} {v:.3g} m2" for k, v in agreement.items()))
+    return Start(candidates[chosen], start.name, start.why, start.map_entropy, summary)

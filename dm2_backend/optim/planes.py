@@ -1,0 +1,315 @@
+"""The dense multi-frame term of the objective: every scan point against planes shared by many frames.
+
+Each scan is compressed once, in its sensor frame, into small cells holding the point count, mean and scatter
+(sum of outer products about the mean) of their points (:class:`Cells`). These sums are all a point-to-plane
+cost needs: for a plane ``n . x = d`` and a frame at pose (R, t), the squared distances of a cell's N points
+sum to ``N (n . (R mu + t) - d)^2 + m^T C m`` with ``m = R^T n`` (BALM2's point clusters, Liu et al. TRO 2023),
+so cost, gradient and Gauss-Newton Hessian are independent of the number of points.
+
+Planes come from many frames, never one scan (a 16-beam LiDAR's ground is a set of rings, lines, in one
+scan): the cells are placed in the world by the current poses, grouped into voxels, and a voxel whose merged
+points are flat (smallest eigenvalue of their covariance well below the middle one) and seen by at least two
+frames gives a plane; a voxel that is not flat is split into eight, down to ``levels`` sizes (BALM's adaptive
+voxelisation). Each cell then pulls its frame towards its voxel's plane; its weight is a Cauchy kernel of its
+mean's distance in units of the robust noise scale, so a moving object or a corner that slipped into a flat
+voxel pulls with bounded force.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import csr_matrix
+
+from dm2_backend.progress import progress as progress_of
+from dm2_backend.scans import ScanSequence
+from dm2_backend.threads import ordered_map
+
+#: a voxel is flat when its smallest covariance eigenvalue is below this fraction of the middle one
+#: (thickness under a quarter of its width) ...
+FLATNESS = 1.0 / 16.0
+#: ... and it spreads over at least this fraction of its size along the middle axis (not a pole or one ring)
+MIN_WIDTH = 1.0 / 8.0
+#: points a voxel needs to carry a plane
+MIN_POINTS = 10
+#: Cauchy kernel width on a cell mean's distance to its plane, in noise sigmas
+KERNEL = 3.0
+
+
+@dataclass
+class Cells:
+    """Every frame's points summed into cells of edge ``size`` (sensor frame): ``frame[k]`` the frame of cell
+    k, ``count`` its points, ``mean`` (K,3) their mean, ``scatter`` (K,6) the sum of (p - mean)(p - mean)^T
+    (entries xx xy xz yy yz zz)."""
+
+    frame: np.ndarray
+    count: np.ndarray
+    mean: np.ndarray
+    scatter: np.ndarray
+    size: float
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+
+#: the entries (row, column) of a 3x3 scatter that :class:`Cells` keep
+_SCATTER = np.triu_indices(3)
+
+
+def compress(points: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One scan's cells: count (K,), mean (K,3), scatter (K,6), float64."""
+    pts = np.asarray(points, dtype=np.float64)[:, :3]
+    pts = pts[np.isfinite(pts).all(1)]
+    if len(pts) == 0:
+        return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 6))
+    inv, k = _group(np.floor(pts / size).astype(np.int64))
+    count = np.bincount(inv, minlength=k).astype(np.float64)
+    mean = np.stack([np.bincount(inv, pts[:, a], minlength=k) for a in range(3)], 1) / count[:, None]
+    d = pts - mean[inv]
+    outer = d[:, _SCATTER[0]] * d[:, _SCATTER[1]]
+    return count, mean, _sum(inv, outer, k)
+
+
+def cells_from_scans(scans: ScanSequence, size: float, per_frame: int, max_cells: int, seed: int = 0,
+                     progress: bool = False) -> Cells:
+    """Every scan compressed into cells (scans on threads), at most ``per_frame`` a frame and ``max_cells`` in
+    all (at least 64 a frame): a frame with more keeps a random subset of its cells (each kept cell exact)."""
+    share = min(per_frame, max(64, max_cells // max(len(scans), 1)))
+    rng = np.random.default_rng(seed)
+    bar = progress_of(scans, "dense cells", total=len(scans), unit="scan", enabled=progress)
+    parts = []
+    for i, (count, mean, scatter) in enumerate(ordered_map(lambda s: compress(s.points, size), bar)):
+        if len(count) > share:
+            keep = np.sort(rng.choice(len(count), share, replace=False))
+            count, mean, scatter = count[keep], mean[keep], scatter[keep]
+        parts.append((np.full(len(count), i, np.int32), count.astype(np.float32), mean.astype(np.float32),
+                      scatter.astype(np.float32)))
+    if not parts:
+        return Cells(np.zeros(0, np.int32), np.zeros(0, np.float32), np.zeros((0, 3), np.float32),
+                     np.zeros((0, 6), np.float32), size)
+    return Cells(*(np.concatenate(a) for a in zip(*parts, strict=True)), size)
+
+
+@dataclass
+class Assignment:
+    """Which cells lie on which plane, fixed for a few rounds: per (frame, voxel) pair its ``frame`` (P,),
+    ``voxel`` (P,) and ``moment`` (P,4,4), the robust-weighted sum of [p 1]^T [p 1] over the frame's points in
+    the voxel (sensor frame); ``centre`` (V,3) a point of each voxel (the fits are made about it); ``sigma`` the
+    noise scale (m) at the poses of the assignment, ``cells`` the cells on planes."""
+
+    frame: np.ndarray
+    voxel: np.ndarray
+    moment: np.ndarray
+    centre: np.ndarray
+    sigma: float
+    cells: int
+
+    @property
+    def voxels(self) -> int:
+        return len(self.centre)
+
+
+@dataclass
+class Planes:
+    """The planes ``n . x = d`` (world) of an assignment's voxels at some poses, and their cost: ``residual``
+    (V,) the weighted sum of squared distances of the voxel's points to its plane (m^2)."""
+
+    normal: np.ndarray
+    offset: np.ndarray
+    residual: np.ndarray
+
+
+def _group(keys: np.ndarray) -> tuple[np.ndarray, int]:
+    """Group id of each row of integer ``keys`` (K,3), and the number of groups."""
+    if len(keys) == 0:
+        return np.zeros(0, np.int64), 0
+    keys = keys - keys.min(0)
+    span = keys.max(0) + 1
+    if np.prod(span.astype(float)) < 2.0**62:  # one int64 per row: a 1-D unique is far faster than axis=0
+        flat = np.ravel_multi_index(keys.T, span)
+        _, inv = np.unique(flat, return_inverse=True)
+    else:
+        _, inv = np.unique(keys, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    return inv, int(inv.max()) + 1
+
+
+def _sum(inv: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """Sums of ``values`` rows by group id ``inv`` (one sparse product for every column)."""
+    pick = csr_matrix((np.ones(len(inv)), (inv, np.arange(len(inv)))), shape=(n, len(inv)))
+    return np.asarray(pick @ values.reshape(len(values), -1)).reshape((n,) + values.shape[1:])
+
+
+#: the 10 distinct entries of a symmetric 4x4 moment, as (row, column)
+_UPPER = np.triu_indices(4)
+
+
+def _moments(cells: Cells) -> np.ndarray:
+    """Each cell's homogeneous moment sum [p 1]^T [p 1] (sensor frame), as its 10 distinct entries (K,10) in
+    the order of ``_UPPER``."""
+    N = cells.count.astype(np.float64)
+    mu = cells.mean.astype(np.float64)
+    C = cells.scatter.astype(np.float64)
+    Nmu = N[:, None] * mu
+    out = np.empty((len(cells), 10))
+    out[:, [0, 1, 2]] = C[:, [0, 1, 2]] + Nmu[:, [0]] * mu
+    out[:, 3] = Nmu[:, 0]
+    out[:, [4, 5]] = C[:, [3, 4]] + Nmu[:, [1]] * mu[:, 1:]
+    out[:, 6] = Nmu[:, 1]
+    out[:, 7] = C[:, 5] + Nmu[:, 2] * mu[:, 2]
+    out[:, 8] = Nmu[:, 2]
+    out[:, 9] = N
+    return out
+
+
+def _expand(flat: np.ndarray) -> np.ndarray:
+    """(P,10) distinct entries -> (P,4,4) symmetric moments."""
+    Q = np.zeros((len(flat), 4, 4))
+    Q[:, _UPPER[0], _UPPER[1]] = flat
+    Q[:, _UPPER[1], _UPPER[0]] = flat
+    return Q
+
+
+def _about(poses: np.ndarray, frame: np.ndarray, centre: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """Moments (P,4,4) of frames ``frame`` in the world, about the points ``centre`` (P,3): T Q T^T with
+    T = [R, t - centre] (no cancellation far from the origin)."""
+    T = poses[frame].copy()
+    T[:, :3, 3] -= centre
+    return T @ Q @ T.transpose(0, 2, 1)
+
+
+def _plane_of(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Count, mean (about the moments' origin), eigenvalues and eigenvectors of the scatter of moments M."""
+    N = M[:, 3, 3]
+    mu = M[:, :3, 3] / N[:, None]
+    lam, vec = np.linalg.eigh(M[:, :3, :3] / N[:, None, None] - mu[:, :, None] * mu[:, None, :])
+    return N, mu, lam, vec
+
+
+def assign(cells: Cells, poses: np.ndarray, voxel: float) -> Assignment:
+    """The flat voxels at ``poses`` (adaptive sizes ``voxel / 2^l`` down to the cell size), the cells on them
+    and their robust weights. Cells are summed per (frame, voxel) in their sensor frame, then placed."""
+    levels = 1 + max(0, int(np.floor(np.log2(voxel / cells.size + 1e-9))))
+    R, t = poses[cells.frame, :3, :3], poses[cells.frame, :3, 3]
+    mean = (R @ cells.mean.astype(np.float64)[:, :, None])[:, :, 0] + t
+    frame_of = cells.frame.astype(np.int64)
+    moments = _moments(cells)
+    todo = np.arange(len(cells))
+    chosen, plane_ids, normals, offsets, centres = [], [], [], [], []
+    voxels = 0
+    for level in range(levels):
+        if len(todo) == 0:
+            break
+        size = voxel / 2**level
+        key = np.floor(mean[todo] / size).astype(np.int64)
+        inv, n = _group(key)
+        centre = (key + 0.5) * size
+        pair, n_pairs = _group(np.stack([frame_of[todo], inv, np.zeros_like(inv)], 1))
+        first = np.zeros(n_pairs, np.int64)
+        first[pair] = np.arange(len(pair))
+        pair_voxel = inv[first]
+        Qp = _expand(_sum(pair, moments[todo], n_pairs))
+        M = _sum(pair_voxel, _about(poses, frame_of[todo][first], centre[first], Qp), n)
+        N, mu, lam, vec = _plane_of(M)
+        several = np.bincount(pair_voxel, minlength=n) >= 2  # seen by two frames or more
+        flat = ((lam[:, 0] < FLATNESS * lam[:, 1]) & (lam[:, 1] >= (MIN_WIDTH * size) ** 2)
+                & (N >= MIN_POINTS) & several)
+        on = flat[inv]
+        ids = np.cumsum(flat) - 1
+        normal = vec[flat, :, 0]
+        vox_centre = np.zeros((int(flat.sum()), 3))
+        vox_centre[ids[inv[on]]] = centre[on]
+        chosen.append(todo[on])
+        plane_ids.append(voxels + ids[inv[on]])
+        normals.append(normal[ids[inv[on]]])
+        offsets.append((normal * (mu[flat] + vox_centre)).sum(1)[ids[inv[on]]])
+        centres.append(vox_centre)
+        voxels += int(flat.sum())
+        todo = todo[~on]
+    cell = np.concatenate(chosen) if chosen else np.zeros(0, int)
+    plane = np.concatenate(plane_ids) if plane_ids else np.zeros(0, int)
+    normal = np.concatenate(normals) if normals else np.zeros((0, 3))
+    offset = np.concatenate(offsets) if offsets else np.zeros(0)
+    r = (normal * mean[cell]).sum(1) - offset
+    z = np.sqrt(cells.count[cell].astype(np.float64)) * np.abs(r)  # ~ |N(0, sigma^2)| on an exact plane
+    sigma = max(1.4826 * float(np.median(z)) if len(z) else 0.0, 1e-6)
+    weight = 1.0 / (1.0 + (z / (KERNEL * sigma)) ** 2)
+    frames = frame_of[cell]
+    pair, n = _group(np.stack([frames, plane, np.zeros_like(plane)], 1))
+    first = np.zeros(n, np.int64)
+    first[pair] = np.arange(len(pair))
+    centre = np.concatenate(centres) if centres else np.zeros((0, 3))
+    moment = _expand(_sum(pair, moments[cell] * weight[:, None], n))
+    return Assignment(frames[first], plane[first], moment, centre, sigma, len(cell))
+
+
+def fit(a: Assignment, poses: np.ndarray) -> Planes:
+    """The best plane of each voxel at ``poses`` (smallest eigenvector of its points' scatter) and its cost."""
+    M = _sum(a.voxel, _about(poses, a.frame, a.centre[a.voxel], a.moment), a.voxels)
+    N, mu, lam, vec = _plane_of(M)
+    normal = vec[:, :, 0]
+    return Planes(normal, (normal * (mu + a.centre)).sum(1), N * np.maximum(lam[:, 0], 0.0))
+
+
+def cost(a: Assignment, poses: np.ndarray) -> float:
+    """The plane term with each plane fitted to the poses: weighted squared distances over sigma^2."""
+    return float(fit(a, poses).residual.sum()) / a.sigma**2
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """(K,3) -> (K,3,3) cross-product matrices."""
+    z = np.zeros(len(v))
+    return np.stack([z, -v[:, 2], v[:, 1], v[:, 2], z, -v[:, 0], -v[:, 1], v[:, 0], z], 1).reshape(-1, 3, 3)
+
+
+def linearise(a: Assignment, planes: Planes, poses: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """The plane term with ``planes`` held, and per frame its Gauss-Newton Hessian (N,6,6) and gradient (N,6) in
+    the right-perturbation tangent ``T Exp([omega, v])`` (GTSAM's Pose3 order: rotation first).
+
+    With ``m = R^T n`` and ``u = [m, n . t - d]`` a point's distance is ``u . [p 1]``, so a pair's cost is
+    ``u^T Q u``; its derivative by ``[omega, v]`` is ``A [p 1]`` with ``A = [[-[m]x, 0], [0, m]]`` (6x4), giving
+    the Hessian ``A Q A^T`` and gradient ``A Q u``."""
+    n, d = planes.normal[a.voxel], planes.offset[a.voxel]
+    R, t = poses[a.frame, :3, :3], poses[a.frame, :3, 3]
+    m = (n[:, None, :] @ R)[:, 0]  # R^T n: the normal in the sensor frame
+    u = np.concatenate([m, ((n * t).sum(1) - d)[:, None]], 1)
+    Qu = (a.moment @ u[:, :, None])[:, :, 0]
+    scale = 1.0 / a.sigma**2
+    A = np.zeros((len(m), 6, 4))
+    A[:, :3, :3] = -skew(m)
+    A[:, 3:, 3] = m
+    H = A @ a.moment @ A.transpose(0, 2, 1) * scale
+    g = (A @ Qu[:, :, None])[:, :, 0] * scale
+    frames = len(poses)
+    return float((u * Qu).sum()) * scale, _sum(a.frame, H, frames), _sum(a.frame, g, frames)
+
+
+def disagreement(a: Assignment, poses: np.ndarray, cap: float = KERNEL) -> np.ndarray:
+    """Per frame, the mean squared distance (m^2) of its points on planes to the plane the *other* frames make
+    in the same voxel (leave-one-out: a frame is judged by the map the others make, never by its own points),
+    each (frame, voxel) pair capped at ``cap`` noise sigmas; NaN for a frame with no point on a plane."""
+    M_pair = _about(poses, a.frame, a.centre[a.voxel], a.moment)
+    rest = _sum(a.voxel, M_pair, a.voxels)[a.voxel] - M_pair
+    keep = rest[:, 3, 3] > 0
+    N, mu, _, vec = _plane_of(np.where(keep[:, None, None], rest, np.eye(4)))
+    u = np.concatenate([vec[:, :, 0], -(vec[:, :, 0] * mu).sum(1)[:, None]], 1)  # n . x - n . mu, centred
+    own = M_pair[:, 3, 3]
+    sq = np.einsum("pi,pij,pj->p", u, M_pair, u)
+    sq = np.minimum(np.maximum(sq, 0.0), own * (cap * a.sigma) ** 2) * keep
+    frames = int(poses.shape[0])
+    total = np.bincount(a.frame, own * keep, minlength=frames)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.bincount(a.frame, sq, minlength=frames) / total
+
+
+def agreement_score(cells: Cells, candidates: dict[str, np.ndarray], voxel: float) -> dict[str, float]:
+    """How well each candidate's frames agree with the map the other frames make (lower is better, m^2): the
+    mean over frames of :func:`disagreement`, on the voxels flat at every candidate in turn (a candidate is
+    not judged only on the planes it made flat), averaged."""
+    scores = {name: 0.0 for name in candidates}
+    for poses in candidates.values():
+        a = assign(cells, poses, voxel)
+        for name, other in candidates.items():
+            scores[name] += float(np.nanmean(disagreement(a, other))) / len(candidates)
+    return scores
