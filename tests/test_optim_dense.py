@@ -74,7 +74,8 @@ def test_gradient_and_hessian_match_the_cost():
     poses[:, :3, 3] += rng.normal(0, 0.02, (len(gt), 3))
     a = planes.assign(cells, poses, VOXEL)
     held = planes.fit(a, poses)
-    cost, H, g = planes.linearise(a, held, poses)
+    lin = planes.linearise(a, held, poses)
+    cost, H, g = lin.cost, lin.H, lin.g
     frame, eps = 40, 1e-6
 
     def moved(xi: np.ndarray) -> float:
@@ -84,18 +85,21 @@ def test_gradient_and_hessian_match_the_cost():
         step[:3, 3] = xi[3:]
         out = poses.copy()
         out[frame] = poses[frame] @ step
-        return planes.linearise(a, held, out)[0]
+        return planes.linearise(a, held, out).cost
 
     for k in range(6):
         e = np.zeros(6)
         e[k] = eps
         numeric = (moved(e) - moved(-e)) / (2 * eps)
-        assert numeric == pytest.approx(2 * g[frame, k], rel=1e-4)
+        assert numeric == pytest.approx(g[frame, k], rel=1e-4)
         curvature = (moved(1e3 * e) - 2 * cost + moved(-1e3 * e)) / (1e3 * eps) ** 2
-        assert curvature == pytest.approx(2 * H[frame, k, k], rel=1e-2)
+        assert curvature == pytest.approx(H[frame, k, k], rel=1e-2)
     assert np.all(np.linalg.eigvalsh(H[frame]) > -1e-6)
-    # the cost with the planes fitted again is never above the cost with them held
-    assert planes.cost(a, poses) <= cost * (1 + 1e-9)
+    # the planes are fitted: the cost does not change to first order when they tilt or shift
+    pose_scale = np.abs(g).max()
+    assert np.abs(lin.g_plane).max() < 1e-6 * pose_scale
+    # the cost with the planes fitted again (GTSAM's half squares) is never above the cost with them held
+    assert 0.5 * planes.cost(a, poses) <= cost * (1 + 1e-9)
 
 
 def test_the_truth_is_a_fixed_point():
@@ -113,11 +117,9 @@ def test_a_drifted_start_reaches_the_noise_floor():
     floor = ate_rmse(gt, refine_dense(cells, graph, gt, VOXEL).poses)
     result = refine_dense(cells, graph, dead, VOXEL)
     end = ate_rmse(gt, result.poses)
-    # a dead-reckoned chain without loop edges is the slowest case (its soft bending modes): 30 rounds take it
-    # 17x closer to the truth, within a few noise floors (refine starts from the pose graph instead)
-    assert start > 0.05 and end < 0.1 * start and end < 5 * floor
-    objective = [row["objective"] for row in result.history]
-    assert objective[1] <= objective[0]
+    # a dead-reckoned chain without loop edges (its soft bending modes follow the planes: held planes crept)
+    assert start > 0.05 and end < 2 * floor and "converged" in result.stopped
+    assert result.history[-1]["sigma"] < 0.5 * result.history[0]["sigma"]  # the map's noise scale: sharper
 
 
 def test_a_broken_stretch_disagrees_with_the_others_planes():

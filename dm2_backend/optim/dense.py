@@ -8,8 +8,8 @@ the planes while GTSAM linearises the factors, each frame's plane term enters as
 sparse system over every pose is solved at once (cost linear in frames), so what the scans do not constrain (a
 camera facing one wall) stays where the registrations put it. The step is then scaled by a line search on the
 objective with the planes fitted again (alternating planes and poses alone creeps along the trajectory's soft
-modes); a round is taken only when it lowers that objective. The cells are assigned to planes again every few
-rounds and when the poses have settled for an assignment; the stage ends when they settle right after one.
+modes); a round is taken only when it lowers that objective. Every round assigns the cells to planes again at
+the current poses (and their robust weights, as in iteratively reweighted least squares).
 """
 
 from __future__ import annotations
@@ -21,6 +21,8 @@ from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
+from scipy.sparse import bsr_matrix, coo_matrix, csr_matrix, diags
+from scipy.sparse.linalg import LinearOperator, cg, splu
 
 from dm2_backend.baselines import gtsam_backend
 from dm2_backend.baselines.options import SolverOptions
@@ -66,42 +68,72 @@ class _Objective:
         return plane + self.fg.error(values), plane, poses
 
 
+def _graph_system(lin: gtsam.GaussianFactorGraph, frames: int) -> tuple[csr_matrix, np.ndarray]:
+    """The linearised graph factors as a sparse Hessian J^T J (6N x 6N, key order) and gradient (N,6)."""
+    rows, cols, vals = lin.sparseJacobian_()
+    a = cols <= 6 * frames  # the last column (6N + 1, 1-indexed) holds the right-hand side b
+    J = coo_matrix((vals[a], (rows[a].astype(np.int64) - 1, cols[a].astype(np.int64) - 1)),
+                   shape=(int(rows.max()), 6 * frames)).tocsr()
+    grad = lin.gradientAtZero()
+    return (J.T @ J).tocsr(), np.stack([grad.at(i) for i in range(frames)])
+
+
+def _solve(Hg: csr_matrix, gg: np.ndarray, plane: plane_term.Linear, lam: float, tol: float = 1e-3,
+           max_iter: int = 200) -> tuple[np.ndarray, int]:
+    """The damped Gauss-Newton step of graph + plane term with the planes eliminated, by conjugate gradients
+    preconditioned with the planes-held system (a sparse factorisation). Returns the step (N,6), iterations."""
+    n = len(gg)
+    blocks = bsr_matrix((plane.H, np.arange(n), np.arange(n + 1)), shape=(6 * n, 6 * n))
+    held = Hg + blocks
+    held = (held + diags(lam * held.diagonal() + 1e-12)).tocsc()
+    factor = splu(held)
+    reduced = LinearOperator(held.shape, matvec=lambda x: held @ x - plane.coupling(x), dtype=np.float64)
+    iterations = [0]
+
+    def count(_x: np.ndarray) -> None:
+        iterations[0] += 1
+
+    step, _ = cg(reduced, plane.rhs() - gg.ravel(), rtol=tol, maxiter=max_iter,
+                 M=LinearOperator(held.shape, matvec=factor.solve, dtype=np.float64), callback=count)
+    return step.reshape(n, 6), iterations[0]
+
+
+def _vector_values(ids: np.ndarray, step: np.ndarray) -> gtsam.VectorValues:
+    out = gtsam.VectorValues()
+    for key, x in zip(ids.tolist(), step, strict=True):
+        out.insert(int(key), x)
+    return out
+
+
 def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float, rounds: int = 30,
-                 reassign_every: int = 5, tolerance: float = 1e-4, progress: bool = False,
+                 tolerance: float = 0.05, progress: bool = False,
                  trace: Callable[[np.ndarray], float] | None = None) -> DenseResult:
     """Poses minimising plane term + graph factors from ``start``; stops when a round moves no pose by more
-    than ``tolerance`` voxels, after ``rounds`` rounds, or when no step lowers the objective. ``trace``:
-    accuracy against ground truth, recorded per round (never used to decide)."""
+    than ``tolerance`` noise sigmas, after ``rounds`` rounds, or when no step lowers the objective. ``trace``:
+    accuracy against ground truth, recorded per round (never used to
+    decide)."""
     t0 = time.perf_counter()
     fg = gtsam_backend.factor_graph(graph, GRAPH_SOLVER)
     objective = _Objective(fg, graph)
     poses = np.asarray(start, dtype=np.float64).copy()
     values = gtsam_backend.to_values(graph, poses)
     history: list[dict] = []
-    lam, stopped, assignment, assigned = 1e-4, f"{rounds} rounds", None, -reassign_every
+    lam, stopped = 1e-4, f"{rounds} rounds"
     bar = progress_of(range(rounds), "dense", unit="round", enabled=progress)
     for r in bar:
-        if r - assigned >= reassign_every:
-            assignment, assigned = plane_term.assign(cells, poses, voxel), r
-        planes = plane_term.fit(assignment, poses)
-        _, H, g = plane_term.linearise(assignment, planes, poses)
+        assignment = plane_term.assign(cells, poses, voxel)
+        plane = plane_term.linearise(assignment, plane_term.fit(assignment, poses), poses)
         current, _, _ = objective(assignment, values)
-        lin = fg.linearize(values)
-        diag = np.einsum("nii->ni", H)
-        seen = diag.sum(1) > 0
-        ref = float(np.median(diag[seen], axis=0).mean()) if seen.any() else 1.0
-        best = None
+        Hg, gg = _graph_system(fg.linearize(values), len(poses))
+        best, iterations = None, 0
         for _ in range(8):
-            system = lin.clone()
-            for i in range(len(poses)):
-                damped = H[i] + lam * np.diag(diag[i] + ref)
-                system.push_back(gtsam.HessianFactor(int(graph.ids[i]), damped, -g[i], 0.0))
-            delta = system.optimize()
+            step, iterations = _solve(Hg, gg, plane, lam)
+            delta = _vector_values(graph.ids, step)
             for scale in SCALES:
                 trial = values.retract(delta.scale(scale))
-                value, plane, trial_poses = objective(assignment, trial)
+                value, plane_value, trial_poses = objective(assignment, trial)
                 if value < (best[0] if best else current):
-                    best = (value, plane, trial, trial_poses, scale)
+                    best = (value, plane_value, trial, trial_poses, scale)
                 elif best is not None:
                     break
             if best is not None:
@@ -111,20 +143,18 @@ def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float
         if best is None:
             stopped = f"round {r}: no step lowered the objective"
             break
-        value, plane, values, new_poses, scale = best
+        value, plane_value, values, new_poses, scale = best
         step_t, step_r = _step(poses, new_poses)
         poses = new_poses
-        row = {"round": r, "objective": value, "plane": plane, "graph": value - plane, "sigma": assignment.sigma,
-               "planes": assignment.voxels, "cells_on_planes": assignment.cells, "step_m": step_t,
-               "step_rad": step_r, "scale": scale, "damping": lam}
+        row = {"round": r, "objective": value, "plane": plane_value, "graph": value - plane_value,
+               "sigma": assignment.sigma, "planes": assignment.voxels, "cells_on_planes": assignment.cells,
+               "step_m": step_t, "step_rad": step_r, "scale": scale, "damping": lam, "cg_iterations": iterations}
         if trace is not None:
             row["ate"] = float(trace(poses))
         history.append(row)
         bar.set_postfix(objective=f"{value:.6g}", sigma=f"{assignment.sigma:.3g}", step=f"{step_t:.2g}")
-        if step_t < tolerance * voxel:  # converged for this assignment: done if it was made this round
-            if assigned == r:
-                stopped = f"converged in round {r} (largest step {step_t:.2g} m)"
-                break
-            assigned = -reassign_every
+        if step_t < tolerance * assignment.sigma:
+            stopped = f"converged in round {r} (largest step {step_t:.2g} m)"
+            break
     log.info("dense stage: %s, %.1f s", stopped, time.perf_counter() - t0)
     return DenseResult(poses, history, time.perf_counter() - t0, stopped)

@@ -20,7 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import csr_matrix
+from scipy.sparse import bsr_matrix, coo_matrix, csr_matrix
 
 from dm2_backend.progress import progress as progress_of
 from dm2_backend.scans import ScanSequence
@@ -263,13 +263,40 @@ def skew(v: np.ndarray) -> np.ndarray:
     return np.stack([z, -v[:, 2], v[:, 1], v[:, 2], z, -v[:, 0], -v[:, 1], v[:, 0], z], 1).reshape(-1, 3, 3)
 
 
-def linearise(a: Assignment, planes: Planes, poses: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """The plane term with ``planes`` held, and per frame its Gauss-Newton Hessian (N,6,6) and gradient (N,6) in
-    the right-perturbation tangent ``T Exp([omega, v])`` (GTSAM's Pose3 order: rotation first).
+@dataclass
+class Linear:
+    """The plane term linearised at some poses with the planes as unknowns too (three each: the normal's two
+    tilts and the offset), in GTSAM's units (half the squares over sigma^2) and its Pose3 tangent
+    ``T Exp([omega, v])`` (rotation first): ``cost``; per frame ``H`` (N,6,6) and ``g`` (N,6); per (frame, voxel)
+    pair the pose-plane block ``B`` (P,6,3); per voxel the inverse plane block ``S_inv`` (V,3,3) and the plane
+    gradient ``g_plane`` (V,3). With the planes eliminated, a step solves
+    ``(H - B S^-1 B^T) x = -(g - B S^-1 g_plane)``: frames that share a plane move together (the planes held,
+    a step would treat every plane as fixed and creep along the modes they follow)."""
+
+    cost: float
+    H: np.ndarray
+    g: np.ndarray
+    B: csr_matrix  # (6N, 3V)
+    S_inv: bsr_matrix  # (3V, 3V) block diagonal
+    g_plane: np.ndarray
+
+    def coupling(self, x: np.ndarray) -> np.ndarray:
+        """``B S^-1 B^T x`` for a pose step ``x`` (6N,)."""
+        return self.B @ (self.S_inv @ (self.B.T @ x))
+
+    def rhs(self) -> np.ndarray:
+        """``-(g - B S^-1 g_plane)`` (6N,)."""
+        return -(self.g.ravel() - self.B @ (self.S_inv @ self.g_plane.ravel()))
+
+
+def linearise(a: Assignment, planes: Planes, poses: np.ndarray) -> Linear:
+    """The plane term at ``poses`` and the fitted ``planes`` (see :class:`Linear`).
 
     With ``m = R^T n`` and ``u = [m, n . t - d]`` a point's distance is ``u . [p 1]``, so a pair's cost is
-    ``u^T Q u``; its derivative by ``[omega, v]`` is ``A [p 1]`` with ``A = [[-[m]x, 0], [0, m]]`` (6x4), giving
-    the Hessian ``A Q A^T`` and gradient ``A Q u``."""
+    ``u^T Q u``; its derivative by ``[omega, v]`` is ``A [p 1]`` with ``A = [[-[m]x, 0], [0, m]]`` (6x4), and by
+    the plane's ``[tilt_1, tilt_2, offset]`` (about the voxel's centre c) ``G [p 1]`` with
+    ``G = [[E^T R, E^T (t - c)], [0, -1]]`` (E two unit vectors across the normal): Hessian blocks ``A Q A^T``,
+    ``A Q G^T``, ``G Q G^T``, gradients ``A Q u``, ``G Q u``."""
     n, d = planes.normal[a.voxel], planes.offset[a.voxel]
     R, t = poses[a.frame, :3, :3], poses[a.frame, :3, 3]
     m = (n[:, None, :] @ R)[:, 0]  # R^T n: the normal in the sensor frame
@@ -279,10 +306,31 @@ def linearise(a: Assignment, planes: Planes, poses: np.ndarray) -> tuple[float, 
     A = np.zeros((len(m), 6, 4))
     A[:, :3, :3] = -skew(m)
     A[:, 3:, 3] = m
-    H = A @ a.moment @ A.transpose(0, 2, 1) * scale
-    g = (A @ Qu[:, :, None])[:, :, 0] * scale
-    frames = len(poses)
-    return float((u * Qu).sum()) * scale, _sum(a.frame, H, frames), _sum(a.frame, g, frames)
+    AQ = A @ a.moment
+    E = _across(planes.normal)[a.voxel]  # (P,3,2)
+    G = np.zeros((len(m), 3, 4))
+    G[:, :2, :3] = E.transpose(0, 2, 1) @ R
+    G[:, :2, 3] = (E.transpose(0, 2, 1) @ (t - a.centre[a.voxel])[:, :, None])[:, :, 0]
+    G[:, 2, 3] = -1.0
+    frames, voxels = len(poses), a.voxels
+    S = _sum(a.voxel, G @ a.moment @ G.transpose(0, 2, 1) * scale, voxels)
+    S_inv = np.linalg.inv(S + 1e-9 * np.trace(S, axis1=1, axis2=2)[:, None, None] * np.eye(3))
+    rows = (6 * a.frame[:, None, None] + np.arange(6)[None, :, None]).repeat(3, 2)
+    cols = (3 * a.voxel[:, None, None] + np.arange(3)[None, None, :]).repeat(6, 1)
+    B = coo_matrix(((AQ @ G.transpose(0, 2, 1) * scale).ravel(), (rows.ravel(), cols.ravel())),
+                   shape=(6 * frames, 3 * voxels)).tocsr()
+    return Linear(float((u * Qu).sum()) * scale * 0.5, _sum(a.frame, AQ @ A.transpose(0, 2, 1) * scale, frames),
+                  _sum(a.frame, (A @ Qu[:, :, None])[:, :, 0] * scale, frames), B,
+                  bsr_matrix((S_inv, np.arange(voxels), np.arange(voxels + 1)), shape=(3 * voxels, 3 * voxels)),
+                  _sum(a.voxel, (G @ Qu[:, :, None])[:, :, 0] * scale, voxels))
+
+
+def _across(normal: np.ndarray) -> np.ndarray:
+    """(V,3,2): two unit vectors perpendicular to each normal and to each other."""
+    helper = np.where(np.abs(normal[:, [0]]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    e1 = np.cross(normal, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    return np.stack([e1, np.cross(normal, e1)], 2)
 
 
 def disagreement(a: Assignment, poses: np.ndarray, cap: float = KERNEL) -> np.ndarray:
@@ -303,13 +351,15 @@ def disagreement(a: Assignment, poses: np.ndarray, cap: float = KERNEL) -> np.nd
         return np.bincount(a.frame, sq, minlength=frames) / total
 
 
-def agreement_score(cells: Cells, candidates: dict[str, np.ndarray], voxel: float) -> dict[str, float]:
+def agreement_score(cells: Cells, candidates: dict[str, np.ndarray], voxel: float,
+                    judges: tuple[str, ...] | None = None) -> dict[str, float]:
     """How well each candidate's frames agree with the map the other frames make (lower is better, m^2): the
-    mean over frames of :func:`disagreement`, on the voxels flat at every candidate in turn (a candidate is
-    not judged only on the planes it made flat), averaged."""
+    mean over frames of :func:`disagreement`, on the voxels flat at each of the ``judges`` candidates in turn
+    (default all: a candidate is not judged only on the planes it made flat), averaged."""
+    judges = judges or tuple(candidates)
     scores = {name: 0.0 for name in candidates}
-    for poses in candidates.values():
-        a = assign(cells, poses, voxel)
-        for name, other in candidates.items():
-            scores[name] += float(np.nanmean(disagreement(a, other))) / len(candidates)
+    for judge in judges:
+        a = assign(cells, candidates[judge], voxel)
+        for name, poses in candidates.items():
+            scores[name] += float(np.nanmean(disagreement(a, poses))) / len(judges)
     return scores

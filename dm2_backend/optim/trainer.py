@@ -376,7 +376,8 @@ class Optimiser:
         # selection (it needs a map that no longer improves, judged on rank 0); every rank takes rank 0's decision
         early = self.cfg.converge_tol > 0 and self.cfg.max_steps > 0 and self.cfg.select == "map"
         flat = 0
-        bar = progress(range(start, self.epochs), "refine", unit="epoch", enabled=self.progress and lead)
+        shown = self.progress and lead and self.epochs > start
+        bar = progress(range(start, self.epochs), "refine", unit="epoch", enabled=shown)
         for epoch in bar:
             t0 = time.perf_counter()
             rng = np.random.default_rng([self.seed, epoch])

@@ -97,7 +97,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     result = refine_dense(cells, graph, start.poses, voxel, cfg.dense_rounds, progress=progress, trace=trace)
     # never worse than where it started, judged without ground truth: each frame against the map the others make
     candidates = {"warm start": prep.warm_start, start.name: start.poses, "dense": result.poses}
-    agreement = agreement_score(cells, candidates, voxel)
+    agreement = agreement_score(cells, candidates, voxel, judges=(start.name, "dense"))
     chosen = min(agreement, key=agreement.get)
     summary = {"voxel_m": voxel, "cells": len(cells), "cells_seconds": t_cells, "seconds": result.seconds,
                "rounds": len(result.history), "stopped": result.stopped, "history": result.history,
