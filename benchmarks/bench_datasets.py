@@ -172,6 +172,30 @@ def balm(env: Env) -> Inputs:
                    "gt": "none: scored by map entropy"})
 
 
+def realmap(env: Env) -> Inputs:
+    """A 32-beam LiDAR (+-45 degrees, 30 m, 2 cm noise) ray-cast along the real keyframes' path (two frames per
+    keyframe) through the Poisson mesh of those keyframes (``dm2_backend.simulate.real_map``), with a drifting
+    odometry as the warm start: real geometry, known truth. Generated into the cache."""
+    folder = DATA / "lidar3d" / "balm_realworld_000-079"
+    _need(folder / "poses.txt", folder / "times.txt")
+    out = env.cache / f"realmap-balm-{simulator_hash()}"
+    if not (out / "info.json").is_file():
+        from dm2_backend.formats.registry import ReadOptions
+        from dm2_backend.pipeline.inputs import load_inputs
+        from dm2_backend.simulate.lidar import LidarModel
+        from dm2_backend.simulate.real_map import write_real_map_sequence
+
+        real = load_inputs(folder / "velodyne", None, folder / "poses.txt", None,
+                           ReadOptions(times=folder / "times.txt"))
+        write_real_map_sequence(out, real.scans, real.given.poses,
+                                LidarModel(beams=32, fov_up_deg=45, fov_down_deg=-45, columns=720, max_range=30.0))
+    info = json.loads((out / "info.json").read_text())
+    return Inputs(["-s", str(out / "velodyne"), "-p", str(out / "warm_start.txt"), "--times", str(out / "times.txt"),
+                   "--gt", str(out / "poses.txt")], info["frames"],
+                  {"simulated": True, "folder": str(out), "map": info["map"],
+                   "warm_start_ate_m": info["warm_start"]["ate_rmse_m"]})
+
+
 def deepmapping2d(env: Env) -> Inputs:
     """Extract the tar into the scratch folder; scans as .npy without the all-zero (invalid ray) points and
     scaled by 512 into the units of ``gt_pose.mat``, as DeepMapping's own ``script/eval_2D.py`` does."""
@@ -279,6 +303,8 @@ DATASETS: dict[str, Dataset] = {d.name: d for d in [
             "poses; no ground truth", "map", balm),
     Dataset("deepmapping2d", "DeepMapping 2D simulated set v1_pose0 (256 scans), icp warm start", "ape",
             deepmapping2d),
+    Dataset("sim-realmap", "SIMULATED 32-beam LiDAR ray-cast through the Poisson mesh of the 80 real LiDAR "
+            "keyframes along their path (159 frames), drifting odometry warm start", "ape", realmap, real=False),
     Dataset("aces-degraded", "ACES with its odometry degraded (yaw bias 0.04 rad/m, 5 % scale error, noise), "
             "default warm start", "relations", carmen_degraded("aces")),
     Dataset("intel-degraded", "Intel with its odometry degraded (as aces-degraded), default warm start",

@@ -72,13 +72,13 @@ SETS: dict[str, dict] = {
     },
     "3d": {
         "cases": {name: ["dm2 refine", "from truth", "gtsam", "g2o"]
-                  for name in ("sim-3d-500", "sim-3d-2000", "redkitchen", "kitti00-6", "balm")},
+                  for name in ("sim-3d-500", "sim-3d-2000", "sim-realmap", "redkitchen", "kitti00-6", "balm")},
         "epochs": None,
         "timeout": 3600,
     },
     "3d-ablations": {
         "cases": {name: ["dm2 refine", *ABLATIONS_3D, "temporal batches", "gtsam"]
-                  for name in ("sim-3d-500", "balm")},
+                  for name in ("sim-3d-500", "sim-realmap", "balm")},
         "epochs": None,
         "timeout": 3600,
     },

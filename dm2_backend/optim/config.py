@@ -94,7 +94,7 @@ class OptimConfig:
     #: planar data (a 2D scan has lines, not planes)
     dense: bool | None = None
     #: largest voxel of the plane term (m; non-flat voxels are split down to a quarter); None:
-    #: max(median range / 8, 8 x the raw scans' point spacing)
+    #: max(median range / 8, 4 x the raw scans' point spacing)
     dense_voxel: float | None = None
     #: at most this many rounds (one Gauss-Newton step each, planes fitted again)
     dense_rounds: int = 30
@@ -213,12 +213,14 @@ def derive(cfg: OptimConfig, scale: dict[str, float], planar: bool = True) -> di
 
 
 def dense_voxel(cfg: OptimConfig, scale: dict[str, float]) -> float:
-    """The plane term's largest voxel: planar patches a few per median range, with room for many points of each
-    scan (simulated 32-beam LiDAR, median range 6.1 m, spacing 0.18 m: 1.42 m)."""
+    """The plane term's largest voxel: planar patches a few per median range, its finest quarter at least a
+    point spacing. Measured from the truth (the floor) and from gtsam on the LiDAR ray-cast through the real
+    keyframes' mesh: 0.87 m (this rule) 0.0032 / 0.0033 m, 1.2 m 0.0044 / 0.0044, 1.74 m (8 spacings) 0.0047 /
+    0.0049; on the procedural street (500 frames) 0.88 m 0.0010 / 0.0010, 1.76 m 0.0008 / 0.0010."""
     if cfg.dense_voxel is not None:
         return cfg.dense_voxel
     spacing = scale.get("spacing_raw") or scale.get("spacing") or 0.0
-    return max(scale.get("range_median", 1.0) / 8.0, 8.0 * spacing, 1e-3)
+    return max(scale.get("range_median", 1.0) / 8.0, 4.0 * spacing, 1e-3)
 
 
 def pose_regime(cfg: OptimConfig, accurate: bool, polish: bool = False) -> dict:
