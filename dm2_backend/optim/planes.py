@@ -74,12 +74,18 @@ def compress(points: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, n
 def cells_from_scans(scans: ScanSequence, size: float, per_frame: int, max_cells: int, seed: int = 0,
                      progress: bool = False) -> Cells:
     """Every scan compressed into cells (scans on threads), at most ``per_frame`` a frame and ``max_cells`` in
-    all (at least 64 a frame): a frame with more keeps a random subset of its cells (each kept cell exact)."""
+    all (at least 64 a frame): a frame with more is summed into cells twice as large (once), and keeps a random
+    subset of those if still too many (each kept cell exact). ``Cells.size`` is the smallest cell."""
     share = min(per_frame, max(64, max_cells // max(len(scans), 1)))
     rng = np.random.default_rng(seed)
+
+    def fitted(scan) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        cells = compress(scan.points, size)
+        return cells if len(cells[0]) <= share else compress(scan.points, 2 * size)
+
     bar = progress_of(scans, "dense cells", total=len(scans), unit="scan", enabled=progress)
     parts = []
-    for i, (count, mean, scatter) in enumerate(ordered_map(lambda s: compress(s.points, size), bar)):
+    for i, (count, mean, scatter) in enumerate(ordered_map(fitted, bar)):
         if len(count) > share:
             keep = np.sort(rng.choice(len(count), share, replace=False))
             count, mean, scatter = count[keep], mean[keep], scatter[keep]

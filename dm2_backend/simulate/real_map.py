@@ -18,11 +18,11 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation, Slerp
 
 from dm2_backend.atomic import atomic_write
+from dm2_backend.formats.scan_folder import write_bin
 from dm2_backend.scans import ScanSequence
 from dm2_backend.simulate.lidar import LidarModel, Raycaster
 from dm2_backend.simulate.path import drifting_odometry
 from dm2_backend.simulate.sequence import _ate, _write_trajectories
-from dm2_backend.formats.scan_folder import write_bin
 
 
 def map_mesh(scans: ScanSequence, poses: np.ndarray, voxel: float, reach: float,
