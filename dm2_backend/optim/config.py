@@ -98,12 +98,12 @@ class OptimConfig:
     dense_voxel: float | None = None
     #: at most this many rounds (one Gauss-Newton step each, planes fitted again)
     dense_rounds: int = 30
-    #: cells (each frame's points summed in cells of a quarter voxel) kept per frame and in all (the stage takes
-    #: about 200 MiB a million); a frame with more is summed into cells twice as large, then keeps a random
-    #: subset. Simulated 32-beam LiDAR, 500 frames from gtsam's 0.0275 m: 2,048 cells a frame 0.0010 m, 200
-    #: cells a frame (as at 15,000 frames) 0.0027 m
+    #: cells (each frame's points summed in cells of a quarter voxel) kept per frame and in all (time and memory
+    #: grow with them: about 200 MiB and 20 s a round a million); a frame with more is summed into cells twice
+    #: as large, then keeps a random subset. Simulated 32-beam LiDAR, 500 frames from gtsam's 0.0275 m: 2,048
+    #: cells a frame 0.0010 m, 200 cells a frame (as at 7,500 frames) 0.0027 m
     dense_cells_per_frame: int = 2048
-    dense_max_cells: int = 3_000_000
+    dense_max_cells: int = 1_500_000
     #: the first-order DeepMapping2 epochs (Adam on the M-Net BCE, Chamfer and consistency losses over anchor
     #: groups); None: on, except after the dense stage, from whose result they only make the map blurrier
     #: (simulated 3D LiDAR 200 frames: dense 0.0006 m, the epochs after it 0.0032, the sharpest map the dense one)

@@ -169,12 +169,14 @@ def _moments(cells: Cells) -> np.ndarray:
     return out
 
 
+#: for each entry of a 4x4 moment (row-major), its column among the 10 distinct ones
+_FULL = np.zeros((4, 4), dtype=np.int64)
+_FULL[_UPPER] = _FULL[_UPPER[1], _UPPER[0]] = np.arange(10)
+
+
 def _expand(flat: np.ndarray) -> np.ndarray:
     """(P,10) distinct entries -> (P,4,4) symmetric moments."""
-    Q = np.zeros((len(flat), 4, 4))
-    Q[:, _UPPER[0], _UPPER[1]] = flat
-    Q[:, _UPPER[1], _UPPER[0]] = flat
-    return Q
+    return np.take(flat, _FULL.ravel(), axis=1).reshape(-1, 4, 4)
 
 
 def _about(poses: np.ndarray, frame: np.ndarray, centre: np.ndarray, Q: np.ndarray) -> np.ndarray:
