@@ -77,8 +77,8 @@ SETS: dict[str, dict] = {
         "timeout": 3600,
     },
     "3d-ablations": {
-        "cases": {name: ["dm2 refine", *ABLATIONS_3D, "temporal batches", "gtsam"]
-                  for name in ("sim-3d-500", "sim-realmap", "balm")},
+        "cases": {name: ["dm2 refine", *ABLATIONS_3D, "gtsam"]
+                  for name in ("sim-3d-500", "balm")},
         "epochs": None,
         "timeout": 3600,
     },
