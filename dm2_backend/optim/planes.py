@@ -20,7 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import bsr_matrix, coo_matrix, csr_matrix
+from scipy.sparse import bsr_matrix, csr_matrix
 
 from dm2_backend.progress import progress as progress_of
 from dm2_backend.scans import ScanSequence
@@ -151,6 +151,36 @@ def _sum(inv: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
 _UPPER = np.triu_indices(4)
 
 
+def _pairs(frame: np.ndarray, voxel: np.ndarray, voxels: int) -> tuple[np.ndarray, int]:
+    """The (frame, voxel) pair of each cell, numbered in the order of frame, then voxel, and their count."""
+    _, inv = np.unique(frame * max(voxels, 1) + voxel, return_inverse=True)
+    inv = inv.ravel()
+    return inv, int(inv.max()) + 1 if len(inv) else 0
+
+
+def _sum_rows(inv: np.ndarray, rows: np.ndarray, values: np.ndarray, n: int,
+              weight: np.ndarray | None = None) -> np.ndarray:
+    """Sums of ``values[rows]`` (times ``weight``) by group id ``inv``, without copying the rows out."""
+    data = np.ones(len(inv)) if weight is None else weight
+    return np.asarray(csr_matrix((data, (inv, rows)), shape=(n, len(values))) @ values)
+
+
+#: pairs (or cells) handled at a time where each needs a few 4x4 and 6x4 temporaries (bounds the memory)
+CHUNK = 100_000
+
+
+def _chunks(n: int) -> list[slice]:
+    return [slice(i, min(i + CHUNK, n)) for i in range(0, n, CHUNK)]
+
+
+def _placed_sum(a: Assignment, poses: np.ndarray) -> np.ndarray:
+    """Each voxel's moment in the world (about its centre): the sum of its pairs' (V,4,4), in chunks."""
+    M = np.zeros((a.voxels, 4, 4))
+    for c in _chunks(len(a.frame)):
+        M += _sum(a.voxel[c], _about(poses, a.frame[c], a.centre[a.voxel[c]], a.moment[c]), a.voxels)
+    return M
+
+
 def _moments(cells: Cells) -> np.ndarray:
     """Each cell's homogeneous moment sum [p 1]^T [p 1] (sensor frame), as its 10 distinct entries (K,10) in
     the order of ``_UPPER``."""
@@ -199,8 +229,10 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float) -> Assignment:
     """The flat voxels at ``poses`` (adaptive sizes ``voxel / 2^l`` down to the cell size), the cells on them
     and their robust weights. Cells are summed per (frame, voxel) in their sensor frame, then placed."""
     levels = 1 + max(0, int(np.floor(np.log2(voxel / cells.size + 1e-9))))
-    R, t = poses[cells.frame, :3, :3], poses[cells.frame, :3, 3]
-    mean = (R @ cells.mean.astype(np.float64)[:, :, None])[:, :, 0] + t
+    mean = np.empty((len(cells), 3))
+    for c in _chunks(len(cells)):
+        f = cells.frame[c]
+        mean[c] = (poses[f, :3, :3] @ cells.mean[c].astype(np.float64)[:, :, None])[:, :, 0] + poses[f, :3, 3]
     frame_of = cells.frame.astype(np.int64)
     moments = _moments(cells)
     todo = np.arange(len(cells))
@@ -213,21 +245,22 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float) -> Assignment:
         key = np.floor(mean[todo] / size).astype(np.int64)
         inv, n = _group(key)
         centre = (key + 0.5) * size
-        pair, n_pairs = _group(np.stack([frame_of[todo], inv, np.zeros_like(inv)], 1))
+        pair, n_pairs = _pairs(frame_of[todo], inv, n)
         first = np.zeros(n_pairs, np.int64)
         first[pair] = np.arange(len(pair))
         pair_voxel = inv[first]
-        Qp = _expand(_sum(pair, moments[todo], n_pairs))
-        M = _sum(pair_voxel, _about(poses, frame_of[todo][first], centre[first], Qp), n)
-        N, mu, lam, vec = _plane_of(M)
+        level_centre = np.zeros((n, 3))
+        level_centre[inv] = centre
+        level_pairs = Assignment(frame_of[todo][first], pair_voxel, _expand(_sum_rows(pair, todo, moments, n_pairs)),
+                                 level_centre, 1.0, 0)
+        N, mu, lam, vec = _plane_of(_placed_sum(level_pairs, poses))
         several = np.bincount(pair_voxel, minlength=n) >= 2  # seen by two frames or more
         flat = ((lam[:, 0] < FLATNESS * lam[:, 1]) & (lam[:, 1] >= (MIN_WIDTH * size) ** 2)
                 & (N >= MIN_POINTS) & several)
         on = flat[inv]
         ids = np.cumsum(flat) - 1
         normal = vec[flat, :, 0]
-        vox_centre = np.zeros((int(flat.sum()), 3))
-        vox_centre[ids[inv[on]]] = centre[on]
+        vox_centre = level_centre[flat]
         chosen.append(todo[on])
         plane_ids.append(voxels + ids[inv[on]])
         normals.append(normal[ids[inv[on]]])
@@ -244,18 +277,17 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float) -> Assignment:
     sigma = max(1.4826 * float(np.median(z)) if len(z) else 0.0, 1e-6)
     weight = 1.0 / (1.0 + (z / (KERNEL * sigma)) ** 2)
     frames = frame_of[cell]
-    pair, n = _group(np.stack([frames, plane, np.zeros_like(plane)], 1))
+    pair, n = _pairs(frames, plane, voxels)
     first = np.zeros(n, np.int64)
     first[pair] = np.arange(len(pair))
     centre = np.concatenate(centres) if centres else np.zeros((0, 3))
-    moment = _expand(_sum(pair, moments[cell] * weight[:, None], n))
+    moment = _expand(_sum_rows(pair, cell, moments, n, weight))
     return Assignment(frames[first], plane[first], moment, centre, sigma, len(cell))
 
 
 def fit(a: Assignment, poses: np.ndarray) -> Planes:
     """The best plane of each voxel at ``poses`` (smallest eigenvector of its points' scatter) and its cost."""
-    M = _sum(a.voxel, _about(poses, a.frame, a.centre[a.voxel], a.moment), a.voxels)
-    N, mu, lam, vec = _plane_of(M)
+    N, mu, lam, vec = _plane_of(_placed_sum(a, poses))
     normal = vec[:, :, 0]
     return Planes(normal, (normal * (mu + a.centre)).sum(1), N * np.maximum(lam[:, 0], 0.0))
 
@@ -305,32 +337,41 @@ def linearise(a: Assignment, planes: Planes, poses: np.ndarray) -> Linear:
     the plane's ``[tilt_1, tilt_2, offset]`` (about the voxel's centre c) ``G [p 1]`` with
     ``G = [[E^T R, E^T (t - c)], [0, -1]]`` (E two unit vectors across the normal): Hessian blocks ``A Q A^T``,
     ``A Q G^T``, ``G Q G^T``, gradients ``A Q u``, ``G Q u``."""
-    n, d = planes.normal[a.voxel], planes.offset[a.voxel]
-    R, t = poses[a.frame, :3, :3], poses[a.frame, :3, 3]
-    m = (n[:, None, :] @ R)[:, 0]  # R^T n: the normal in the sensor frame
-    u = np.concatenate([m, ((n * t).sum(1) - d)[:, None]], 1)
-    Qu = (a.moment @ u[:, :, None])[:, :, 0]
+    frames, voxels, pairs = len(poses), a.voxels, len(a.frame)
     scale = 1.0 / a.sigma**2
-    A = np.zeros((len(m), 6, 4))
-    A[:, :3, :3] = -skew(m)
-    A[:, 3:, 3] = m
-    AQ = A @ a.moment
-    E = _across(planes.normal)[a.voxel]  # (P,3,2)
-    G = np.zeros((len(m), 3, 4))
-    G[:, :2, :3] = E.transpose(0, 2, 1) @ R
-    G[:, :2, 3] = (E.transpose(0, 2, 1) @ (t - a.centre[a.voxel])[:, :, None])[:, :, 0]
-    G[:, 2, 3] = -1.0
-    frames, voxels = len(poses), a.voxels
-    S = _sum(a.voxel, G @ a.moment @ G.transpose(0, 2, 1) * scale, voxels)
+    across = _across(planes.normal)
+    cost, H, g = 0.0, np.zeros((frames, 6, 6)), np.zeros((frames, 6))
+    S, g_plane, B = np.zeros((voxels, 3, 3)), np.zeros((voxels, 3)), np.empty((pairs, 6, 3))
+    for c in _chunks(pairs):
+        frame, voxel, Q = a.frame[c], a.voxel[c], a.moment[c]
+        n, d = planes.normal[voxel], planes.offset[voxel]
+        R, t = poses[frame, :3, :3], poses[frame, :3, 3]
+        m = (n[:, None, :] @ R)[:, 0]  # R^T n: the normal in the sensor frame
+        u = np.concatenate([m, ((n * t).sum(1) - d)[:, None]], 1)
+        Qu = (Q @ u[:, :, None])[:, :, 0]
+        A = np.zeros((len(m), 6, 4))
+        A[:, :3, :3] = -skew(m)
+        A[:, 3:, 3] = m
+        AQ = A @ Q
+        E = across[voxel]  # (P,3,2)
+        G = np.zeros((len(m), 3, 4))
+        G[:, :2, :3] = E.transpose(0, 2, 1) @ R
+        G[:, :2, 3] = (E.transpose(0, 2, 1) @ (t - a.centre[voxel])[:, :, None])[:, :, 0]
+        G[:, 2, 3] = -1.0
+        cost += float((u * Qu).sum()) * scale * 0.5
+        H += _sum(frame, AQ @ A.transpose(0, 2, 1) * scale, frames)
+        g += _sum(frame, (A @ Qu[:, :, None])[:, :, 0] * scale, frames)
+        S += _sum(voxel, G @ Q @ G.transpose(0, 2, 1) * scale, voxels)
+        g_plane += _sum(voxel, (G @ Qu[:, :, None])[:, :, 0] * scale, voxels)
+        B[c] = AQ @ G.transpose(0, 2, 1) * scale
     S_inv = np.linalg.inv(S + 1e-9 * np.trace(S, axis1=1, axis2=2)[:, None, None] * np.eye(3))
-    rows = (6 * a.frame[:, None, None] + np.arange(6)[None, :, None]).repeat(3, 2)
-    cols = (3 * a.voxel[:, None, None] + np.arange(3)[None, None, :]).repeat(6, 1)
-    B = coo_matrix(((AQ @ G.transpose(0, 2, 1) * scale).ravel(), (rows.ravel(), cols.ravel())),
-                   shape=(6 * frames, 3 * voxels)).tocsr()
-    return Linear(float((u * Qu).sum()) * scale * 0.5, _sum(a.frame, AQ @ A.transpose(0, 2, 1) * scale, frames),
-                  _sum(a.frame, (A @ Qu[:, :, None])[:, :, 0] * scale, frames), B,
+    # pairs are ordered by frame (see assign): the (6,3) blocks of B by block row
+    indptr = np.searchsorted(a.frame, np.arange(frames + 1))
+    coupling = bsr_matrix((B, a.voxel, indptr), shape=(6 * frames, 3 * voxels)).tocsr()
+    del B
+    return Linear(cost, H, g, coupling,
                   bsr_matrix((S_inv, np.arange(voxels), np.arange(voxels + 1)), shape=(3 * voxels, 3 * voxels)),
-                  _sum(a.voxel, (G @ Qu[:, :, None])[:, :, 0] * scale, voxels))
+                  g_plane)
 
 
 def _across(normal: np.ndarray) -> np.ndarray:
@@ -345,18 +386,22 @@ def disagreement(a: Assignment, poses: np.ndarray, cap: float = KERNEL) -> np.nd
     """Per frame, the mean squared distance (m^2) of its points on planes to the plane the *other* frames make
     in the same voxel (leave-one-out: a frame is judged by the map the others make, never by its own points),
     each (frame, voxel) pair capped at ``cap`` noise sigmas; NaN for a frame with no point on a plane."""
-    M_pair = _about(poses, a.frame, a.centre[a.voxel], a.moment)
-    rest = _sum(a.voxel, M_pair, a.voxels)[a.voxel] - M_pair
-    keep = rest[:, 3, 3] > 0
-    N, mu, _, vec = _plane_of(np.where(keep[:, None, None], rest, np.eye(4)))
-    u = np.concatenate([vec[:, :, 0], -(vec[:, :, 0] * mu).sum(1)[:, None]], 1)  # n . x - n . mu, centred
-    own = M_pair[:, 3, 3]
-    sq = np.einsum("pi,pij,pj->p", u, M_pair, u)
-    sq = np.minimum(np.maximum(sq, 0.0), own * (cap * a.sigma) ** 2) * keep
+    total = _placed_sum(a, poses)
     frames = int(poses.shape[0])
-    total = np.bincount(a.frame, own * keep, minlength=frames)
+    sq_sum, own_sum = np.zeros(frames), np.zeros(frames)
+    for c in _chunks(len(a.frame)):
+        M_pair = _about(poses, a.frame[c], a.centre[a.voxel[c]], a.moment[c])
+        rest = total[a.voxel[c]] - M_pair
+        keep = rest[:, 3, 3] > 0
+        N, mu, _, vec = _plane_of(np.where(keep[:, None, None], rest, np.eye(4)))
+        u = np.concatenate([vec[:, :, 0], -(vec[:, :, 0] * mu).sum(1)[:, None]], 1)  # n . x - n . mu, centred
+        own = M_pair[:, 3, 3]
+        sq = np.einsum("pi,pij,pj->p", u, M_pair, u)
+        sq = np.minimum(np.maximum(sq, 0.0), own * (cap * a.sigma) ** 2) * keep
+        sq_sum += np.bincount(a.frame[c], sq, minlength=frames)
+        own_sum += np.bincount(a.frame[c], own * keep, minlength=frames)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.bincount(a.frame, sq, minlength=frames) / total
+        return sq_sum / own_sum
 
 
 def agreement_score(cells: Cells, candidates: dict[str, np.ndarray], voxel: float,
