@@ -140,6 +140,78 @@ def test_a_broken_stretch_disagrees_with_the_others_planes():
 
 
 def test_dense_options_are_checked():
-    for bad in ({"dense_rounds": 0}, {"dense_voxel": -1.0}, {"dense_cells_per_frame": 0}):
+    for bad in ({"dense_rounds": 0}, {"dense_voxel": -1.0}, {"dense_cells_per_frame": 0}, {"dense_max_cells": 0}):
         with pytest.raises(ValueError, match="dense"):
             OptimConfig.from_dict(bad)
+
+
+def _prepared_3d(frames: int = 12):
+    """A small 3D preparation (odometry only) for the dense stage's guard."""
+    from optim_cases import frames_of
+
+    from dm2_backend.prepare.steps import Prepared
+    from dm2_backend.prepare.types import Pairwise, Topology
+
+    scans, gt, warm = simulate(SimSettings(frames=frames, seed=5, extent=10.0, laps=0.5), progress=False)
+    fr = frames_of(scans, planar=False)
+    n = len(scans)
+    empty = Pairwise(np.zeros((n, 0, 4, 4)), np.zeros((n, 0), bool), np.zeros((n, 0)), np.zeros((n, 0)))
+    seq = ScanSequence(lambda i: Scan(scans[i]), n, planar=False)
+    return Prepared(fr, warm, Topology(np.zeros((n, 0), int)), empty), seq, gt
+
+
+@pytest.mark.parametrize("scores", [{"warm start": 1.0, "graph": 0.5, "dense": 2.0},
+                                    {"warm start": np.nan, "graph": np.nan, "dense": np.nan}])
+def test_a_dense_result_that_agrees_worse_is_not_kept(monkeypatch, scores):
+    from dm2_backend.optim.dense import DenseResult
+    from dm2_backend.pipeline import start as start_module
+
+    prep, seq, gt = _prepared_3d()
+    given = start_module.Start(gt, "graph", "the pose-graph solution")
+    moved = gt.copy()
+    moved[:, 0, 3] += 0.5
+    monkeypatch.setattr(start_module, "refine_dense", lambda *a, **k: DenseResult(moved, [], 0.0, "test"))
+    monkeypatch.setattr(start_module, "agreement_score", lambda *a, **k: dict(scores))
+    out = start_module.dense_start(seq, prep, given, OptimConfig())
+    np.testing.assert_array_equal(out.poses, gt)  # the start (graph) agreed best, or nothing could be judged
+    assert out.name == "graph" and not out.refined and out.dense["returned"] == "graph"
+
+
+def test_the_dense_stage_is_kept_when_it_agrees_best():
+    prep, seq, gt = _prepared_3d()
+    from dm2_backend.pipeline.start import Start, dense_start
+
+    noisy = gt.copy()
+    noisy[:, :3, 3] += np.random.default_rng(0).normal(0, 0.05, (len(gt), 3))
+    out = dense_start(seq, prep, Start(noisy, "graph", "test"), OptimConfig())
+    assert out.refined and out.locally_accurate and out.dense["rounds"] >= 1
+    assert out.dense["agreement_m2"]["dense"] < out.dense["agreement_m2"]["graph"]
+
+
+def test_eliminating_the_planes_gives_the_curvature_of_the_refitted_cost():
+    """x^T (H - B S^-1 B^T) x is the curvature of the plane cost with the planes fitted again, along any joint
+    move x of the frames: a wrong plane Jacobian G, block B or S would miss it (the planes-held H does not)."""
+    cells, gt = street()
+    a = planes.assign(cells, gt, VOXEL)
+    lin = planes.linearise(a, planes.fit(a, gt), gt)
+    rng = np.random.default_rng(4)
+    x = rng.normal(0, 1, (len(gt), 6)) * np.array([1e-3] * 3 + [1e-2] * 3)
+    x[:, :3] += 2e-3  # a common turn, which the planes follow
+    x[:, 3:] += 0.02
+
+    def refitted(eps: float) -> float:
+        moved = gt.copy()
+        for f in range(len(gt)):
+            step = np.eye(4)
+            step[:3, :3] = Rotation.from_rotvec(eps * x[f, :3]).as_matrix()
+            step[:3, 3] = eps * x[f, 3:]
+            moved[f] = gt[f] @ step
+        return 0.5 * planes.cost(a, moved)
+
+    eps = 0.1
+    curvature = (refitted(eps) - 2 * refitted(0.0) + refitted(-eps)) / eps**2
+    flat = x.ravel()
+    H = np.einsum("fi,fij,fj->", x, lin.H, x)
+    reduced = H - flat @ lin.coupling(flat)
+    assert reduced == pytest.approx(curvature, rel=0.05)
+    assert reduced < 0.5 * H  # the planes follow a joint move: most of the held curvature is not there

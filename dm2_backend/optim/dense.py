@@ -3,13 +3,14 @@
 The objective is DeepMapping2's geometric part in second-order form: the dense multi-frame term
 (:mod:`dm2_backend.optim.planes`, every scan point against planes shared by many frames) plus the
 local-to-global consistency with the pairwise registrations and the front end's odometry, which are the pose
-graph's between factors (``dm2 baseline gtsam``'s graph, Cauchy kernel, the first pose held). Each round holds
-the planes while GTSAM linearises the factors, each frame's plane term enters as a 6x6 Hessian factor, and the
-sparse system over every pose is solved at once (cost linear in frames), so what the scans do not constrain (a
-camera facing one wall) stays where the registrations put it. The step is then scaled by a line search on the
-objective with the planes fitted again (alternating planes and poses alone creeps along the trajectory's soft
-modes); a round is taken only when it lowers that objective. Every round assigns the cells to planes again at
-the current poses (and their robust weights, as in iteratively reweighted least squares).
+graph's between factors (``dm2 baseline gtsam``'s graph, Cauchy kernel, the first pose held). Each round
+assigns the cells to planes at the current poses (with their robust weights, as in iteratively reweighted least
+squares), fits the planes, and takes one damped Gauss-Newton step over every pose at once with the planes
+eliminated (their 3x3 blocks: a Schur complement, solved by conjugate gradients preconditioned with the sparse
+planes-held system of GTSAM's linearised factors and each frame's 6x6 plane block), so frames that share a plane
+move together (holding the planes crept along the trajectory's soft modes) and what the scans do not constrain
+(a camera facing one wall) stays where the registrations put it. A line search on the objective with the planes
+fitted again scales the step; a round is taken only when it lowers that objective.
 """
 
 from __future__ import annotations
@@ -36,7 +37,8 @@ log = logging.getLogger(__name__)
 
 #: the graph's factors as ``dm2 baseline gtsam`` solves them
 GRAPH_SOLVER = SolverOptions(robust="cauchy")
-#: step scales tried along each Gauss-Newton step (the largest that lowers the objective most is taken)
+#: step scales tried in turn along each Gauss-Newton step while the objective keeps falling; the last that lowered
+#: it is taken
 SCALES = (1.0, 2.0, 4.0)
 
 
@@ -69,14 +71,18 @@ class _Objective:
         return plane + self.fg.error(values), plane, poses
 
 
-def _graph_system(lin: gtsam.GaussianFactorGraph, frames: int) -> tuple[csr_matrix, np.ndarray]:
-    """The linearised graph factors as a sparse Hessian J^T J (6N x 6N, key order) and gradient (N,6)."""
+def _graph_system(lin: gtsam.GaussianFactorGraph, keys: np.ndarray) -> tuple[csr_matrix, np.ndarray]:
+    """The linearised graph factors as a sparse Hessian J^T J (6N x 6N, in the order of the ascending ``keys``)
+    and gradient (N,6)."""
+    frames = len(keys)
     rows, cols, vals = lin.sparseJacobian_()
-    a = cols <= 6 * frames  # the last column (6N + 1, 1-indexed) holds the right-hand side b
+    a = cols <= 6 * frames  # the last column (6N + 1, 1-indexed) holds the right-hand side b (zeros omitted)
+    if len(np.unique(cols[a])) != 6 * frames:  # every pose is in a factor (the prior holds the first)
+        raise ValueError(f"the graph's linear system covers {len(np.unique(cols[a]))} of {6 * frames} columns")
     J = coo_matrix((vals[a], (rows[a].astype(np.int64) - 1, cols[a].astype(np.int64) - 1)),
                    shape=(int(rows.max()), 6 * frames)).tocsr()
     grad = lin.gradientAtZero()
-    return (J.T @ J).tocsr(), np.stack([grad.at(i) for i in range(frames)])
+    return (J.T @ J).tocsr(), np.stack([grad.at(int(k)) for k in keys])
 
 
 def _solve(Hg: csr_matrix, gg: np.ndarray, plane: plane_term.Linear, lam: float, tol: float = 1e-3,
@@ -94,8 +100,10 @@ def _solve(Hg: csr_matrix, gg: np.ndarray, plane: plane_term.Linear, lam: float,
     def count(_x: np.ndarray) -> None:
         iterations[0] += 1
 
-    step, _ = cg(reduced, plane.rhs() - gg.ravel(), rtol=tol, maxiter=max_iter,
-                 M=LinearOperator(held.shape, matvec=factor.solve, dtype=np.float64), callback=count)
+    step, info = cg(reduced, plane.rhs() - gg.ravel(), rtol=tol, maxiter=max_iter,
+                    M=LinearOperator(held.shape, matvec=factor.solve, dtype=np.float64), callback=count)
+    if info != 0:  # the line search still judges the step; say that it is inexact
+        log.debug("conjugate gradients stopped after %d iterations short of %g", iterations[0], tol)
     return step.reshape(n, 6), iterations[0]
 
 
@@ -126,7 +134,7 @@ def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float
         assignment = plane_term.assign(cells, poses, voxel)
         plane = plane_term.linearise(assignment, plane_term.fit(assignment, poses), poses)
         current, _, _ = objective(assignment, values)
-        Hg, gg = _graph_system(fg.linearize(values), len(poses))
+        Hg, gg = _graph_system(fg.linearize(values), graph.ids)
         best, iterations = None, 0
         for _ in range(8):
             step, iterations = _solve(Hg, gg, plane, lam)

@@ -364,7 +364,7 @@ def linearise(a: Assignment, planes: Planes, poses: np.ndarray) -> Linear:
         S += _sum(voxel, G @ Q @ G.transpose(0, 2, 1) * scale, voxels)
         g_plane += _sum(voxel, (G @ Qu[:, :, None])[:, :, 0] * scale, voxels)
         B[c] = AQ @ G.transpose(0, 2, 1) * scale
-    S_inv = np.linalg.inv(S + 1e-9 * np.trace(S, axis1=1, axis2=2)[:, None, None] * np.eye(3))
+    S_inv = np.linalg.pinv(S, rcond=1e-9, hermitian=True)  # a plane of few points may leave a direction free
     # pairs are ordered by frame (see assign): the (6,3) blocks of B by block row
     indptr = np.searchsorted(a.frame, np.arange(frames + 1))
     coupling = bsr_matrix((B, a.voxel, indptr), shape=(6 * frames, 3 * voxels)).tocsr()

@@ -458,7 +458,7 @@ class Optimiser:
         if ckpt is not None and lead:
             self._save_mnet(checkpoint_dir / MNET)
         return OptimResult(best["poses"], best["epoch"], history, self.derived, stopped,
-                           _selection(best, by_map, rejected))
+                           _selection(best, by_map, rejected, self.epochs))
 
 
 def _selection(best: dict, by_map: bool, rejected: int = 0, epochs: int = 1) -> str:

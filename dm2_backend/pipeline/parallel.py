@@ -122,7 +122,7 @@ def build(prep: Prepared, start: Start, ocfg: OptimConfig, cfg: dict, watch: Wat
                      device=device, metric=watch.metric, map_metric=watch.map_metric,
                      progress=progress and dist.rank == 0, samples=samples, dist=dist,
                      from_graph=start.locally_accurate, trace_metric=watch.trace,
-                     dense=bool(start.dense))
+                     dense=start.refined)
 
 
 def optimise_rank(prep: Prepared, start: Start, samples: str, ocfg: OptimConfig, cfg: dict, sess: Session,

@@ -46,9 +46,14 @@ class Start:
     dense: dict = field(default_factory=dict)
 
     @property
+    def refined(self) -> bool:
+        """``poses`` are the dense stage's result."""
+        return self.dense.get("returned") == "dense"
+
+    @property
     def locally_accurate(self) -> bool:
         """The pose-graph solution, or the dense stage's result: both agree with the registrations."""
-        return self.name == "graph" or bool(self.dense)
+        return self.name == "graph" or self.refined
 
     def summary(self) -> dict:
         return {"name": self.name, "why": self.why, "map_entropy": self.map_entropy, "dense": self.dense}
@@ -87,7 +92,9 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
                 progress: bool = False, trace: Callable[[np.ndarray], float] | None = None) -> Start:
     """``start`` refined by the dense stage (``cfg.dense``; None: 3D data only): every scan's points against the
     planes many frames share, jointly with the pose graph's factors (:mod:`dm2_backend.optim.dense`)."""
-    if not (cfg.dense if cfg.dense is not None else not prep.frames.planar) or prep.frames.planar:
+    if prep.frames.planar or cfg.dense is False:
+        if prep.frames.planar and cfg.dense:
+            log.warning("optimiser.dense: planar scans have lines, not planes; the dense stage does not run")
         return start
     voxel = dense_voxel(cfg, prep.frames.scale)
     t = time.perf_counter()
@@ -98,11 +105,17 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     # never worse than where it started, judged without ground truth: each frame against the map the others make
     candidates = {"warm start": prep.warm_start, start.name: start.poses, "dense": result.poses}
     agreement = agreement_score(cells, candidates, voxel, judges=(start.name, "dense"))
-    chosen = min(agreement, key=agreement.get)
+    finite = {name: score for name, score in agreement.items() if np.isfinite(score)}
+    # no plane seen by two frames (too few or too sparse scans): nothing to judge by, the start stands
+    chosen = min(finite, key=finite.get) if len(finite) == len(agreement) else start.name
     summary = {"voxel_m": voxel, "cells": len(cells), "cells_seconds": t_cells, "seconds": result.seconds,
                "rounds": len(result.history), "stopped": result.stopped, "history": result.history,
                "agreement_m2": agreement, "returned": chosen}
     log.info("dense: %d cells of %.3g m, %s; returned %s (frames' disagreement with the others' planes: %s)",
              len(cells), voxel / 4.0, result.stopped, chosen,
              ", ".join(f"{k} {v:.3g} m2" for k, v in agreement.items()))
-    return Start(candidates[chosen], start.name, start.why, start.map_entropy, summary)
+    if chosen != "dense":
+        return Start(candidates[chosen], start.name if chosen == start.name else "prepared",
+                     f"{start.why}; the dense stage's result was not kept ({chosen} agrees better)",
+                     start.map_entropy, summary)
+    return Start(result.poses, start.name, start.why, start.map_entropy, summary)
