@@ -168,5 +168,5 @@ def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float
             stopped = f"converged in round {r} (rms step {step_rms:.2g} m)"
             break
         assignment = plane = None  # released before the next round builds its own
-    log.info("dense stage: %s, %.1f s", stopped, time.perf_counter() - t0)
+    log.debug("dense stage: %s, %.1f s", stopped, time.perf_counter() - t0)
     return DenseResult(poses, history, time.perf_counter() - t0, stopped)
