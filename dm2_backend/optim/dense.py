@@ -54,7 +54,7 @@ class DenseResult:
 def _step(a: np.ndarray, b: np.ndarray) -> tuple[float, float, float]:
     """Root-mean-square and largest translation (m), largest rotation (rad) between two pose sets."""
     moved = np.linalg.norm(a[:, :3, 3] - b[:, :3, 3], axis=1)
-    angle = se3.rotation_angle((se3.inverse(a) @ b)[:, :3, :3])
+    angle = se3.rotation_angle(se3.relative(a, b)[:, :3, :3])
     return (float(np.sqrt(np.mean(moved**2))) if len(moved) else 0.0, float(np.max(moved, initial=0.0)),
             float(np.max(angle, initial=0.0)))
 

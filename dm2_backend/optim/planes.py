@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.sparse import bsr_matrix, csr_matrix
 
+from dm2_backend.geometry.voxels import group_rows
 from dm2_backend.progress import progress as progress_of
 from dm2_backend.scans import ScanSequence
 from dm2_backend.threads import ordered_map
@@ -63,7 +64,7 @@ def compress(points: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, n
     pts = pts[np.isfinite(pts).all(1)]
     if len(pts) == 0:
         return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 6))
-    inv, k = _group(np.floor(pts / size).astype(np.int64))
+    inv, k = group_rows(np.floor(pts / size).astype(np.int64))
     count = np.bincount(inv, minlength=k).astype(np.float64)
     mean = np.stack([np.bincount(inv, pts[:, a], minlength=k) for a in range(3)], 1) / count[:, None]
     d = pts - mean[inv]
@@ -124,21 +125,6 @@ class Planes:
     normal: np.ndarray
     offset: np.ndarray
     residual: np.ndarray
-
-
-def _group(keys: np.ndarray) -> tuple[np.ndarray, int]:
-    """Group id of each row of integer ``keys`` (K,3), and the number of groups."""
-    if len(keys) == 0:
-        return np.zeros(0, np.int64), 0
-    keys = keys - keys.min(0)
-    span = keys.max(0) + 1
-    if np.prod(span.astype(float)) < 2.0**62:  # one int64 per row: a 1-D unique is far faster than axis=0
-        flat = np.ravel_multi_index(keys.T, span)
-        _, inv = np.unique(flat, return_inverse=True)
-    else:
-        _, inv = np.unique(keys, axis=0, return_inverse=True)
-    inv = inv.ravel()
-    return inv, int(inv.max()) + 1
 
 
 def _sum(inv: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
@@ -243,7 +229,7 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float) -> Assignment:
             break
         size = voxel / 2**level
         key = np.floor(mean[todo] / size).astype(np.int64)
-        inv, n = _group(key)
+        inv, n = group_rows(key)
         centre = (key + 0.5) * size
         pair, n_pairs = _pairs(frame_of[todo], inv, n)
         first = np.zeros(n_pairs, np.int64)
