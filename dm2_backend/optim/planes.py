@@ -137,11 +137,11 @@ def _sum(inv: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
 _UPPER = np.triu_indices(4)
 
 
-def _pairs(frame: np.ndarray, voxel: np.ndarray, voxels: int) -> tuple[np.ndarray, int]:
-    """The (frame, voxel) pair of each cell, numbered in the order of frame, then voxel, and their count."""
-    _, inv = np.unique(frame * max(voxels, 1) + voxel, return_inverse=True)
-    inv = inv.ravel()
-    return inv, int(inv.max()) + 1 if len(inv) else 0
+def _pairs(frame: np.ndarray, voxel: np.ndarray, voxels: int) -> tuple[np.ndarray, np.ndarray]:
+    """The (frame, voxel) pair of each cell, numbered in the order of frame, then voxel, and one cell of each
+    pair (its frame and voxel stand for the pair's)."""
+    _, first, inv = np.unique(frame * max(voxels, 1) + voxel, return_index=True, return_inverse=True)
+    return inv.ravel(), first
 
 
 def _sum_rows(inv: np.ndarray, rows: np.ndarray, values: np.ndarray, n: int,
@@ -231,9 +231,8 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float) -> Assignment:
         key = np.floor(mean[todo] / size).astype(np.int64)
         inv, n = group_rows(key)
         centre = (key + 0.5) * size
-        pair, n_pairs = _pairs(frame_of[todo], inv, n)
-        first = np.zeros(n_pairs, np.int64)
-        first[pair] = np.arange(len(pair))
+        pair, first = _pairs(frame_of[todo], inv, n)
+        n_pairs = len(first)
         pair_voxel = inv[first]
         level_centre = np.zeros((n, 3))
         level_centre[inv] = centre
@@ -263,9 +262,8 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float) -> Assignment:
     sigma = max(1.4826 * float(np.median(z)) if len(z) else 0.0, 1e-6)
     weight = 1.0 / (1.0 + (z / (KERNEL * sigma)) ** 2)
     frames = frame_of[cell]
-    pair, n = _pairs(frames, plane, voxels)
-    first = np.zeros(n, np.int64)
-    first[pair] = np.arange(len(pair))
+    pair, first = _pairs(frames, plane, voxels)
+    n = len(first)
     centre = np.concatenate(centres) if centres else np.zeros((0, 3))
     moment = _expand(_sum_rows(pair, cell, moments, n, weight))
     return Assignment(frames[first], plane[first], moment, centre, sigma, len(cell))
