@@ -14,7 +14,6 @@ import re
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from dm2_backend.formats.bag_messages import bad_quaternion, split_ns, stamp_ns
 from dm2_backend.geometry import se3
@@ -152,8 +151,7 @@ class TfBuffer:
             return poses, ok
         rel = (stamps - stamps[0]).astype(np.float64)
         t = (times[ok] - stamps[0]).astype(np.float64)
-        poses[ok, :3, :3] = Slerp(rel, Rotation.from_quat(quat))(t).as_matrix()
-        poses[ok, :3, 3] = np.stack([np.interp(t, rel, xyz[:, k]) for k in range(3)], axis=1)
+        poses[ok] = se3.interpolate(rel, se3.from_xyz_quat(xyz, quat, "xyzw"), t)
         return poses, ok
 
     def trajectory(self, parent: str, child: str) -> tuple[np.ndarray, np.ndarray]:

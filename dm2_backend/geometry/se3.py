@@ -9,7 +9,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 
 QuatOrder = Literal["xyzw", "wxyz"]
 
@@ -54,6 +54,21 @@ def inverse(T: np.ndarray) -> np.ndarray:
 def relative(Ta: np.ndarray, Tb: np.ndarray) -> np.ndarray:
     """Pose of ``b`` expressed in the frame of ``a``: ``inv(Ta) @ Tb``."""
     return inverse(Ta) @ np.asarray(Tb, dtype=np.float64)
+
+
+def interpolate(times: np.ndarray, poses: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """Poses (M,4,4) at ``query`` times from poses (N,4,4) at increasing ``times``: rotation by slerp,
+    translation linearly; a query outside ``[times[0], times[-1]]`` takes the nearest end's pose."""
+    times = np.asarray(times, dtype=np.float64)
+    poses = np.asarray(poses, dtype=np.float64)
+    q = np.clip(np.asarray(query, dtype=np.float64), times[0], times[-1])
+    out = identity(len(q))
+    if len(times) == 1:
+        out[:] = poses[0]
+        return out
+    out[:, :3, :3] = Slerp(times, _rotation(poses[:, :3, :3]))(q).as_matrix()
+    out[:, :3, 3] = np.stack([np.interp(q, times, poses[:, k, 3]) for k in range(3)], axis=1)
+    return out
 
 
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -31,6 +31,9 @@ class RunInputs:
     relations: np.ndarray | None = None
     #: the scans the ground truth has a pose for, in the order of ``gt`` (None: every scan)
     gt_frames: np.ndarray | None = None
+    #: the whole ``--poses`` trajectory when it has poses the scans were not paired with (a 100 Hz LIO for
+    #: 10 Hz scans): the run also writes it corrected (``poses_full_rate_*``)
+    given_full: Trajectory | None = None
 
     def at_gt(self, poses: np.ndarray) -> np.ndarray:
         """The poses (one per scan) of the scans that have a ground-truth pose, in the order of ``gt``."""
@@ -58,11 +61,13 @@ def load_inputs(
     max_diff: float = 0.01,
 ) -> RunInputs:
     scans = open_scans(scans_path, scans_format, options)
-    given, fmt = None, None
+    given, fmt, full = None, None, None
     if poses_path is not None:
-        given = read_trajectory(poses_path, poses_format, options)
-        fmt = given.meta.get("format")
-        scans, given = associate_scans(scans, given, max_diff)
+        full = read_trajectory(poses_path, poses_format, options)
+        fmt = full.meta.get("format")
+        scans, given = associate_scans(scans, full, max_diff)
+        if len(given) == len(full) or given.timestamps is None or fmt == "carmen":
+            full = None
     else:
         for name in CARRIED_WARM_START:
             if name in scans.trajectories:
@@ -78,7 +83,7 @@ def load_inputs(
         gt = read_trajectory(gt_path, gt_format, options)
         gt, gt_frames = gt_for_scans(gt, scans, gt_path, max_diff)
     relations = load_relations(relations_path) if relations_path is not None else None
-    return RunInputs(scans, given, fmt, poses_path, gt, relations, gt_frames)
+    return RunInputs(scans, given, fmt, poses_path, gt, relations, gt_frames, full)
 
 
 #: the fewest scans ground truth must match to be evaluated

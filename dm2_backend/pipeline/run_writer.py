@@ -18,6 +18,7 @@ from dm2_backend.evaluation.paper_ate import paper_ate
 from dm2_backend.evaluation.report import run_metrics
 from dm2_backend.maps.run_maps import write_run_maps
 from dm2_backend.pipeline import outputs
+from dm2_backend.pipeline.full_rate import corrected_full_rate
 from dm2_backend.pipeline.inputs import RunInputs
 from dm2_backend.pipeline.run_report import PrepareSummary, RunReport
 from dm2_backend.prepare.steps import Prepared
@@ -93,6 +94,13 @@ def write_run(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final: np
     final_traj = trajectory_of(final, inputs)
     written = outputs.write_trajectories(out, final_traj, inputs.given_path, inputs.given_format)
     written += outputs.write_trajectories(out, warm_traj, None, None, stem="warm_start")
+    full_rate = None
+    if inputs.given_full is not None:  # the input trajectory at its own rate, corrected
+        full_rate = corrected_full_rate(inputs.given_full, inputs.given, final)
+        written += outputs.write_trajectories(out, full_rate.trajectory, inputs.given_path, inputs.given_format,
+                                              stem="poses_full_rate")
+        log.info("full rate: %d input poses corrected (poses_full_rate_*), %d outside the scans' span keep the "
+                 "nearest scan's correction", len(full_rate.trajectory), full_rate.outside)
     outputs.write_map(out / "map.ply", prep.frames, final, 2 * prep.frames.scale.get("spacing", 0.0))
     written += write_run_maps(out, inputs.scans, final, prep.frames.planar)  # map.pgm/.yaml, octomap.bt, M-Net maps
     outputs.write_prior_files(out / "prior", prep.warm_start, prep.topology, prep.pairwise)
@@ -122,7 +130,8 @@ def write_run(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final: np
         prepare=PrepareSummary.of(prep),
         files=written + list(files or []),
         epochs=epochs,
-        details={**(details or {}), **({"warm_start": {k: v for k, v in prep.warm_report.items() if k != "per_step"}}
+        details={**(details or {}), **({"full_rate": full_rate.summary()} if full_rate else {}),
+                 **({"warm_start": {k: v for k, v in prep.warm_report.items() if k != "per_step"}}
                                         if prep.warm_report else {})},
     )
     if epochs is not None:

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
-from scipy.spatial.transform import Rotation, Slerp
 
 from dm2_backend.atomic import atomic_write
 from dm2_backend.formats.scan_folder import write_bin
+from dm2_backend.geometry import se3
 from dm2_backend.scans import ScanSequence
 from dm2_backend.simulate.lidar import LidarModel, Raycaster
 from dm2_backend.simulate.path import drifting_odometry
@@ -49,12 +49,7 @@ def map_mesh(scans: ScanSequence, poses: np.ndarray, voxel: float, reach: float,
 def denser(poses: np.ndarray, factor: int) -> np.ndarray:
     """``factor`` poses per interval of ``poses`` (rotation by slerp, translation linearly), the last kept."""
     t = np.arange(len(poses), dtype=float)
-    query = np.linspace(0, len(poses) - 1, (len(poses) - 1) * factor + 1)
-    out = np.tile(np.eye(4), (len(query), 1, 1))
-    out[:, :3, :3] = Slerp(t, Rotation.from_matrix(poses[:, :3, :3]))(query).as_matrix()
-    for k in range(3):
-        out[:, k, 3] = np.interp(query, t, poses[:, k, 3])
-    return out
+    return se3.interpolate(t, poses, np.linspace(0, len(poses) - 1, (len(poses) - 1) * factor + 1))
 
 
 def write_real_map_sequence(out: Path, scans: ScanSequence, poses: np.ndarray, model: LidarModel,
