@@ -11,8 +11,9 @@ from dm2_backend.cli.options import duplicate_times_option
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.ape_rpe import ALIGN_MODES, DELTA_UNITS
+from dm2_backend.evaluation.consistency_profile import consistency_profile, write_profiles
 from dm2_backend.evaluation.evaluate import EvalOptions, evaluate
-from dm2_backend.evaluation.map_quality import MapSampler
+from dm2_backend.evaluation.map_quality import MapSampler, poses_of_scans
 from dm2_backend.evaluation.relations import MAX_DT, load_relations
 from dm2_backend.evaluation.report import (
     EvalReport,
@@ -25,6 +26,7 @@ from dm2_backend.evaluation.report import (
     write_markdown,
 )
 from dm2_backend.formats import ReadOptions, open_scans, read_trajectory
+from dm2_backend.pipeline.inputs import looks_planar
 
 path_type = click.Path(path_type=Path)
 
@@ -72,6 +74,20 @@ def _plots(
         else:
             written.append(out)
     return written
+
+
+def _profiles(folder: Path, scans, at_scans: dict[str, np.ndarray]) -> list[Path]:
+    """Each estimate's consistency profile, its flagged stretches printed, the files written to ``folder``."""
+    planar = looks_planar(scans, None)
+    profiles = {label: consistency_profile(scans, poses, scans.timestamps, planar) for label, poses in
+                at_scans.items()}
+    for label, prof in profiles.items():
+        stretches = "; ".join(f"frames {s.first}-{s.last}" + (f" ({s.start_s:.3f}-{s.end_s:.3f} s)" if s.start_s
+                              is not None else "") + f" peak {s.peak_m:.3g} m at {s.peak_frame}"
+                              for s in prof.segments) or "none"
+        click.echo(f"consistency: {label}: frames agree to {prof.level_m:.3g} m (lower quartile), flagged above "
+                   f"{prof.threshold_m:.3g} m: {stretches}")
+    return [folder / name for name in write_profiles(folder, profiles, list(at_scans.values())[-1][:, :3, 3])]
 
 
 #: the alignment line printed above the table
@@ -136,6 +152,10 @@ def free_rotation_warning(positions: np.ndarray) -> str | None:
               help="Scan source: adds the map entropy and plane variance of the scans at each estimate "
                    "(no ground truth needed).")
 @click.option("--scans-format", default=None, help="Format of --scans (detected otherwise).")
+@click.option("--profile", "profile_dir", type=path_type, default=None,
+              help="With --scans: write each estimate's consistency profile into this folder (consistency.json, "
+                   ".csv, .png): per frame, how far its points lie from the planes the other frames make, and "
+                   "the stretches that stand out (no ground truth needed).")
 @click.option("--relations", "relations_path", type=path_type, default=None,
               help="Freiburg .relations file (t1 t2 x y z roll pitch yaw); --gt may then be omitted.")
 @click.option("--relations-max-dt", type=float, default=MAX_DT, show_default=True,
@@ -160,8 +180,8 @@ def free_rotation_warning(positions: np.ndarray) -> str | None:
               help="Write evo result archives (.zip, readable by evo_res) into this folder.")
 @duplicate_times_option
 def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topic, gt_times, est_times,
-            scans_path, scans_format, relations_path, relations_max_dt, align, align_origin, align_flag, scale_flag,
-            max_diff, delta, delta_unit, json_path, csv_path, md_path, plot_dir, run_report, evo_dir,
+            scans_path, scans_format, profile_dir, relations_path, relations_max_dt, align, align_origin, align_flag,
+            scale_flag, max_diff, delta, delta_unit, json_path, csv_path, md_path, plot_dir, run_report, evo_dir,
             duplicate_times) -> None:
     """Evaluate one or more estimated trajectories against a ground truth, relations and/or the map they make.
 
@@ -178,6 +198,8 @@ def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topi
         raise click.BadParameter("must not be negative", param_hint="--max-diff")
     if relations_max_dt < 0:
         raise click.BadParameter("must not be negative", param_hint="--relations-max-dt")
+    if profile_dir is not None and scans_path is None:
+        raise click.UsageError("--profile scores the scans at each estimate: give --scans too")
     if run_report is not None and plot_dir is None:
         raise click.UsageError("--run-report is used for the error-vs-epoch plot: give --plot DIR too")
 
@@ -198,10 +220,13 @@ def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topi
     est_options = ReadOptions(topic=est_topic, times=est_times, duplicate_times=duplicate_times)
     options = EvalOptions(align=align, align_origin=align_origin, max_diff=max_diff, delta=delta,
                           delta_unit=delta_unit, relations_max_dt=relations_max_dt)
+    at_scans = {}
     for path, label in zip(est_paths, _labels(est_paths), strict=True):
         est = read_trajectory(path, est_format, est_options)
         if len(est) == 0:
             raise InputError(path, "no poses")
+        if profile_dir is not None:
+            at_scans[label] = poses_of_scans(scans, est, max_diff, path)
         report.estimates.append(evaluate(est, label, path, gt=gt, relations=relations, sampler=sampler, scans=scans,
                                          options=options))
 
@@ -226,5 +251,7 @@ def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topi
         written += _plots(plot_dir, report, gt.positions if gt is not None else None, run_report)
     if evo_dir:
         written += write_evo_results(report, evo_dir)
+    if profile_dir:
+        written += _profiles(profile_dir, scans, at_scans)
     for p in written:
         click.echo(f"wrote {p}")

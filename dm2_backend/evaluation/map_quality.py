@@ -189,14 +189,19 @@ def _neighbourhoods(points: np.ndarray, tree: cKDTree, query_index: np.ndarray, 
 
 def estimate_map(sampler: MapSampler, scans: ScanSequence, est: Trajectory, max_diff: float = 0.01,
                  source=None) -> MapQuality:
-    """Map metrics of the scans placed by an estimated trajectory, associated by time (else by index); every
-    scan needs its pose, so that every estimate is scored on the same map points."""
+    """Map metrics of the scans placed by an estimated trajectory (:func:`poses_of_scans`)."""
+    return sampler.evaluate(poses_of_scans(scans, est, max_diff, source))
+
+
+def poses_of_scans(scans: ScanSequence, est: Trajectory, max_diff: float = 0.01, source=None) -> np.ndarray:
+    """One pose of ``est`` per scan, associated by time (else by index); every scan needs its pose, so that
+    every estimate is scored on the same map points."""
     if scans.timestamps is not None and est.timestamps is not None:
         i_scan, i_pose = associate_by_time(scans.timestamps, est.timestamps, max_diff)
         if len(i_scan) == len(scans):
-            return sampler.evaluate(est.poses[i_pose[np.argsort(i_scan)]])
+            return est.poses[i_pose[np.argsort(i_scan)]]
         if len(est) != len(scans):
             raise InputError(source, f"only {len(i_scan)} of {len(scans)} scans have a pose within {max_diff} s")
     elif len(est) != len(scans):
         raise InputError(source, f"{len(est)} poses for {len(scans)} scans and no timestamps to associate by")
-    return sampler.evaluate(est.poses)  # by index
+    return est.poses  # by index

@@ -274,3 +274,44 @@ def plot_topology(path: str | Path, positions: np.ndarray, closures: dict[str, n
                   loop_edges: np.ndarray, title: str = "topology", limit: int = 3000) -> Path:
     """:func:`topology_figure`, written to ``path``."""
     return save(topology_figure(positions, closures, loop_edges, title, limit), path)
+
+
+def consistency_figure(positions: np.ndarray, profiles: dict[str, object], title: str = "") -> Figure:
+    """A consistency profile (:mod:`dm2_backend.evaluation.consistency_profile`) along the trajectory: the top
+    view of ``positions`` (the last profile's poses) coloured by its per-frame score with flagged frames
+    ringed, and every profile's score over the frames with its threshold (dashed) and flagged segments shaded."""
+    top, _ = view_axes(positions)
+    fig = Figure(figsize=(13, 5.5))
+    ax = fig.add_subplot(1, 2, 1)
+    last_label, last = list(profiles.items())[-1]
+    score = last.score_m
+    size = float(np.clip(4000.0 / max(len(score), 1), 4, 30))
+    x, y = positions[:, top[0]], positions[:, top[1]]
+    ax.plot(x, y, color="0.7", lw=0.8)
+    sc = ax.scatter(x, y, c=score, s=size, cmap="viridis", linewidths=0, vmin=0.0,
+                    vmax=float(np.nanmax(score)) if np.isfinite(score).any() else 1.0)
+    flagged = last.flagged
+    if flagged.any():
+        ax.scatter(x[flagged], y[flagged], s=size * 4, facecolors="none", edgecolors="red", linewidths=1.0,
+                   label="flagged")
+        ax.legend(loc="best", fontsize=8)
+    fig.colorbar(sc, ax=ax, label="frame vs the others' planes, RMS [m]")
+    _setup(ax, top, f"{last_label}: where frames disagree with the map")
+    ax2 = fig.add_subplot(1, 2, 2)
+    frames = np.arange(len(score))
+    for k, (label, prof) in enumerate(profiles.items()):
+        colour = f"C{k}"
+        ax2.plot(frames, prof.score_m, lw=1.0, color=colour, label=label)
+        ax2.axhline(prof.threshold_m, ls="--", lw=0.8, color=colour)
+        for seg in prof.segments:
+            ax2.axvspan(seg.first - 0.5, seg.last + 0.5, color=colour, alpha=0.15)
+    ax2.set_xlabel("frame")
+    ax2.set_ylabel("RMS distance to the others' planes [m]")
+    ax2.set_xlim(-0.5, len(score) - 0.5)
+    ax2.set_ylim(bottom=0.0)
+    ax2.grid(True, alpha=0.3)
+    ax2.legend(loc="best", fontsize=8)
+    ax2.set_title("per-frame score (dashed: flag threshold, shaded: flagged)")
+    if title:
+        fig.suptitle(title)
+    return fig

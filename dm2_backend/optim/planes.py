@@ -53,6 +53,18 @@ class Cells:
     def __len__(self) -> int:
         return len(self.frame)
 
+    def of_frames(self, keep: np.ndarray) -> Cells:
+        """The cells of the frames where ``keep`` (bool per frame) is set; frame numbers unchanged."""
+        on = keep[self.frame]
+        return Cells(self.frame[on], self.count[on], self.mean[on], self.scatter[on], self.size)
+
+    def extruded(self, height: float) -> Cells:
+        """Planar scans (z = 0) seen as vertical walls ``height`` tall: each cell's points spread uniformly in z,
+        so a line of a 2D scan is a plane here, with the line's normal (poses must keep z vertical)."""
+        scatter = self.scatter.copy()
+        scatter[:, 5] += self.count * np.float32(height**2 / 12.0)
+        return Cells(self.frame, self.count, self.mean, scatter, self.size)
+
 
 #: the entries (row, column) of a 3x3 scatter that :class:`Cells` keep
 _SCATTER = np.triu_indices(3)
@@ -211,9 +223,14 @@ def _plane_of(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     return N, mu, lam, vec
 
 
-def assign(cells: Cells, poses: np.ndarray, voxel: float) -> Assignment:
+def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray | None = None,
+           kernel: float = KERNEL) -> Assignment:
     """The flat voxels at ``poses`` (adaptive sizes ``voxel / 2^l`` down to the cell size), the cells on them
-    and their robust weights. Cells are summed per (frame, voxel) in their sensor frame, then placed."""
+    and their robust weights. Cells are summed per (frame, voxel) in their sensor frame, then placed.
+    ``reference`` (bool per frame, default all): only those frames decide which voxels are flat planes (seen by
+    two of them) and the noise scale; the other frames' cells are assigned to those planes, to be judged.
+    ``kernel``: the Cauchy width of the cells' weights, in noise sigmas."""
+    ref_cell = np.ones(len(cells)) if reference is None else reference[cells.frame].astype(np.float64)
     levels = 1 + max(0, int(np.floor(np.log2(voxel / cells.size + 1e-9))))
     mean = np.empty((len(cells), 3))
     for c in _chunks(len(cells)):
@@ -236,10 +253,12 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float) -> Assignment:
         pair_voxel = inv[first]
         level_centre = np.zeros((n, 3))
         level_centre[inv] = centre
-        level_pairs = Assignment(frame_of[todo][first], pair_voxel, _expand(_sum_rows(pair, todo, moments, n_pairs)),
-                                 level_centre, 1.0, 0)
-        N, mu, lam, vec = _plane_of(_placed_sum(level_pairs, poses))
-        several = np.bincount(pair_voxel, minlength=n) >= 2  # seen by two frames or more
+        level_pairs = Assignment(frame_of[todo][first], pair_voxel,
+                                 _expand(_sum_rows(pair, todo, moments, n_pairs, ref_cell[todo])), level_centre, 1.0, 0)
+        M = _placed_sum(level_pairs, poses)
+        M[M[:, 3, 3] <= 0] = np.eye(4)  # no reference frame's point here: no plane (N = 1 < MIN_POINTS)
+        N, mu, lam, vec = _plane_of(M)
+        several = np.bincount(pair_voxel, ref_cell[todo][first], minlength=n) >= 2  # seen by two frames or more
         flat = ((lam[:, 0] < FLATNESS * lam[:, 1]) & (lam[:, 1] >= (MIN_WIDTH * size) ** 2)
                 & (N >= MIN_POINTS) & several)
         on = flat[inv]
@@ -259,8 +278,9 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float) -> Assignment:
     offset = np.concatenate(offsets) if offsets else np.zeros(0)
     r = (normal * mean[cell]).sum(1) - offset
     z = np.sqrt(cells.count[cell].astype(np.float64)) * np.abs(r)  # ~ |N(0, sigma^2)| on an exact plane
-    sigma = max(1.4826 * float(np.median(z)) if len(z) else 0.0, 1e-6)
-    weight = 1.0 / (1.0 + (z / (KERNEL * sigma)) ** 2)
+    z_ref = z[ref_cell[cell] > 0]
+    sigma = max(1.4826 * float(np.median(z_ref)) if len(z_ref) else 0.0, 1e-6)
+    weight = 1.0 / (1.0 + (z / (kernel * sigma)) ** 2)
     frames = frame_of[cell]
     pair, first = _pairs(frames, plane, voxels)
     n = len(first)
@@ -366,16 +386,22 @@ def _across(normal: np.ndarray) -> np.ndarray:
     return np.stack([e1, np.cross(normal, e1)], 2)
 
 
-def disagreement(a: Assignment, poses: np.ndarray, cap: float = KERNEL) -> np.ndarray:
+def disagreement(a: Assignment, poses: np.ndarray, cap: float = KERNEL,
+                 reference: np.ndarray | None = None) -> np.ndarray:
     """Per frame, the mean squared distance (m^2) of its points on planes to the plane the *other* frames make
     in the same voxel (leave-one-out: a frame is judged by the map the others make, never by its own points),
-    each (frame, voxel) pair capped at ``cap`` noise sigmas; NaN for a frame with no point on a plane."""
-    total = _placed_sum(a, poses)
+    each (frame, voxel) pair capped at ``cap`` noise sigmas; NaN for a frame with no point on a plane.
+    ``reference`` (bool per frame, default all): the planes are made by those frames only."""
+    ref_pair = np.ones(len(a.frame), bool) if reference is None else reference[a.frame]
+    total = np.zeros((a.voxels, 4, 4))
+    for c in _chunks(len(a.frame)):
+        placed = _about(poses, a.frame[c], a.centre[a.voxel[c]], a.moment[c]) * ref_pair[c, None, None]
+        total += _sum(a.voxel[c], placed, a.voxels)
     frames = int(poses.shape[0])
     sq_sum, own_sum = np.zeros(frames), np.zeros(frames)
     for c in _chunks(len(a.frame)):
         M_pair = _about(poses, a.frame[c], a.centre[a.voxel[c]], a.moment[c])
-        rest = total[a.voxel[c]] - M_pair
+        rest = total[a.voxel[c]] - M_pair * ref_pair[c, None, None]
         keep = rest[:, 3, 3] > 0
         N, mu, _, vec = _plane_of(np.where(keep[:, None, None], rest, np.eye(4)))
         u = np.concatenate([vec[:, :, 0], -(vec[:, :, 0] * mu).sum(1)[:, None]], 1)  # n . x - n . mu, centred

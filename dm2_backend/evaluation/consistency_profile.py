@@ -1,0 +1,197 @@
+"""Where a trajectory went wrong, without ground truth: each frame judged by the map the *other* frames make.
+
+A frame's score is the RMS distance of its points to the planes other frames share (``optim.planes``: planes
+from many frames in adaptive voxels, each frame's points summed into cells once). Three views of "the others":
+
+- **past** and **future**: the frames of the neighbouring stretch before / after (blocks of ``window`` frames).
+  A front-end jump makes the frames after it disagree with the stretch before, whose own map is sharp;
+- **all**: every other frame (leave-one-out), which sees a revisit that does not line up (a wrong or missed
+  loop closure, a drift that shows where the path comes back).
+
+The score is the largest of the three. Segments whose score stands out of the sequence's own distribution
+(``RATIO`` times the level of its agreeing frames) are flagged with their frame and time ranges.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dm2_backend.atomic import atomic_write
+from dm2_backend.evaluation import plots
+from dm2_backend.evaluation.report import safe_name
+from dm2_backend.optim.planes import Cells, assign, cells_from_scans, disagreement
+from dm2_backend.prepare.frames import derive_scale
+from dm2_backend.scans import ScanSequence
+
+#: a frame's points may lie this many noise sigmas from the others' planes before their distance is capped
+#: (a wrong frame scores high, one stray object cannot dominate it)
+CAP = 10.0
+#: a frame is flagged when its score is this multiple of the level of the agreeing frames (the lower quartile)
+RATIO = 1.75
+#: flagged frames this close (frames) are one segment
+GAP = 2
+#: the cells kept per frame (as the dense stage keeps them) and in all
+CELLS_PER_FRAME, MAX_CELLS = 2048, 1_500_000
+
+
+@dataclass(frozen=True)
+class Segment:
+    """Consecutive flagged frames ``first``..``last`` (inclusive), their stamps (s) when known, and the frame
+    with the highest score."""
+
+    first: int
+    last: int
+    start_s: float | None
+    end_s: float | None
+    peak_frame: int
+    peak_m: float
+
+
+@dataclass(frozen=True)
+class ConsistencyProfile:
+    """Per frame: ``score_m`` (the largest of the views, NaN where a frame has no point on a shared plane) and
+    each view's RMS distance (m); the flag threshold and the flagged segments."""
+
+    score_m: np.ndarray
+    views_m: dict[str, np.ndarray]
+    level_m: float
+    threshold_m: float
+    segments: list[Segment]
+    voxel_m: float
+    window: int
+    stamps: np.ndarray | None
+
+    @property
+    def flagged(self) -> np.ndarray:
+        out = np.zeros(len(self.score_m), bool)
+        for s in self.segments:
+            out[s.first:s.last + 1] = True
+        return out
+
+    def summary(self) -> dict:
+        """The numbers a report shows (no per-frame arrays)."""
+        finite = self.score_m[np.isfinite(self.score_m)]
+        return {"frames": len(self.score_m), "frames_scored": len(finite), "level_m": _number(self.level_m),
+                "median_m": float(np.median(finite)) if len(finite) else None,
+                "p90_m": float(np.percentile(finite, 90)) if len(finite) else None,
+                "threshold_m": _number(self.threshold_m), "voxel_m": self.voxel_m, "window_frames": self.window,
+                "flagged_frames": int(self.flagged.sum()), "segments": [vars(s) for s in self.segments]}
+
+
+def profile_voxel(scans: ScanSequence) -> float:
+    """The largest plane voxel, from the data as the dense stage takes it: a few per median range, its finest
+    quarter at least a point spacing."""
+    scale = derive_scale(scans)
+    return max(scale["range_median"] / 8.0, 4.0 * scale["spacing_raw"], 1e-3)
+
+
+def window_frames(poses: np.ndarray, voxel: float) -> int:
+    """Frames in a neighbouring stretch: those within two voxels of path (a quarter of the median range: the
+    stretch overlaps the judged frame's view), 2 to 10."""
+    steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    step = float(np.median(steps)) if len(steps) else 0.0
+    return int(np.clip(np.ceil(2.0 * voxel / max(step, 1e-9)), 2, 10))
+
+
+def _rms(a: np.ndarray) -> np.ndarray:
+    with np.errstate(invalid="ignore"):
+        return np.sqrt(a)
+
+
+def _neighbour_views(cells: Cells, poses: np.ndarray, voxel: float, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each frame against the block of ``window`` frames before it (past) and after it (future)."""
+    n = len(poses)
+    block = np.arange(n) // window
+    past, future = np.full(n, np.nan), np.full(n, np.nan)
+    for b in range(int(block.max()) + 1):
+        judged = block == b
+        for ref_block, out in ((b - 1, past), (b + 1, future)):
+            reference = block == ref_block
+            if not reference.any():
+                continue
+            a = assign(cells.of_frames(judged | reference), poses, voxel, reference)
+            out[judged] = _rms(disagreement(a, poses, CAP, reference))[judged]
+    return past, future
+
+
+def _segments(score: np.ndarray, threshold: float, stamps: np.ndarray | None) -> list[Segment]:
+    over = np.flatnonzero(np.nan_to_num(score, nan=0.0) > threshold)
+    if len(over) == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(over) > GAP + 1)
+    out = []
+    for run in np.split(over, breaks + 1):
+        first, last = int(run[0]), int(run[-1])
+        peak = first + int(np.nanargmax(score[first:last + 1]))
+        out.append(Segment(first, last, None if stamps is None else float(stamps[first]),
+                           None if stamps is None else float(stamps[last]), peak, float(score[peak])))
+    return out
+
+
+def threshold_of(score: np.ndarray) -> tuple[float, float]:
+    """The level of the sequence's agreeing frames (the lower quartile of the scores: it holds while up to
+    three quarters of the frames are broken) and the flag threshold, ``RATIO`` times that level."""
+    finite = score[np.isfinite(score)]
+    if len(finite) == 0:
+        return float("nan"), float("inf")
+    level = float(np.percentile(finite, 25))
+    return level, RATIO * level
+
+
+def consistency_profile(scans: ScanSequence, poses: np.ndarray, stamps: np.ndarray | None = None,
+                        planar: bool = False, voxel: float | None = None, seed: int = 0,
+                        progress: bool = False) -> ConsistencyProfile:
+    """The profile of ``poses`` (one per scan). ``planar``: 2D scans, their lines seen as vertical walls."""
+    poses = np.asarray(poses, dtype=np.float64)
+    voxel = voxel or profile_voxel(scans)
+    cells = cells_from_scans(scans, voxel / 4.0, CELLS_PER_FRAME, MAX_CELLS, seed, progress)
+    if planar:
+        cells = cells.extruded(voxel)
+    window = window_frames(poses, voxel)
+    every = _rms(disagreement(assign(cells, poses, voxel), poses, CAP))
+    past, future = _neighbour_views(cells, poses, voxel, window)
+    views = {"all": every, "past": past, "future": future}
+    stacked = np.stack(list(views.values()))
+    score = np.where(np.isfinite(stacked).any(0), np.nanmax(np.where(np.isfinite(stacked), stacked, -np.inf), 0),
+                     np.nan)
+    level, threshold = threshold_of(score)
+    return ConsistencyProfile(score, views, level, threshold, _segments(score, threshold, stamps), voxel, window,
+                              stamps)
+
+
+def write_profiles(folder: Path, profiles: dict[str, ConsistencyProfile], positions: np.ndarray,
+                   stem: str = "consistency") -> list[str]:
+    """``{stem}.json`` (each profile's summary and per-frame scores), ``{stem}.csv`` (one row per frame) and
+    ``{stem}.png`` (:func:`plots.consistency_figure` over ``positions``). Returns the names written."""
+    folder.mkdir(parents=True, exist_ok=True)
+    first = next(iter(profiles.values()))
+    doc = {label: {**p.summary(), "score_m": _floats(p.score_m), "views_m": {k: _floats(v) for k, v in
+                                                                           p.views_m.items()}}
+           for label, p in profiles.items()}
+    with atomic_write(folder / f"{stem}.json") as fh:
+        json.dump(doc, fh, indent=1, allow_nan=False)
+    columns = ["frame", "stamp_s"] + [f"{safe_name(label)}_{c}" for label in profiles for c in ("score_m", "flagged")]
+    with atomic_write(folder / f"{stem}.csv", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(columns)
+        flags = {label: p.flagged for label, p in profiles.items()}
+        for i in range(len(first.score_m)):
+            row = [i, "" if first.stamps is None else repr(float(first.stamps[i]))]
+            for label, p in profiles.items():
+                row += ["" if not np.isfinite(p.score_m[i]) else f"{p.score_m[i]:.6g}", int(flags[label][i])]
+            w.writerow(row)
+    plots.save(plots.consistency_figure(positions, profiles), folder / f"{stem}.png")
+    return [f"{stem}.json", f"{stem}.csv", f"{stem}.png"]
+
+
+def _number(v: float) -> float | None:
+    return float(v) if np.isfinite(v) else None
+
+
+def _floats(a: np.ndarray) -> list[float | None]:
+    return [float(v) if np.isfinite(v) else None for v in a]
