@@ -123,6 +123,17 @@ def test_report(run):
     assert [e["map_entropy"] for e in report["epochs"]] and "map_entropy" in result.output
 
 
+def test_consistency_profile_before_and_after(run):
+    out, _, report = run
+    profiles = report["consistency"]
+    assert set(profiles) == {"warm start", "dm2 refine"}
+    for summary in profiles.values():
+        assert summary["frames"] == report["frames"] and summary["threshold_m"] > summary["level_m"] > 0
+    assert {"consistency.json", "consistency.csv", "consistency.png"} <= set(report["files"])
+    doc = json.loads((out / "consistency.json").read_text())
+    assert len(doc["dm2 refine"]["score_m"]) == report["frames"]
+
+
 def test_quiet_prints_no_progress_bars(run):
     output = run[1].output
     assert "\r" not in output and "it/s" not in output, output

@@ -1,15 +1,20 @@
 """Where a trajectory went wrong, without ground truth: each frame judged by the map the *other* frames make.
 
-A frame's score is the RMS distance of its points to the planes other frames share (``optim.planes``: planes
-from many frames in adaptive voxels, each frame's points summed into cells once). Three views of "the others":
+Every scan is summed into cells once (``optim.planes``); planes come from many frames in adaptive voxels. A
+frame's score (m) is the largest of three views of "the others":
 
-- **past** and **future**: the frames of the neighbouring stretch before / after (blocks of ``window`` frames).
-  A front-end jump makes the frames after it disagree with the stretch before, whose own map is sharp;
-- **all**: every other frame (leave-one-out), which sees a revisit that does not line up (a wrong or missed
-  loop closure, a drift that shows where the path comes back).
+- **past** and **future**: the planes of the neighbouring stretch before / after it (blocks of ``window``
+  frames). Each cell of the frame is measured to the nearest of those planes that reaches it (so a point a jump
+  moved out of its plane's voxel still finds it), capped at ``CAP`` noise sigmas, and the frame's worst ``TRIM``
+  of points is left out (what the stretch could not see). A front-end jump makes the frames after it disagree
+  with the sharp map of the stretch before;
+- **all**: every other frame (leave-one-out, robust weights), which sees a revisit that does not line up (a
+  wrong loop closure, a drift that shows where the path comes back).
 
-The score is the largest of the three. Segments whose score stands out of the sequence's own distribution
-(``RATIO`` times the level of its agreeing frames) are flagged with their frame and time ranges.
+Segments scoring ``RATIO`` times the level of the sequence's agreeing frames (its lower quartile) are flagged
+with their frame and time ranges. Validated in 3D (real LiDAR keyframes, a LiDAR ray-cast through their map, a
+procedural street: no flag on the true or front-end poses, every jump, drifting stretch and wrong closure found);
+on a sparse 2D simulation (260 points a scan, 3 m between frames) the truth itself gets flags.
 """
 
 from __future__ import annotations
@@ -20,11 +25,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from dm2_backend.atomic import atomic_write
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.report import safe_name
-from dm2_backend.optim.planes import Cells, assign, cells_from_scans, disagreement
+from dm2_backend.optim.planes import Cells, assign, cells_from_scans, disagreement, fit
 from dm2_backend.prepare.frames import derive_scale
 from dm2_backend.scans import ScanSequence
 
@@ -33,6 +39,10 @@ from dm2_backend.scans import ScanSequence
 CAP = 10.0
 #: a frame is flagged when its score is this multiple of the level of the agreeing frames (the lower quartile)
 RATIO = 1.75
+#: planes (nearest voxel centres) a cell of a judged frame is measured against
+NEAREST_PLANES = 8
+#: the worst share of a frame's points left out of its score (surfaces the reference could not see)
+TRIM = 0.2
 #: flagged frames this close (frames) are one segment
 GAP = 2
 #: the cells kept per frame (as the dense stage keeps them) and in all
@@ -103,6 +113,48 @@ def _rms(a: np.ndarray) -> np.ndarray:
         return np.sqrt(a)
 
 
+def _against(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray, judged: np.ndarray
+             ) -> np.ndarray:
+    """Per frame of ``judged``, the RMS distance (m) of its cells' means to the nearest plane the ``reference``
+    frames make (planes whose voxel centre lies within a voxel; each distance capped at ``CAP`` noise sigmas,
+    weighted by the cell's points); NaN elsewhere. A shifted frame's points that left their plane's voxel still
+    find that plane."""
+    out = np.full(len(poses), np.nan)
+    a = assign(cells.of_frames(reference), poses, voxel)
+    mine = cells.of_frames(judged)
+    if a.voxels == 0 or len(mine) == 0:
+        return out
+    planes = fit(a, poses)
+    f = mine.frame.astype(np.int64)
+    world = (poses[f, :3, :3] @ mine.mean.astype(np.float64)[:, :, None])[:, :, 0] + poses[f, :3, 3]
+    _, idx = cKDTree(a.centre).query(world, k=min(NEAREST_PLANES, a.voxels), distance_upper_bound=voxel)
+    idx = idx.reshape(len(world), -1)
+    safe = np.where(idx < a.voxels, idx, 0)
+    # a plane reaches half its voxel's edge beyond the voxel (a shifted point still finds it, a patch elsewhere
+    # does not stand in for it)
+    found = (idx < a.voxels) & (np.abs(world[:, None, :] - a.centre[safe]).max(2) <= a.size[safe])
+    dist = np.abs((planes.normal[safe] * world[:, None, :]).sum(2) - planes.offset[safe])
+    best = np.where(found, dist, np.inf).min(1)
+    on = np.isfinite(best)
+    return _trimmed_rms(f[on], np.minimum(best[on], CAP * a.sigma), mine.count.astype(np.float64)[on], judged)
+
+
+def _trimmed_rms(frame: np.ndarray, dist: np.ndarray, weight: np.ndarray, judged: np.ndarray) -> np.ndarray:
+    """Per frame, the weighted RMS of ``dist`` over all but its worst ``TRIM`` share of weight (what the
+    reference cannot have seen: an object it was occluded from); NaN for frames not judged or without cells."""
+    order = np.lexsort((dist, frame))
+    frame, dist, weight = frame[order], dist[order], weight[order]
+    n = len(judged)
+    total = np.bincount(frame, weight, minlength=n)
+    before = np.cumsum(weight) - weight - np.concatenate([[0.0], np.cumsum(total)])[frame]
+    keep = before < (1.0 - TRIM) * total[frame]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.sqrt(np.bincount(frame[keep], weight[keep] * dist[keep] ** 2, minlength=n)
+                      / np.bincount(frame[keep], weight[keep], minlength=n))
+    out[~judged] = np.nan
+    return out
+
+
 def _neighbour_views(cells: Cells, poses: np.ndarray, voxel: float, window: int) -> tuple[np.ndarray, np.ndarray]:
     """Each frame against the block of ``window`` frames before it (past) and after it (future)."""
     n = len(poses)
@@ -112,10 +164,8 @@ def _neighbour_views(cells: Cells, poses: np.ndarray, voxel: float, window: int)
         judged = block == b
         for ref_block, out in ((b - 1, past), (b + 1, future)):
             reference = block == ref_block
-            if not reference.any():
-                continue
-            a = assign(cells.of_frames(judged | reference), poses, voxel, reference)
-            out[judged] = _rms(disagreement(a, poses, CAP, reference))[judged]
+            if reference.any():
+                out[judged] = _against(cells, poses, voxel, reference, judged)[judged]
     return past, future
 
 
@@ -153,7 +203,7 @@ def consistency_profile(scans: ScanSequence, poses: np.ndarray, stamps: np.ndarr
     if planar:
         cells = cells.extruded(voxel)
     window = window_frames(poses, voxel)
-    every = _rms(disagreement(assign(cells, poses, voxel), poses, CAP))
+    every = _rms(disagreement(assign(cells, poses, voxel), poses, CAP, bounded=True))
     past, future = _neighbour_views(cells, poses, voxel, window)
     views = {"all": every, "past": past, "future": future}
     stacked = np.stack(list(views.values()))

@@ -123,6 +123,10 @@ class Assignment:
     centre: np.ndarray
     sigma: float
     cells: int
+    #: each pair's points, unweighted (P,)
+    points: np.ndarray | None = None
+    #: each voxel's edge (V,) (m)
+    size: np.ndarray | None = None
 
     @property
     def voxels(self) -> int:
@@ -239,7 +243,7 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
     frame_of = cells.frame.astype(np.int64)
     moments = _moments(cells)
     todo = np.arange(len(cells))
-    chosen, plane_ids, normals, offsets, centres = [], [], [], [], []
+    chosen, plane_ids, normals, offsets, centres, sizes = [], [], [], [], [], []
     voxels = 0
     for level in range(levels):
         if len(todo) == 0:
@@ -270,6 +274,7 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
         normals.append(normal[ids[inv[on]]])
         offsets.append((normal * (mu[flat] + vox_centre)).sum(1)[ids[inv[on]]])
         centres.append(vox_centre)
+        sizes.append(np.full(len(vox_centre), size))
         voxels += int(flat.sum())
         todo = todo[~on]
     cell = np.concatenate(chosen) if chosen else np.zeros(0, int)
@@ -286,7 +291,9 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
     n = len(first)
     centre = np.concatenate(centres) if centres else np.zeros((0, 3))
     moment = _expand(_sum_rows(pair, cell, moments, n, weight))
-    return Assignment(frames[first], plane[first], moment, centre, sigma, len(cell))
+    points = np.bincount(pair, cells.count[cell].astype(np.float64), minlength=n)
+    edge = np.concatenate(sizes) if sizes else np.zeros(0)
+    return Assignment(frames[first], plane[first], moment, centre, sigma, len(cell), points, edge)
 
 
 def fit(a: Assignment, poses: np.ndarray) -> Planes:
@@ -387,11 +394,13 @@ def _across(normal: np.ndarray) -> np.ndarray:
 
 
 def disagreement(a: Assignment, poses: np.ndarray, cap: float = KERNEL,
-                 reference: np.ndarray | None = None) -> np.ndarray:
+                 reference: np.ndarray | None = None, bounded: bool = False) -> np.ndarray:
     """Per frame, the mean squared distance (m^2) of its points on planes to the plane the *other* frames make
     in the same voxel (leave-one-out: a frame is judged by the map the others make, never by its own points),
     each (frame, voxel) pair capped at ``cap`` noise sigmas; NaN for a frame with no point on a plane.
-    ``reference`` (bool per frame, default all): the planes are made by those frames only."""
+    ``reference`` (bool per frame, default all): the planes are made by those frames only. ``bounded``: the
+    robust-weighted squared distances over all the frame's points (each point adds at most the kernel's
+    width squared), instead of the weighted mean (where far points hardly count)."""
     ref_pair = np.ones(len(a.frame), bool) if reference is None else reference[a.frame]
     total = np.zeros((a.voxels, 4, 4))
     for c in _chunks(len(a.frame)):
@@ -409,7 +418,7 @@ def disagreement(a: Assignment, poses: np.ndarray, cap: float = KERNEL,
         sq = np.einsum("pi,pij,pj->p", u, M_pair, u)
         sq = np.minimum(np.maximum(sq, 0.0), own * (cap * a.sigma) ** 2) * keep
         sq_sum += np.bincount(a.frame[c], sq, minlength=frames)
-        own_sum += np.bincount(a.frame[c], own * keep, minlength=frames)
+        own_sum += np.bincount(a.frame[c], (a.points[c] if bounded else own) * keep, minlength=frames)
     with np.errstate(invalid="ignore", divide="ignore"):
         return sq_sum / own_sum
 

@@ -1,0 +1,200 @@
+"""The consistency profile (no ground truth): on poses broken on purpose it flags the broken stretch and nothing
+far from it (a 0.3 m / 2 deg jump at one frame, a jump that carries on, a drifting stretch, a wrong loop
+closure forced into a pose graph), and nothing on the true poses; its files and plot hold what it computed."""
+
+from __future__ import annotations
+
+import csv
+import json
+from functools import lru_cache
+
+import numpy as np
+import pytest
+from optim_cases import one_thread
+from shared_helpers import DATA, need, run
+
+from dm2_backend.baselines.gtsam_backend import optimize
+from dm2_backend.evaluation import plots
+from dm2_backend.evaluation.consistency_profile import GAP, consistency_profile, write_profiles
+from dm2_backend.formats import ReadOptions, write_trajectory
+from dm2_backend.geometry import se3
+from dm2_backend.pipeline.inputs import load_inputs
+from dm2_backend.pose_graph import PoseGraph
+from dm2_backend.scans import Scan, ScanSequence
+from dm2_backend.simulate.sequence import SimSettings, simulate, write_sequence
+from dm2_backend.trajectory import Trajectory
+
+KEYFRAMES = DATA / "lidar3d" / "balm_realworld_000-079"
+#: the jump the issue asks for: 0.3 m and 2 degrees of yaw
+JUMP = se3.make_poses(se3.rpy_to_matrix(np.array([0.0, 0.0, np.deg2rad(2.0)])), np.array([0.3, 0.0, 0.0]))
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _single_thread():
+    yield from one_thread()
+
+
+@lru_cache(maxsize=1)
+def street() -> tuple[list[np.ndarray], ScanSequence, np.ndarray]:
+    """80 frames of the simulated 32-beam LiDAR street (2 cm range noise, 1.5 laps) and the true poses."""
+    scans, gt, _ = simulate(SimSettings(frames=80, seed=3, extent=10.0, laps=1.5), progress=False)
+    seq = ScanSequence(lambda i: Scan(scans[i]), len(scans), timestamps=np.arange(len(scans)) * 0.1, planar=False)
+    return scans, seq, gt
+
+
+@lru_cache(maxsize=1)
+def keyframes() -> tuple[ScanSequence, np.ndarray]:
+    need(KEYFRAMES / "poses.txt")
+    real = load_inputs(KEYFRAMES / "velodyne", None, KEYFRAMES / "poses.txt", None,
+                       ReadOptions(times=KEYFRAMES / "times.txt"))
+    return real.scans, real.given.poses
+
+
+def one_frame(poses: np.ndarray, k: int) -> np.ndarray:
+    out = poses.copy()
+    out[k] = out[k] @ JUMP
+    return out
+
+
+def jump_from(poses: np.ndarray, k: int) -> np.ndarray:
+    """A front-end jump at frame ``k``: every later frame moved with it."""
+    out = poses.copy()
+    out[k:] = poses[k] @ JUMP @ se3.relative(poses[k], poses[k:])
+    return out
+
+
+def drifting(poses: np.ndarray, k: int, frames: int) -> np.ndarray:
+    """From frame ``k`` the jump builds up over ``frames`` frames (a degenerate stretch), then carries on."""
+    out = poses.copy()
+    for j in range(k, len(poses)):
+        a = min(j - k, frames) / frames
+        bend = se3.make_poses(se3.rpy_to_matrix(np.array([0.0, 0.0, np.deg2rad(2.0 * a)])), np.array([0.3 * a, 0, 0]))
+        out[j] = poses[k] @ bend @ se3.relative(poses[k], poses[j])
+    return out
+
+
+def broken_steps(truth: np.ndarray, poses: np.ndarray, tol: float = 0.01) -> np.ndarray:
+    """Frames whose motion from the previous frame (or to the next) differs from the truth's by over ``tol`` m
+    (at a point 10 m ahead, so rotation counts)."""
+    ahead = np.array([10.0, 0.0, 0.0, 1.0])
+    diff = np.linalg.norm((se3.relative(truth[:-1], truth[1:]) - se3.relative(poses[:-1], poses[1:])) @ ahead, axis=1)
+    bad = np.zeros(len(truth), bool)
+    bad[1:] |= diff > tol
+    bad[:-1] |= diff > tol
+    return bad
+
+
+def hits_and_false_flags(profile, broken: np.ndarray) -> tuple[bool, int]:
+    """Whether a flag touches the broken frames, and how many flagged frames lie farther from every broken frame
+    than a neighbouring stretch and a segment gap (the profile's own resolution)."""
+    reach = profile.window + GAP
+    idx = np.flatnonzero(broken)
+    near = np.zeros(len(broken), bool)
+    for i in idx:
+        near[max(0, i - reach):i + reach + 1] = True
+    flagged = profile.flagged
+    return bool((flagged & near).any()), int((flagged & ~near).sum())
+
+
+def profile(seq: ScanSequence, poses: np.ndarray):
+    return consistency_profile(seq, poses, seq.timestamps)
+
+
+def test_the_true_poses_of_the_simulated_street_raise_no_flag():
+    _, seq, gt = street()
+    p = profile(seq, gt)
+    assert p.segments == [], p.segments
+    assert np.isfinite(p.score_m).all()
+    assert p.level_m < 0.03  # 2 cm range noise: the frames agree at the sensor's noise
+
+
+@pytest.mark.parametrize("break_it", ["one frame", "jump", "drift"])
+def test_a_broken_stretch_of_the_street_is_flagged_and_nothing_far_from_it(break_it):
+    _, seq, gt = street()
+    poses = {"one frame": lambda: one_frame(gt, 40), "jump": lambda: jump_from(gt, 40),
+             "drift": lambda: drifting(gt, 40, 10)}[break_it]()
+    p = profile(seq, poses)
+    hit, false = hits_and_false_flags(p, broken_steps(gt, poses))
+    assert hit and false == 0, (p.segments, false)
+
+
+def test_a_wrong_loop_closure_forced_into_a_pose_graph_is_flagged_where_it_bent_the_path():
+    """The street's pose graph from the truth (odometry and every pair within 3 m) plus one closure between
+    frames 2 and 53 that claims 1 m and 5 degrees more than the truth: gtsam bends both ends."""
+    _, seq, gt = street()
+    pos = gt[:, :3, 3]
+    dist = np.linalg.norm(pos[:, None] - pos[None], axis=2)
+    pairs = [(a, b) for a in range(len(gt)) for b in range(a + 2, len(gt)) if dist[a, b] < 3.0]
+    wrong = se3.relative(gt[2], gt[53]) @ se3.make_poses(se3.rpy_to_matrix(np.array([0, 0, np.deg2rad(5.0)])),
+                                                          np.array([1.0, 0.0, 0.0]))
+    graph = PoseGraph.from_trajectory(Trajectory(gt))
+    graph.edges = np.vstack([graph.edges, np.array(pairs + [(2, 53)])])
+    graph.relative = np.concatenate([graph.relative, [se3.relative(gt[a], gt[b]) for a, b in pairs], [wrong]])
+    graph.information = np.concatenate([graph.information, np.tile(np.eye(6), (len(pairs), 1, 1)),
+                                        [10 * np.eye(6)]])
+    bent = optimize(graph).poses
+    broken = broken_steps(gt, bent)
+    assert broken[2] and broken[53]  # the closure did bend the path at its two ends
+    p = profile(seq, bent)
+    hit, false = hits_and_false_flags(p, broken)
+    assert hit and false == 0, (p.segments, np.flatnonzero(broken))
+    assert {2, 53} <= set(np.flatnonzero(p.flagged))
+
+
+def test_the_real_keyframes_front_end_poses_raise_no_flag():
+    seq, poses = keyframes()
+    p = profile(seq, poses)
+    assert p.segments == [], p.segments
+
+
+@pytest.mark.parametrize("break_it", ["one frame", "jump"])
+def test_a_jump_in_the_real_keyframes_is_flagged_and_nothing_far_from_it(break_it):
+    seq, poses = keyframes()
+    broken_poses = one_frame(poses, 40) if break_it == "one frame" else jump_from(poses, 40)
+    p = profile(seq, broken_poses)
+    hit, false = hits_and_false_flags(p, broken_steps(poses, broken_poses))
+    assert hit and false == 0, p.segments
+    assert p.flagged[40]
+
+
+def test_files_and_plot_hold_the_profile(tmp_path):
+    _, seq, gt = street()
+    profiles = {"truth": profile(seq, gt), "broken": profile(seq, one_frame(gt, 40))}
+    names = write_profiles(tmp_path, profiles, gt[:, :3, 3])
+    assert names == ["consistency.json", "consistency.csv", "consistency.png"]
+    doc = json.loads((tmp_path / "consistency.json").read_text())
+    assert np.allclose(doc["broken"]["score_m"], profiles["broken"].score_m)
+    assert doc["broken"]["segments"][0]["first"] <= 40 <= doc["broken"]["segments"][0]["last"]
+    rows = list(csv.DictReader((tmp_path / "consistency.csv").open()))
+    assert len(rows) == len(gt)
+    assert [int(r["broken_flagged"]) for r in rows] == profiles["broken"].flagged.astype(int).tolist()
+    assert float(rows[40]["stamp_s"]) == pytest.approx(4.0)
+    fig = plots.consistency_figure(gt[:, :3, 3], profiles)
+    top, series = fig.axes[0], fig.axes[2]  # the colour bar is axes[1]
+    assert np.allclose(top.collections[0].get_offsets(), gt[:, :2, 3])  # x-y top view of the given positions
+    assert np.allclose(top.collections[0].get_array(), profiles["broken"].score_m)
+    lines = [ln for ln in series.get_lines() if len(ln.get_xdata()) == len(gt)]
+    assert np.allclose(lines[-1].get_ydata(), profiles["broken"].score_m)
+    assert series.get_xlim() == (-0.5, len(gt) - 0.5) and series.get_ylim()[0] == 0.0
+    assert series.get_ylim()[1] >= np.nanmax(profiles["broken"].score_m)
+
+
+def test_eval_writes_the_profile_and_names_the_flagged_frames(tmp_path):
+    scans, _, gt = street()
+    write_sequence(tmp_path / "seq", scans, gt, one_frame(gt, 40), 10.0)
+    result = run("eval", "--scans", str(tmp_path / "seq" / "velodyne"), "--est", str(tmp_path / "seq" / "poses.txt"),
+                 "--est", str(tmp_path / "seq" / "warm_start.txt"), "--est-times", str(tmp_path / "seq" / "times.txt"),
+                 "--profile", str(tmp_path / "profile"))
+    assert result.exit_code == 0, result.output
+    lines = [ln for ln in result.output.splitlines() if ln.startswith("consistency:")]
+    assert "poses: " in lines[0] and lines[0].endswith("none")
+    assert "warm_start: " in lines[1] and "peak" in lines[1] and " at 40" in lines[1], lines
+    assert {p.name for p in (tmp_path / "profile").iterdir()} == {"consistency.json", "consistency.csv",
+                                                                  "consistency.png"}
+
+
+def test_eval_profile_needs_scans(tmp_path):
+    traj = tmp_path / "t.txt"
+    write_trajectory(Trajectory(se3.identity(3), np.arange(3.0)), traj, "tum")
+    result = run("eval", "--gt", str(traj), "--est", str(traj), "--profile", str(tmp_path / "p"))
+    assert result.exit_code == 2 and "--scans" in result.output
