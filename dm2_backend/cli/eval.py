@@ -11,7 +11,7 @@ from dm2_backend.cli.options import duplicate_times_option
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.ape_rpe import ALIGN_MODES, DELTA_UNITS
-from dm2_backend.evaluation.consistency_profile import consistency_profile, write_profiles
+from dm2_backend.evaluation.consistency_profile import consistency_profiles, write_profiles
 from dm2_backend.evaluation.evaluate import EvalOptions, evaluate
 from dm2_backend.evaluation.map_quality import MapSampler, poses_of_scans
 from dm2_backend.evaluation.relations import MAX_DT, load_relations
@@ -78,9 +78,7 @@ def _plots(
 
 def _profiles(folder: Path, scans, at_scans: dict[str, np.ndarray]) -> list[Path]:
     """Each estimate's consistency profile, its flagged stretches printed, the files written to ``folder``."""
-    planar = looks_planar(scans, None)
-    profiles = {label: consistency_profile(scans, poses, scans.timestamps, planar) for label, poses in
-                at_scans.items()}
+    profiles = consistency_profiles(scans, at_scans, scans.timestamps, looks_planar(scans, None))
     for label, prof in profiles.items():
         stretches = "; ".join(f"frames {s.first}-{s.last}" + (f" ({s.start_s:.3f}-{s.end_s:.3f} s)" if s.start_s
                               is not None else "") + f" peak {s.peak_m:.3g} m at {s.peak_frame}"

@@ -43,6 +43,8 @@ RATIO = 1.75
 NEAREST_PLANES = 8
 #: the worst share of a frame's points left out of its score (surfaces the reference could not see)
 TRIM = 0.2
+#: the cells of a frame measured against the neighbouring stretch's planes
+JUDGED_CELLS = 1024
 #: flagged frames this close (frames) are one segment
 GAP = 2
 #: the cells kept per frame (as the dense stage keeps them) and in all
@@ -113,20 +115,31 @@ def _rms(a: np.ndarray) -> np.ndarray:
         return np.sqrt(a)
 
 
-def _against(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray, judged: np.ndarray
+def _apart(poses: np.ndarray, group: np.ndarray, far: float) -> np.ndarray:
+    """``poses`` with each group moved ``far`` from the others (on a grid), so that frames of different groups
+    never share a voxel: one assignment then holds every group's planes side by side."""
+    g = np.asarray(group, dtype=np.int64) + 1
+    out = poses.copy()
+    out[:, :3, 3] += np.stack([g % 64, (g // 64) % 64, g // 4096], 1) * far
+    return out
+
+
+def _against(cells: Cells, poses: np.ndarray, voxel: float, block: np.ndarray, step: int, far: float
              ) -> np.ndarray:
-    """Per frame of ``judged``, the RMS distance (m) of its cells' means to the nearest plane the ``reference``
-    frames make (planes whose voxel centre lies within a voxel; each distance capped at ``CAP`` noise sigmas,
-    weighted by the cell's points); NaN elsewhere. A shifted frame's points that left their plane's voxel still
-    find that plane."""
-    out = np.full(len(poses), np.nan)
-    a = assign(cells.of_frames(reference), poses, voxel)
-    mine = cells.of_frames(judged)
-    if a.voxels == 0 or len(mine) == 0:
-        return out
-    planes = fit(a, poses)
-    f = mine.frame.astype(np.int64)
-    world = (poses[f, :3, :3] @ mine.mean.astype(np.float64)[:, :, None])[:, :, 0] + poses[f, :3, 3]
+    """Per frame, the RMS distance (m) of its cells' means to the nearest plane that the frames of block
+    ``block - step`` make and that reaches the cell (each distance capped at ``CAP`` noise sigmas, weighted by the
+    cell's points, the worst ``TRIM`` left out); NaN for a frame without such a block. A point a jump moved out
+    of its plane's voxel still finds that plane. Every block's planes come from one assignment (:func:`_apart`)."""
+    reference = _apart(poses, block + step, far)
+    judged = _apart(poses, block, far)
+    a = assign(cells, reference, voxel)
+    has_reference = np.isin(block - step, block)
+    if a.voxels == 0:
+        return np.full(len(poses), np.nan)
+    planes = fit(a, reference)
+    cells = _spread_subset(cells, JUDGED_CELLS)
+    f = cells.frame.astype(np.int64)
+    world = (judged[f, :3, :3] @ cells.mean.astype(np.float64)[:, :, None])[:, :, 0] + judged[f, :3, 3]
     _, idx = cKDTree(a.centre).query(world, k=min(NEAREST_PLANES, a.voxels), distance_upper_bound=voxel)
     idx = idx.reshape(len(world), -1)
     safe = np.where(idx < a.voxels, idx, 0)
@@ -136,7 +149,19 @@ def _against(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarra
     dist = np.abs((planes.normal[safe] * world[:, None, :]).sum(2) - planes.offset[safe])
     best = np.where(found, dist, np.inf).min(1)
     on = np.isfinite(best)
-    return _trimmed_rms(f[on], np.minimum(best[on], CAP * a.sigma), mine.count.astype(np.float64)[on], judged)
+    return _trimmed_rms(f[on], np.minimum(best[on], CAP * a.sigma), cells.count.astype(np.float64)[on],
+                        has_reference)
+
+
+def _spread_subset(cells: Cells, per_frame: int) -> Cells:
+    """At most about ``per_frame`` cells of each frame, every k-th of its cells (a frame's score is a mean)."""
+    n = int(cells.frame.max()) + 1 if len(cells) else 0
+    count = np.bincount(cells.frame, minlength=n)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    stride = np.maximum(1, np.ceil(count / per_frame)).astype(np.int64)
+    rank = np.arange(len(cells)) - start[cells.frame]  # cells are in frame order
+    keep = rank % stride[cells.frame] == 0
+    return Cells(cells.frame[keep], cells.count[keep], cells.mean[keep], cells.scatter[keep], cells.size)
 
 
 def _trimmed_rms(frame: np.ndarray, dist: np.ndarray, weight: np.ndarray, judged: np.ndarray) -> np.ndarray:
@@ -157,16 +182,10 @@ def _trimmed_rms(frame: np.ndarray, dist: np.ndarray, weight: np.ndarray, judged
 
 def _neighbour_views(cells: Cells, poses: np.ndarray, voxel: float, window: int) -> tuple[np.ndarray, np.ndarray]:
     """Each frame against the block of ``window`` frames before it (past) and after it (future)."""
-    n = len(poses)
-    block = np.arange(n) // window
-    past, future = np.full(n, np.nan), np.full(n, np.nan)
-    for b in range(int(block.max()) + 1):
-        judged = block == b
-        for ref_block, out in ((b - 1, past), (b + 1, future)):
-            reference = block == ref_block
-            if reference.any():
-                out[judged] = _against(cells, poses, voxel, reference, judged)[judged]
-    return past, future
+    block = np.arange(len(poses)) // window
+    reach = float(np.linalg.norm(cells.mean, axis=1).max()) if len(cells) else 0.0
+    far = 2.0 * (float(np.ptp(poses[:, :3, 3], axis=0).max()) + 2.0 * reach) + 10.0 * voxel
+    return _against(cells, poses, voxel, block, 1, far), _against(cells, poses, voxel, block, -1, far)
 
 
 def _segments(score: np.ndarray, threshold: float, stamps: np.ndarray | None) -> list[Segment]:
@@ -193,15 +212,26 @@ def threshold_of(score: np.ndarray) -> tuple[float, float]:
     return level, RATIO * level
 
 
-def consistency_profile(scans: ScanSequence, poses: np.ndarray, stamps: np.ndarray | None = None,
-                        planar: bool = False, voxel: float | None = None, seed: int = 0,
-                        progress: bool = False) -> ConsistencyProfile:
-    """The profile of ``poses`` (one per scan). ``planar``: 2D scans, their lines seen as vertical walls."""
-    poses = np.asarray(poses, dtype=np.float64)
+def consistency_profiles(scans: ScanSequence, candidates: dict[str, np.ndarray], stamps: np.ndarray | None = None,
+                         planar: bool = False, voxel: float | None = None, seed: int = 0,
+                         progress: bool = False) -> dict[str, ConsistencyProfile]:
+    """The profile of each set of poses (one per scan), the scans summed into cells once. ``planar``: 2D scans,
+    their lines seen as vertical walls."""
     voxel = voxel or profile_voxel(scans)
     cells = cells_from_scans(scans, voxel / 4.0, CELLS_PER_FRAME, MAX_CELLS, seed, progress)
     if planar:
         cells = cells.extruded(voxel)
+    return {name: _profile(cells, np.asarray(poses, dtype=np.float64), stamps, voxel)
+            for name, poses in candidates.items()}
+
+
+def consistency_profile(scans: ScanSequence, poses: np.ndarray, stamps: np.ndarray | None = None,
+                        planar: bool = False, voxel: float | None = None, seed: int = 0) -> ConsistencyProfile:
+    """The profile of one set of poses (:func:`consistency_profiles`)."""
+    return consistency_profiles(scans, {"poses": poses}, stamps, planar, voxel, seed)["poses"]
+
+
+def _profile(cells: Cells, poses: np.ndarray, stamps: np.ndarray | None, voxel: float) -> ConsistencyProfile:
     window = window_frames(poses, voxel)
     every = _rms(disagreement(assign(cells, poses, voxel), poses, CAP, bounded=True))
     past, future = _neighbour_views(cells, poses, voxel, window)

@@ -12,7 +12,7 @@ import numpy as np
 from dm2_backend import config
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import plots
-from dm2_backend.evaluation.consistency_profile import consistency_profile, write_profiles
+from dm2_backend.evaluation.consistency_profile import consistency_profiles, write_profiles
 from dm2_backend.evaluation.evaluate import EvalOptions, evaluate
 from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.evaluation.paper_ate import paper_ate
@@ -111,8 +111,8 @@ def write_run(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final: np
     drawn = {"warm start": inputs.at_gt(prep.warm_start), method: inputs.at_gt(final)}  # where gt is known
     outputs.write_plots(out, drawn, inputs.gt, per_frame, None)
     written += outputs.write_topology(out, prep.topology, final)
-    profiles = {name: consistency_profile(inputs.scans, poses, output_timestamps(inputs), prep.frames.planar)
-                for name, poses in (("warm start", prep.warm_start), (method, final))}
+    profiles = consistency_profiles(inputs.scans, {"warm start": prep.warm_start, method: final},
+                                    output_timestamps(inputs), prep.frames.planar)
     written += write_profiles(out, profiles, final[:, :3, 3])
     log.info("consistency: %s", "; ".join(f"{name} {len(p.segments)} flagged stretch(es), {int(p.flagged.sum())} "
                                           f"frames" for name, p in profiles.items()))
