@@ -13,20 +13,25 @@ import pytest
 from optim_cases import one_thread
 from shared_helpers import DATA, need, run
 
-from dm2_backend.baselines.gtsam_backend import optimize
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.consistency_profile import GAP, consistency_profile, write_profiles
 from dm2_backend.formats import ReadOptions, write_trajectory
 from dm2_backend.geometry import se3
 from dm2_backend.pipeline.inputs import load_inputs
-from dm2_backend.pose_graph import PoseGraph
 from dm2_backend.scans import Scan, ScanSequence
+from dm2_backend.simulate.broken import (
+    broken_frames,
+    bump,
+    drifting,
+    hits_and_false_flags,
+    jump_from,
+    one_frame,
+    wrong_closure,
+)
 from dm2_backend.simulate.sequence import SimSettings, simulate, write_sequence
 from dm2_backend.trajectory import Trajectory
 
 KEYFRAMES = DATA / "lidar3d" / "balm_realworld_000-079"
-#: the jump the issue asks for: 0.3 m and 2 degrees of yaw
-JUMP = se3.make_poses(se3.rpy_to_matrix(np.array([0.0, 0.0, np.deg2rad(2.0)])), np.array([0.3, 0.0, 0.0]))
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -50,50 +55,9 @@ def keyframes() -> tuple[ScanSequence, np.ndarray]:
     return real.scans, real.given.poses
 
 
-def one_frame(poses: np.ndarray, k: int) -> np.ndarray:
-    out = poses.copy()
-    out[k] = out[k] @ JUMP
-    return out
-
-
-def jump_from(poses: np.ndarray, k: int) -> np.ndarray:
-    """A front-end jump at frame ``k``: every later frame moved with it."""
-    out = poses.copy()
-    out[k:] = poses[k] @ JUMP @ se3.relative(poses[k], poses[k:])
-    return out
-
-
-def drifting(poses: np.ndarray, k: int, frames: int) -> np.ndarray:
-    """From frame ``k`` the jump builds up over ``frames`` frames (a degenerate stretch), then carries on."""
-    out = poses.copy()
-    for j in range(k, len(poses)):
-        a = min(j - k, frames) / frames
-        bend = se3.make_poses(se3.rpy_to_matrix(np.array([0.0, 0.0, np.deg2rad(2.0 * a)])), np.array([0.3 * a, 0, 0]))
-        out[j] = poses[k] @ bend @ se3.relative(poses[k], poses[j])
-    return out
-
-
-def broken_steps(truth: np.ndarray, poses: np.ndarray, tol: float = 0.01) -> np.ndarray:
-    """Frames whose motion from the previous frame (or to the next) differs from the truth's by over ``tol`` m
-    (at a point 10 m ahead, so rotation counts)."""
-    ahead = np.array([10.0, 0.0, 0.0, 1.0])
-    diff = np.linalg.norm((se3.relative(truth[:-1], truth[1:]) - se3.relative(poses[:-1], poses[1:])) @ ahead, axis=1)
-    bad = np.zeros(len(truth), bool)
-    bad[1:] |= diff > tol
-    bad[:-1] |= diff > tol
-    return bad
-
-
-def hits_and_false_flags(profile, broken: np.ndarray) -> tuple[bool, int]:
-    """Whether a flag touches the broken frames, and how many flagged frames lie farther from every broken frame
-    than a neighbouring stretch and a segment gap (the profile's own resolution)."""
-    reach = profile.window + GAP
-    idx = np.flatnonzero(broken)
-    near = np.zeros(len(broken), bool)
-    for i in idx:
-        near[max(0, i - reach):i + reach + 1] = True
-    flagged = profile.flagged
-    return bool((flagged & near).any()), int((flagged & ~near).sum())
+def flags(p, truth: np.ndarray, poses: np.ndarray) -> tuple[bool, int]:
+    """Hits and false flags of profile ``p``, within the profile's own resolution (a stretch and a gap)."""
+    return hits_and_false_flags(p.flagged, broken_frames(truth, poses), p.window + GAP)
 
 
 def profile(seq: ScanSequence, poses: np.ndarray):
@@ -114,7 +78,7 @@ def test_a_broken_stretch_of_the_street_is_flagged_and_nothing_far_from_it(break
     poses = {"one frame": lambda: one_frame(gt, 40), "jump": lambda: jump_from(gt, 40),
              "drift": lambda: drifting(gt, 40, 10)}[break_it]()
     p = profile(seq, poses)
-    hit, false = hits_and_false_flags(p, broken_steps(gt, poses))
+    hit, false = flags(p, gt, poses)
     assert hit and false == 0, (p.segments, false)
 
 
@@ -122,21 +86,11 @@ def test_a_wrong_loop_closure_forced_into_a_pose_graph_is_flagged_where_it_bent_
     """The street's pose graph from the truth (odometry and every pair within 3 m) plus one closure between
     frames 2 and 53 that claims 1 m and 5 degrees more than the truth: gtsam bends both ends."""
     _, seq, gt = street()
-    pos = gt[:, :3, 3]
-    dist = np.linalg.norm(pos[:, None] - pos[None], axis=2)
-    pairs = [(a, b) for a in range(len(gt)) for b in range(a + 2, len(gt)) if dist[a, b] < 3.0]
-    wrong = se3.relative(gt[2], gt[53]) @ se3.make_poses(se3.rpy_to_matrix(np.array([0, 0, np.deg2rad(5.0)])),
-                                                          np.array([1.0, 0.0, 0.0]))
-    graph = PoseGraph.from_trajectory(Trajectory(gt))
-    graph.edges = np.vstack([graph.edges, np.array(pairs + [(2, 53)])])
-    graph.relative = np.concatenate([graph.relative, [se3.relative(gt[a], gt[b]) for a, b in pairs], [wrong]])
-    graph.information = np.concatenate([graph.information, np.tile(np.eye(6), (len(pairs), 1, 1)),
-                                        [10 * np.eye(6)]])
-    bent = optimize(graph).poses
-    broken = broken_steps(gt, bent)
+    bent = wrong_closure(gt, 2, 53, bump(1.0, 5.0), radius=3.0)
+    broken = broken_frames(gt, bent)
     assert broken[2] and broken[53]  # the closure did bend the path at its two ends
     p = profile(seq, bent)
-    hit, false = hits_and_false_flags(p, broken)
+    hit, false = flags(p, gt, bent)
     assert hit and false == 0, (p.segments, np.flatnonzero(broken))
     assert {2, 53} <= set(np.flatnonzero(p.flagged))
 
@@ -152,7 +106,7 @@ def test_a_jump_in_the_real_keyframes_is_flagged_and_nothing_far_from_it(break_i
     seq, poses = keyframes()
     broken_poses = one_frame(poses, 40) if break_it == "one frame" else jump_from(poses, 40)
     p = profile(seq, broken_poses)
-    hit, false = hits_and_false_flags(p, broken_steps(poses, broken_poses))
+    hit, false = flags(p, poses, broken_poses)
     assert hit and false == 0, p.segments
     assert p.flagged[40]
 
