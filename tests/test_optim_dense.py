@@ -17,7 +17,9 @@ from dm2_backend.optim.dense import refine_dense
 from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.pose_graph import PoseGraph
 from dm2_backend.scans import Scan, ScanSequence
+from dm2_backend.simulate.broken import bump, wrong_closure
 from dm2_backend.simulate.sequence import SimSettings, simulate
+from dm2_backend.trajectory import Trajectory
 
 VOXEL = 1.5
 
@@ -137,6 +139,29 @@ def test_a_broken_stretch_disagrees_with_the_others_planes():
     jump[n // 2:] = gt[n // 2] @ T @ se3.inverse(gt[n // 2]) @ gt[n // 2:]
     scores = planes.agreement_score(cells, {"truth": gt, "bent": bent, "jump": jump}, VOXEL)
     assert scores["truth"] < min(scores["bent"], scores["jump"])
+
+
+def test_a_wrong_closure_forced_into_the_graph_is_overruled_by_the_planes():
+    """The street's graph (odometry and every pair within 3 m, 1 cm / 1 mrad) with one closure 1 m / 5 deg off,
+    weighing ten times the others, bends the path at both ends (what gtsam returns); the dense stage, started
+    there with that same graph, straightens it (the graph's Cauchy kernel lets the planes win) and the guard,
+    without ground truth, prefers its result."""
+    cells, gt = street()
+    bent = wrong_closure(gt, 2, 53, bump(1.0, 5.0), radius=3.0)
+    pos = gt[:, :3, 3]
+    dist = np.linalg.norm(pos[:, None] - pos[None], axis=2)
+    pairs = [(a, b) for a in range(len(gt)) for b in range(a + 2, len(gt)) if dist[a, b] < 3.0]
+    graph = PoseGraph.from_trajectory(Trajectory(gt))
+    graph.edges = np.vstack([graph.edges, np.array(pairs + [(2, 53)])])
+    graph.relative = np.concatenate([graph.relative, [se3.relative(gt[a], gt[b]) for a, b in pairs],
+                                     [se3.relative(gt[2], gt[53]) @ bump(1.0, 5.0)]])
+    info = np.diag([1e4] * 3 + [1e6] * 3)
+    graph.information = np.concatenate([np.tile(info, (len(graph.edges) - 1, 1, 1)), [10 * info]])
+    assert ate_rmse(gt, bent) > 0.05
+    result = refine_dense(cells, graph, bent, VOXEL)
+    assert ate_rmse(gt, result.poses) < 0.002
+    scores = planes.agreement_score(cells, {"bent": bent, "dense": result.poses}, VOXEL)
+    assert scores["dense"] < scores["bent"]
 
 
 def test_dense_options_are_checked():
