@@ -18,6 +18,7 @@ voxel pulls with bounded force.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.sparse import bsr_matrix, csr_matrix
@@ -52,6 +53,11 @@ class Cells:
 
     def __len__(self) -> int:
         return len(self.frame)
+
+    @cached_property
+    def moments(self) -> np.ndarray:
+        """Each cell's homogeneous moment sum (K,10), computed once (every assignment of every round uses it)."""
+        return _moments(self)
 
     def of_frames(self, keep: np.ndarray) -> Cells:
         """The cells of the frames where ``keep`` (bool per frame) is set; frame numbers unchanged."""
@@ -241,7 +247,7 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
         f = cells.frame[c]
         mean[c] = (poses[f, :3, :3] @ cells.mean[c].astype(np.float64)[:, :, None])[:, :, 0] + poses[f, :3, 3]
     frame_of = cells.frame.astype(np.int64)
-    moments = _moments(cells)
+    moments = cells.moments
     todo = np.arange(len(cells))
     chosen, plane_ids, normals, offsets, centres, sizes = [], [], [], [], [], []
     voxels = 0
