@@ -124,7 +124,9 @@ def test_report(run):
 
 
 def test_consistency_profile_before_and_after(run):
-    out, _, report = run
+    out, result, report = run
+    assert "consistency of the warm start: frames agree to" in result.output
+    assert "consistency of the dm2 refine: frames agree to" in result.output
     profiles = report["consistency"]
     assert set(profiles) == {"warm start", "dm2 refine"}
     for summary in profiles.values():

@@ -211,4 +211,8 @@ def print_summary(report: RunReport, out: Path) -> None:
     t = report.timings
     mem = report.peak_rss_mb
     click.echo(f"{report.frames} frames in {t['total']:.1f} s, peak memory {mem:.0f} MiB")
+    for stage, profile in (report.details.get("consistency") or {}).items():
+        stretches = ", ".join(f"{s['first']}-{s['last']}" for s in profile["segments"]) or "none"
+        level = "no frame scored" if profile["level_m"] is None else f"frames agree to {profile['level_m']:.3g} m"
+        click.echo(f"consistency of the {stage}: {level}; flagged frames: {stretches}")
     click.echo(f"wrote {out}")
