@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 from dm2_backend.atomic import atomic_write
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.report import safe_name
-from dm2_backend.optim.planes import Cells, assign, cells_from_scans, disagreement, fit
+from dm2_backend.optim.planes import Cells, assign, cells_from_scans, chunks, disagreement, fit
 from dm2_backend.prepare.frames import derive_scale
 from dm2_backend.scans import ScanSequence
 
@@ -137,17 +137,20 @@ def _against(cells: Cells, poses: np.ndarray, voxel: float, block: np.ndarray, s
     if a.voxels == 0:
         return np.full(len(poses), np.nan)
     planes = fit(a, reference)
+    tree = cKDTree(a.centre)
     cells = _spread_subset(cells, JUDGED_CELLS)
     f = cells.frame.astype(np.int64)
-    world = (judged[f, :3, :3] @ cells.mean.astype(np.float64)[:, :, None])[:, :, 0] + judged[f, :3, 3]
-    _, idx = cKDTree(a.centre).query(world, k=min(NEAREST_PLANES, a.voxels), distance_upper_bound=voxel)
-    idx = idx.reshape(len(world), -1)
-    safe = np.where(idx < a.voxels, idx, 0)
-    # a plane reaches half its voxel's edge beyond the voxel (a shifted point still finds it, a patch elsewhere
-    # does not stand in for it)
-    found = (idx < a.voxels) & (np.abs(world[:, None, :] - a.centre[safe]).max(2) <= a.size[safe])
-    dist = np.abs((planes.normal[safe] * world[:, None, :]).sum(2) - planes.offset[safe])
-    best = np.where(found, dist, np.inf).min(1)
+    best = np.empty(len(cells))
+    for c in chunks(len(cells)):  # bounded temporaries: (chunk, NEAREST_PLANES, 3)
+        world = (judged[f[c], :3, :3] @ cells.mean[c].astype(np.float64)[:, :, None])[:, :, 0] + judged[f[c], :3, 3]
+        _, idx = tree.query(world, k=min(NEAREST_PLANES, a.voxels), distance_upper_bound=voxel)
+        idx = idx.reshape(len(world), -1)
+        safe = np.where(idx < a.voxels, idx, 0)
+        # a plane reaches half its voxel's edge beyond the voxel (a shifted point still finds it, a patch
+        # elsewhere does not stand in for it)
+        found = (idx < a.voxels) & (np.abs(world[:, None, :] - a.centre[safe]).max(2) <= a.size[safe])
+        dist = np.abs((planes.normal[safe] * world[:, None, :]).sum(2) - planes.offset[safe])
+        best[c] = np.where(found, dist, np.inf).min(1)
     on = np.isfinite(best)
     return _trimmed_rms(f[on], np.minimum(best[on], CAP * a.sigma), cells.count.astype(np.float64)[on],
                         has_reference)

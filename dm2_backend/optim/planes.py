@@ -177,14 +177,14 @@ def _sum_rows(inv: np.ndarray, rows: np.ndarray, values: np.ndarray, n: int,
 CHUNK = 100_000
 
 
-def _chunks(n: int) -> list[slice]:
+def chunks(n: int) -> list[slice]:
     return [slice(i, min(i + CHUNK, n)) for i in range(0, n, CHUNK)]
 
 
 def _placed_sum(a: Assignment, poses: np.ndarray) -> np.ndarray:
     """Each voxel's moment in the world (about its centre): the sum of its pairs' (V,4,4), in chunks."""
     M = np.zeros((a.voxels, 4, 4))
-    for c in _chunks(len(a.frame)):
+    for c in chunks(len(a.frame)):
         M += _sum(a.voxel[c], _about(poses, a.frame[c], a.centre[a.voxel[c]], a.moment[c]), a.voxels)
     return M
 
@@ -243,7 +243,7 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
     ref_cell = np.ones(len(cells)) if reference is None else reference[cells.frame].astype(np.float64)
     levels = 1 + max(0, int(np.floor(np.log2(voxel / cells.size + 1e-9))))
     mean = np.empty((len(cells), 3))
-    for c in _chunks(len(cells)):
+    for c in chunks(len(cells)):
         f = cells.frame[c]
         mean[c] = (poses[f, :3, :3] @ cells.mean[c].astype(np.float64)[:, :, None])[:, :, 0] + poses[f, :3, 3]
     frame_of = cells.frame.astype(np.int64)
@@ -359,7 +359,7 @@ def linearise(a: Assignment, planes: Planes, poses: np.ndarray) -> Linear:
     across = _across(planes.normal)
     cost, H, g = 0.0, np.zeros((frames, 6, 6)), np.zeros((frames, 6))
     S, g_plane, B = np.zeros((voxels, 3, 3)), np.zeros((voxels, 3)), np.empty((pairs, 6, 3))
-    for c in _chunks(pairs):
+    for c in chunks(pairs):
         frame, voxel, Q = a.frame[c], a.voxel[c], a.moment[c]
         n, d = planes.normal[voxel], planes.offset[voxel]
         R, t = poses[frame, :3, :3], poses[frame, :3, 3]
@@ -409,12 +409,12 @@ def disagreement(a: Assignment, poses: np.ndarray, cap: float = KERNEL,
     width squared), instead of the weighted mean (where far points hardly count)."""
     ref_pair = np.ones(len(a.frame), bool) if reference is None else reference[a.frame]
     total = np.zeros((a.voxels, 4, 4))
-    for c in _chunks(len(a.frame)):
+    for c in chunks(len(a.frame)):
         placed = _about(poses, a.frame[c], a.centre[a.voxel[c]], a.moment[c]) * ref_pair[c, None, None]
         total += _sum(a.voxel[c], placed, a.voxels)
     frames = int(poses.shape[0])
     sq_sum, own_sum = np.zeros(frames), np.zeros(frames)
-    for c in _chunks(len(a.frame)):
+    for c in chunks(len(a.frame)):
         M_pair = _about(poses, a.frame[c], a.centre[a.voxel[c]], a.moment[c])
         rest = total[a.voxel[c]] - M_pair * ref_pair[c, None, None]
         keep = rest[:, 3, 3] > 0
