@@ -109,13 +109,13 @@ def test_ablation_switches_run(case, switches, absent):
     result = optimiser(case, epochs=2, **switches).run()
     assert len(result.history) == 2 and result.stopped is None
     assert np.isfinite(result.poses).all() and result.poses.shape == case.warm.shape
-    assert not np.allclose(result.poses, case.warm)  # it moved
+    # every variant still does the job in two epochs: measured 0.30-0.67 of the warm start's error against the
+    # truth (no drift terms 0.67, the full objective 0.30)
+    assert ate_rmse(case.gt, result.poses) < 0.8 * ate_rmse(case.gt, case.warm)
     for row in result.history:
         assert np.isfinite(row["loss"])
         if absent is not None:
             assert absent not in row
-    if switches == {"batching": "temporal"}:
-        assert ate_rmse(case.gt, result.poses) < 2 * ate_rmse(case.gt, case.warm)
 
 
 def test_unknown_choices_are_errors(case):
@@ -258,6 +258,8 @@ def test_3d_sequence_runs():
     result = opt.run()
     assert np.isfinite(result.poses).all() and result.stopped is None
     assert np.abs(result.poses[:, 2, 3] - warm[:, 2, 3]).max() > 0  # z is free in 3D
+    # one epoch from a drifting start towards the truth (measured 0.309 -> 0.216 m)
+    assert ate_rmse(c.gt, result.poses) < 0.85 * ate_rmse(c.gt, warm)
 
 
 class MapScores:
