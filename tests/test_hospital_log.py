@@ -30,9 +30,9 @@ def relation_error(poses: np.ndarray, truth: np.ndarray, span: int) -> float:
     return float(np.mean(np.linalg.norm(se3.relative(b, a)[:, :2, 3], axis=1)))
 
 
-def simulated(tmp_path_factory, name: str, traits: HospitalTraits = HospitalTraits(), frames: int = FRAMES):
+def simulated(tmp_path_factory, name: str, traits: HospitalTraits | None = None, frames: int = FRAMES):
     out = tmp_path_factory.mktemp(name)
-    write_hospital(out, HospitalSettings(frames=frames, traits=traits))
+    write_hospital(out, HospitalSettings(frames=frames, traits=traits or HospitalTraits()))
     truth = np.array([np.eye(4)] * frames)
     rows = np.loadtxt(out / "truth.tum")
     truth[:, 0, 3], truth[:, 1, 3] = rows[:, 1], rows[:, 2]
@@ -136,3 +136,24 @@ def test_an_ordinary_log_is_unchanged(tmp_path_factory):
     assert ate(after, truth) <= ate(before, truth) + 1e-3
     assert ate(after, truth) < 0.5 * ate(odometry, truth)
     assert all(v.source == "scan" for v in ws.verdicts)
+
+
+def test_simulate_cli_writes_a_hospital_log(tmp_path):
+    from click.testing import CliRunner
+
+    from dm2_backend.cli.main import cli
+    from dm2_backend.formats import read_trajectory
+    from dm2_backend.formats.relations import read_relations
+
+    out = tmp_path / "h"
+    result = CliRunner().invoke(cli, ["simulate", "--scene", "hospital", "-n", "40", "--out", str(out)], obj={})
+    assert result.exit_code == 0, result.output
+    seq = open_carmen_scans(out / "hospital.clf")
+    truth = read_trajectory(out / "truth.tum")
+    assert len(seq) == len(truth) == 40 and seq.meta["carmen_message"] == "ROBOTLASER1"
+    np.testing.assert_allclose(truth.timestamps, seq.timestamps)
+    rel = read_relations(out / "hospital.relations")
+    nearest = np.abs(rel[:, :2, None] - seq.timestamps[None, None, :]).min(axis=-1)
+    assert nearest.max() < 1e-5  # every relation joins two scans of the log
+    again = CliRunner().invoke(cli, ["simulate", "--scene", "hospital", "-n", "40", "--out", str(out)], obj={})
+    assert again.exit_code == 2 and "not empty" in again.output  # nothing of the user's overwritten
