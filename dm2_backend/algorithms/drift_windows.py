@@ -113,6 +113,13 @@ def check_windows(points: list[np.ndarray], warm: np.ndarray, odometry: np.ndarr
                       yaw_deg=round(float(np.degrees(d[2])), 3), explained_along_m=round(float(explained[0]), 4),
                       explained_across_m=round(float(explained[1]), 4),
                       explained_deg=round(float(np.degrees(explained[2])), 3))
+        what = (f"{along:+.3f} m along, {across:+.3f} m across, {np.degrees(d[2]):+.2f} deg from the odometry over "
+                f"{path:.1f} m (its noise explains {explained[0]:.3f}, {explained[1]:.3f} m, "
+                f"{np.degrees(explained[2]):.2f} deg)")
+        if not systematic:
+            verdicts.append(WindowVerdict(**common, overlap_scan=None, overlap_odometry=None, margin=None,
+                                          source="scan", reason=f"within the odometry's noise: {what}"))
+            continue
         k = min(end_scans, max(1, n // 3))
         head = _end_cloud(points, warm, range(a, a + k), a, 2.0 * fine, 2.0 * reach)
         tail = _end_cloud(points, warm, range(b - k + 1, b + 1), b, 2.0 * fine, 2.0 * reach)
@@ -120,27 +127,23 @@ def check_windows(points: list[np.ndarray], warm: np.ndarray, odometry: np.ndarr
         costs = [np.concatenate(c) for c in zip(*[_compared(m, f, A, B, fine) for m, f, A, B in pairs], strict=True)]
         if len(costs[0]) < 10:
             verdicts.append(WindowVerdict(**common, overlap_scan=None, overlap_odometry=None, margin=None,
-                                          source="scan", reason="the end scans see nothing in common"))
+                                          source="scan", reason=f"not judged: {what}, but the end scans see nothing "
+                                          "in common (e.g. a turn on the spot)"))
             continue
         fits = [float(np.mean(c < 1.0)) for c in costs]
         # paired over the points: how much closer to the other end's scans each point lies at the odometry's pose
         gain = costs[0] - costs[1]
         margin = CLEAR * float(np.std(gain)) / np.sqrt(len(gain))
         better = float(np.mean(gain))
-        what = (f"{along:+.3f} m along, {across:+.3f} m across, {np.degrees(d[2]):+.2f} deg from the odometry over "
-                f"{path:.1f} m (its noise explains {explained[0]:.3f}, {explained[1]:.3f} m, "
-                f"{np.degrees(explained[2]):.2f} deg)")
         scores = (f"end scans overlap {fits[0]:.3f} at the scan match, {fits[1]:.3f} at the odometry, mean cost "
                   f"{np.mean(costs[0]):.3f} vs {np.mean(costs[1]):.3f}")
-        if better > margin:
+        if -better > margin:
+            source, reason = "scan", f"the odometry drifted: {what}; {scores} (clearly: > {margin:.3f})"
+        elif better > margin:
             source, reason = "odometry", f"scan matching drifted: {what}; {scores} (clearly: > {margin:.3f})"
-        elif -better > margin:
-            source, reason = "scan", f"odometry drifted: {what}; {scores}"
-        elif systematic:
+        else:
             source, reason = "odometry", (f"scan matching unconfirmed: {what}, more than the odometry's noise "
                                           f"explains, and the scans cannot tell; {scores} (within {margin:.3f})")
-        else:
-            source, reason = "scan", f"undecided, within the odometry's noise: {what}; {scores} (within {margin:.3f})"
         verdicts.append(WindowVerdict(**common, overlap_scan=round(fits[0], 4), overlap_odometry=round(fits[1], 4),
                                       margin=round(margin, 4), source=source, reason=reason))
     return verdicts
