@@ -9,7 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from dm2_backend.algorithms.drift_windows import WindowVerdict
+from dm2_backend.algorithms.drift_windows import WindowVerdict, apply_verdicts, window_bounds
 from dm2_backend.formats.carmen import open_carmen_scans
 from dm2_backend.formats.registry import ReadOptions
 from dm2_backend.geometry import se3
@@ -157,3 +157,25 @@ def test_simulate_cli_writes_a_hospital_log(tmp_path):
     assert nearest.max() < 1e-5  # every relation joins two scans of the log
     again = CliRunner().invoke(cli, ["simulate", "--scene", "hospital", "-n", "40", "--out", str(out)], obj={})
     assert again.exit_code == 2 and "not empty" in again.output  # nothing of the user's overwritten
+
+
+def test_windows_cover_the_path_and_fall_back_only_where_judged():
+    rng = np.random.default_rng(3)
+    steps = np.column_stack([rng.uniform(0.1, 0.3, 60), rng.normal(0, 0.02, 60), rng.normal(0, 0.02, 60)])
+    odometry = [np.eye(4)]
+    for T in se3.from_xy_yaw(steps):
+        odometry.append(odometry[-1] @ T)
+    odometry = np.array(odometry)
+    warm = odometry @ se3.from_xy_yaw(rng.normal(0, 0.05, (61, 3)))
+    bounds = window_bounds(odometry, 2.0, 3)
+    assert bounds[0][0] == 0 and bounds[-1][1] == 60 and all(b[1] == c[0] for b, c in zip(bounds, bounds[1:]))
+    fields = dict(length_m=0, along_m=0, across_m=0, yaw_deg=0, explained_along_m=0, explained_across_m=0,
+                  explained_deg=0, overlap_scan=None, overlap_odometry=None, margin=None, reason="")
+    verdicts = [WindowVerdict(0, 20, source="scan", **fields), WindowVerdict(20, 30, source="odometry", **fields),
+                WindowVerdict(30, 60, source="scan", **fields)]
+    out = apply_verdicts(warm, odometry, verdicts)
+    np.testing.assert_array_equal(out[:21], warm[:21])
+    inc = se3.relative(out[:-1], out[1:])
+    np.testing.assert_allclose(inc[20:30], se3.relative(odometry[20:30], odometry[21:31]), atol=1e-9)
+    np.testing.assert_allclose(inc[30:], se3.relative(warm[30:-1], warm[31:]), atol=1e-9)
+    assert apply_verdicts(warm, odometry, verdicts[:1]) is warm

@@ -174,14 +174,16 @@ def _costs(moving: Cloud, fixed: Cloud, T: np.ndarray, distance: float) -> np.nd
 
 
 def apply_verdicts(warm: np.ndarray, odometry: np.ndarray, verdicts: list[WindowVerdict]) -> np.ndarray:
-    """The warm start with the odometry's increments over every window whose verdict is "odometry"."""
+    """The warm start with the odometry's increments over every window whose verdict is "odometry" (the poses before
+    the first such window unchanged)."""
+    fallback = [v for v in verdicts if v.source == "odometry"]
+    if not fallback:
+        return warm
     inc = se3.relative(warm[:-1], warm[1:])
     odo = se3.relative(odometry[:-1], odometry[1:])
-    for v in verdicts:
-        if v.source == "odometry":
-            inc[v.start:v.end] = odo[v.start:v.end]
-    out = np.empty_like(warm)
-    out[0] = warm[0]
-    for i, T in enumerate(inc, start=1):
-        out[i] = out[i - 1] @ T
+    for v in fallback:
+        inc[v.start:v.end] = odo[v.start:v.end]
+    out = warm.copy()
+    for i in range(fallback[0].start + 1, len(warm)):
+        out[i] = out[i - 1] @ inc[i - 1]
     return out
