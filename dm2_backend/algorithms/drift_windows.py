@@ -4,9 +4,11 @@ A per-step test cannot see a bias of a few centimetres a step (max-range codes p
 standing still, a wrong lever arm): it hides in the steps' noise and sums to metres. Over a window of path (one
 median scan range long: the scans at its two ends still see the same walls) the warm start's relative pose and
 the odometry's are compared. Where they disagree by more than the odometry's own noise explains, the window's
-end scans are the judge: the candidate (scan-matched or odometry relative pose) that lays the last scans of the
-window onto its first ones clearly better wins, and the odometry's increments replace the window's where it does.
-Every window gets a :class:`WindowVerdict`."""
+end scans are the judge, where both ends see: the candidate (scan-matched or odometry relative pose) that lays the
+last scans of the window onto its first ones clearly better wins; where they cannot tell the two apart (a hall
+seen along its axis), the odometry does (the scans hold nothing there that the matches could have used); where
+they see nothing in common (a turn on the spot), the scans stay. The odometry's increments replace the window's
+where it wins. Every window gets a :class:`WindowVerdict`."""
 
 from __future__ import annotations
 
@@ -18,7 +20,8 @@ from dm2_backend.algorithms.common import Cloud
 from dm2_backend.algorithms.gates import depth_image
 from dm2_backend.geometry import se3
 
-#: a window's two candidates differ "clearly" when their overlaps differ by this many binomial standard errors
+#: a window's two candidates differ "clearly" when their mean per-point costs differ by this many standard errors of
+#: the paired differences
 CLEAR = 3.0
 #: disagreement above this many standard deviations of the odometry's window error is systematic
 SYSTEMATIC = 3.0
@@ -90,11 +93,12 @@ def _end_cloud(points: list[np.ndarray], poses: np.ndarray, idx: range, ref: int
 def check_windows(points: list[np.ndarray], warm: np.ndarray, odometry: np.ndarray, noise: OdometryNoise,
                   reach: float, fine: float, end_scans: int = 3) -> list[WindowVerdict]:
     """A :class:`WindowVerdict` per window of ``reach`` metres (the median scan range; at least ``end_scans`` x 3
-    steps): the warm start ``warm`` against the ``odometry`` (both (N, 4, 4) planar). A disagreement the scans
-    resolve (over one ``fine`` distance, or a turn moving points at ``reach`` as far) is judged by the overlap
-    within ``fine`` of the window's last ``end_scans`` scans onto its first ones (and back) at either candidate;
-    the odometry wins when it is higher by ``CLEAR`` binomial standard errors. The odometry's noise (``noise``,
-    per step) says how much of the disagreement its random walk explains (reported with each verdict)."""
+    steps): the warm start ``warm`` against the ``odometry`` (both (N, 4, 4) planar). A disagreement within
+    ``SYSTEMATIC`` standard deviations of the odometry's random walk (``noise`` per step; along, across and in yaw)
+    keeps the scans. Beyond it, the window's last ``end_scans`` scans are laid onto its first ones (and back) at
+    either candidate, points within ``2 reach`` of their sensor and where the other end sees only; the per-point
+    cost (distance in ``fine`` units, squared, at most 1) decides when the paired difference exceeds ``CLEAR``
+    standard errors, else the odometry."""
     verdicts = []
     for a, b in window_bounds(odometry, reach, 3 * end_scans):
         n = b - a
