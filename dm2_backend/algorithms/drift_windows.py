@@ -45,7 +45,8 @@ class WindowVerdict:
     explained_along_m: float
     explained_across_m: float
     explained_deg: float
-    #: overlap of the window's end scans onto its start scans at each candidate, and the margin that is "clear"
+    #: (judged windows) share of the compared end-scan points within ``fine`` of the other end's at each candidate,
+    #: and the difference of mean per-point cost that is "clear"; None where not judged
     overlap_scan: float | None
     overlap_odometry: float | None
     margin: float | None
