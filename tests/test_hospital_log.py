@@ -179,3 +179,27 @@ def test_windows_cover_the_path_and_fall_back_only_where_judged():
     np.testing.assert_allclose(inc[20:30], se3.relative(odometry[20:30], odometry[21:31]), atol=1e-9)
     np.testing.assert_allclose(inc[30:], se3.relative(warm[30:-1], warm[31:]), atol=1e-9)
     assert apply_verdicts(warm, odometry, verdicts[:1]) is warm
+
+
+def test_refine_run_folder_shows_the_windows(tmp_path_factory):
+    """``dm2 refine`` on a hospital-like log: ``warm_start.json`` holds every window's verdict, ``report.json`` the
+    count and the windows taken from the odometry, the console the summary."""
+    import json
+
+    from click.testing import CliRunner
+
+    from dm2_backend.cli.main import cli
+
+    log, _ = simulated(tmp_path_factory, "refine", frames=120)
+    out = log.parent / "run"
+    result = CliRunner().invoke(cli, ["refine", "-q", "--no-cache", "--scans", str(log), "--epochs", "1",
+                                      "--relations", str(log.with_name("hospital.relations")), "--out", str(out)],
+                                obj={})
+    assert result.exit_code == 0, result.output
+    windows = json.loads((out / "warm_start.json").read_text())["windows"]
+    assert windows and {"start", "end", "source", "reason", "along_m", "explained_along_m"} <= set(windows[0])
+    assert windows[0]["start"] == 0 and windows[-1]["end"] == 119
+    details = json.loads((out / "report.json").read_text())["warm_start"]
+    assert details["windows_checked"] == len(windows) and "windows" not in details and "per_step" not in details
+    assert details["windows_from_odometry"] == [w for w in windows if w["source"] == "odometry"]
+    assert f"windows of {details['settings']['range_median_m']:.1f} m" in details["summary"]
