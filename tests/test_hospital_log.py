@@ -228,3 +228,10 @@ def test_aces_rewritten_as_robotlaser1_reads_the_same_scans(tmp_path):
         r = msgs[i].ranges[valid]
         # the same points, but for the angles' %.6f rad in the message (at most 3 mm at 50 m)
         np.testing.assert_allclose(seq[i].points[:, :2], np.column_stack([r * np.cos(a), r * np.sin(a)]), atol=3e-3)
+
+
+def test_windows_option_checked(hospital):
+    from dm2_backend.errors import InputError
+
+    with pytest.raises(InputError, match="unknown windows 'maybe'"):
+        warm_start(hospital[0], windows="maybe")
