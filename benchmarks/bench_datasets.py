@@ -146,6 +146,22 @@ def corridors(frames: int) -> Callable[[Env], Inputs]:
     return load
 
 
+def hospital(frames: int) -> Callable[[Env], Inputs]:
+    """``dm2 simulate --scene hospital -n FRAMES`` into the cache (issue 27); run as a user would run the log:
+    ``dm2 refine --scans hospital.clf --relations hospital.relations`` (the warm start fuses its odometry)."""
+    def load(env: Env) -> Inputs:
+        out = env.cache / f"hospital-{frames}-{simulator_hash()}"
+        if not (out / "info.json").is_file():
+            cmd = [sys.executable, "-m", "dm2_backend", "simulate", "--scene", "hospital", "-n", str(frames),
+                   "--out", str(out), "--force", "-q"]
+            subprocess.run(cmd, check=True, capture_output=env.quiet)
+        info = json.loads((out / "info.json").read_text())
+        return Inputs(["-s", str(out / "hospital.clf"), "--relations", str(out / "hospital.relations")], frames,
+                      {"simulated": True, "folder": str(out), "truth": str(out / "truth.tum"),
+                       "odometry_max_error_m": info["odometry"]["max_position_error_m"]})
+    return load
+
+
 def redkitchen(env: Env) -> Inputs:
     folder = DATA / "depth3d" / "redkitchen_000-499"
     _need(folder)
@@ -312,6 +328,9 @@ DATASETS: dict[str, Dataset] = {d.name: d for d in [
     Dataset("corridors-560", "SIMULATED ring of featureless corridors, front-facing 2D laser of 8 m range, 560 "
             "frames (dm2 simulate --scene corridors), icp warm start fusing its drifting odometry", "ape",
             corridors(560), real=False),
+    Dataset("hospital-1000", "SIMULATED hospital-like CARMEN log (dm2 simulate --scene hospital -n 1000: "
+            "ROBOTLASER1, laser 0.22 m ahead, interlaced quarter scans, max-range codes, long returns, pauses, "
+            "long wide corridors), default warm start", "relations", hospital(1000), real=False),
     _sim(500, True), _sim(2000, True),
     _sim(200, False), _sim(500, False), _sim(2000, False), _sim(5000, False),
     *(_huge(n, planar) for n in (2000, 10000, 20000, 40000) for planar in (False, True)),

@@ -61,7 +61,7 @@ SETS: dict[str, dict] = {
     # where 2D scan matching and loop closure break: corridors, degraded odometry (issue: 2D laser logs that break)
     "corridors": {
         "cases": {"corridors-560": ["dm2 refine", "gtsam"], "aces-degraded": ["dm2 refine", "gtsam"],
-                  "intel-degraded": ["dm2 refine", "gtsam"]},
+                  "intel-degraded": ["dm2 refine", "gtsam"], "hospital-1000": ["dm2 refine", "gtsam"]},
         "epochs": None,
         "timeout": 3600,
     },

@@ -41,7 +41,8 @@ Conventions:
   ODOM poses interpolated at the scan times. Timestamps are the ipc_timestamp, parsed with ``float()``.
 * Readings ``<= min_range`` (0) or ``>= max_range`` are invalid and dropped. ``max_range``: the
   ``ReadOptions.max_range``, else the message's ``maximum_range`` field, else (FLASER) CARMEN's 80 m,
-  lowered to the log's largest reading when that value repeats as a saturation value (ACES: 50 m).
+  lowered to the log's largest reading when that value repeats as a saturation value (ACES: 50 m; a
+  ROBOTLASER1 log whose field declares more than its scanner's 81.91 m code: 81.91 m).
 * Log order is kept. Real logs have non-monotonic ipc timestamps (Intel: 631 steps back, up to 0.9 s, while
   the poses show file order is right) and duplicate ODOM stamps, so neither is an error here; the count of
   backward steps is in ``meta["unsorted_timestamps"]``.
@@ -241,17 +242,32 @@ def read_carmen(path: str | Path, options: ReadOptions | None = None) -> Traject
 
 
 def max_range(log: CarmenLog, kind: str, options: ReadOptions | None = None) -> float | None:
-    """The range at or beyond which readings are invalid; ``None``: the per-message maximum_range field."""
+    """The range at or beyond which readings are invalid; ``None``: the per-message maximum_range field.
+
+    A scanner reports "no return" as a fixed code (a SICK LMS 81.91 m, ACES 50 m): the log's largest reading,
+    repeated (at least 10 times and 1 in 1,000 readings), is that code and is dropped with everything beyond it,
+    whatever the messages declare (a ``maximum_range`` field above the code would let the codes through as
+    points: a ring around the robot that moves with it and pulls every scan match towards standing still).
+    FLASER messages declare nothing: without a repeated code, CARMEN's 80 m."""
     if options is not None and options.max_range is not None:
         return float(options.max_range)
-    if kind != "FLASER":
-        return None
-    top = max((float(m.ranges.max()) for m in log.messages[kind] if len(m.ranges)), default=0.0)
-    total = sum(len(m.ranges) for m in log.messages[kind])
-    hits = sum(int((m.ranges == np.float32(top)).sum()) for m in log.messages[kind])
-    if hits >= max(10, 1e-3 * total) and top < CARMEN_MAX_RANGE:
-        return top
-    return CARMEN_MAX_RANGE
+    msgs = [m for m in log.messages[kind] if m.ranges is not None and len(m.ranges)]
+    code = saturation_code(msgs)
+    if kind == "FLASER":
+        return code if code is not None and code < CARMEN_MAX_RANGE else CARMEN_MAX_RANGE
+    declared = [m.max_range for m in msgs if m.max_range is not None and m.max_range > 0]
+    if code is not None and (len(declared) < len(msgs) or code < min(declared)):
+        return code
+    return None
+
+
+def saturation_code(msgs: list[Message]) -> float | None:
+    """The largest reading of ``msgs`` when it repeats as a saturation value (at least 10 times and 1 in 1,000
+    readings), else None."""
+    top = max((float(m.ranges.max()) for m in msgs), default=0.0)
+    total = sum(len(m.ranges) for m in msgs)
+    hits = sum(int((m.ranges == np.float32(top)).sum()) for m in msgs)
+    return top if top > 0 and hits >= max(10, 1e-3 * total) else None
 
 
 def scan_points(msg: Message, offset: tuple[float, float, float], max_r: float | None,
@@ -383,6 +399,18 @@ def _odom_only(traj: Trajectory, xyt: np.ndarray) -> str:
         lines.append(f"ODOM {_fmt(x)} {_fmt(y)} {_fmt(th)} 0.000000 0.000000 0.000000 {float(t)!r} dm2 "
                      f"{_fmt(float(t) - t0)}")
     return "\n".join(lines) + "\n"
+
+
+def robotlaser1_line(ranges: np.ndarray, start_angle: float, resolution: float, max_range: float,
+                     laser_pose, robot_pose, timestamp: float, host: str = "dm2", accuracy: float = 0.01) -> str:
+    """One ``ROBOTLASER1`` message (laser type 0, no remissions, fov = (n - 1) x resolution; ranges ``%.2f``, the
+    poses ``%.6f``; tv rv and the safety fields 0) as CARMEN's robot module writes it: the laser pose is the robot
+    pose (+) the laser's mount."""
+    r = np.asarray(ranges, dtype=np.float64)
+    head = (f"ROBOTLASER1 0 {_fmt(start_angle)} {_fmt((len(r) - 1) * resolution)} {_fmt(resolution)} "
+            f"{_fmt(max_range)} {_fmt(accuracy)} 0 {len(r)} " + " ".join(f"{v:.2f}" for v in r) + " 0")
+    poses = " ".join(_fmt(float(v)) for v in (*laser_pose, *robot_pose))
+    return f"{head} {poses} 0.000000 0.000000 0.000000 0.000000 0.000000 {float(timestamp)!r} {host} 0.000000"
 
 
 def _fields(new: np.ndarray, old: tuple[float, float, float]) -> list[str | None]:

@@ -21,13 +21,20 @@ it replaces the odometry (:meth:`IcpWarmStart._fused_step`):
   at the median range) is kept only when it fits the map clearly better than the prediction (an odometry
   glitch); otherwise the odometry increment is used (a scan-matching failure).
 
-``report`` (after ``run``) holds the counts and a per-step record (source and reason), which the run folder
-writes as ``warm_start.json``."""
+Then the steps are checked where drift shows (``windows``, :mod:`dm2_backend.algorithms.drift_windows`): over
+windows one median scan range long, the warm start's relative pose is compared with the odometry's; a
+disagreement beyond what the odometry's noise (estimated from the per-step differences) explains is judged by the
+window's end scans, and the odometry's increments replace the window's where they lay those scans clearly
+better (scan matching that drifted, e.g. biased by returns that are not surfaces).
+
+``report`` (after ``run``) holds the counts, a per-step record (source and reason) and a per-window record
+(:class:`~dm2_backend.algorithms.drift_windows.WindowVerdict`, also in ``windows``), which the run folder writes
+as ``warm_start.json``."""
 
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import ClassVar
 
 import numpy as np
@@ -42,6 +49,7 @@ from dm2_backend.algorithms.common import (
     rotation_angle,
     voxel_cloud,
 )
+from dm2_backend.algorithms.drift_windows import OdometryNoise, WindowVerdict, apply_verdicts, check_windows
 from dm2_backend.algorithms.icp import information_2d, register, slide_loss
 from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
@@ -89,6 +97,9 @@ class IcpWarmStart:
     gate: float = 6.0
     #: (fuse) "clearly better": at least this much more of the scan within the fine distance of the map
     better_fitness: float = 0.1
+    #: (fuse) check the steps against the odometry over windows of path and fall back to the odometry's
+    #: increments where scan matching drifted ("auto"; "off": per-step tests only)
+    windows: str = "auto"
     progress: bool = True
 
     def run(self, frames: Frames, given: Trajectory | None) -> np.ndarray:
@@ -110,6 +121,8 @@ class IcpWarmStart:
         target = self._map(keyframes, frames.planar, voxel, fine)
         velocity = np.eye(4)
         self.rejected: list[int] = []
+        #: (fused) the verdict of every window of path, after ``run``
+        self.verdicts: list[WindowVerdict] = []
         fuse = self._fusing(frames, increments, method)
         if fuse:
             self._start_fusion(n, fine, scale["range_median"])
@@ -128,8 +141,23 @@ class IcpWarmStart:
                 keyframes.append(se3.transform_points(poses[i], source.points))
                 last_key = poses[i]
                 target = self._map(keyframes, frames.planar, voxel, fine)
+        if fuse and self.windows == "auto":
+            poses = self._check_windows(frames, poses, given.poses, fine)
         self.report = self._fusion_report(poses) if fuse else {"fused": False, "rejected": len(self.rejected)}
         return poses
+
+    def _check_windows(self, frames: Frames, poses: np.ndarray, odometry: np.ndarray, fine: float) -> np.ndarray:
+        """:func:`check_windows` over windows one median scan range long, the odometry's per-step noise from the
+        per-step differences of the scan matches; the poses with the odometry's increments where it won."""
+        dt, dr = self._cols["dt"], self._cols["dyaw"]
+        ok = np.isfinite(dt)
+        if ok.sum() < 20:
+            return poses
+        noise = OdometryNoise(max(1.4826 * float(np.median(dt[ok])), 1e-3 * fine),
+                              max(1.4826 * float(np.median(dr[ok])), 1e-3 * fine / self._reach))
+        odometry = np.array([project_planar(T) for T in odometry])
+        self.verdicts = check_windows(frames.points, poses, odometry, noise, self._reach, fine)
+        return apply_verdicts(poses, odometry, self.verdicts)
 
     def _plain_step(self, i, source, target, previous, predicted, distances, method, planar, velocity) -> np.ndarray:
         """Pose of frame i: the ICP result from the prediction, or the prediction when the fitness is too low."""
@@ -150,6 +178,8 @@ class IcpWarmStart:
     def _fusing(self, frames: Frames, increments: np.ndarray | None, method: str) -> bool:
         if self.fuse not in ("auto", "off"):
             raise InputError(None, f"icp warm start: unknown fuse {self.fuse!r} (auto, off)")
+        if self.windows not in ("auto", "off"):
+            raise InputError(None, f"icp warm start: unknown windows {self.windows!r} (auto, off)")
         if not 0 < self.min_constraint < 0.5 or not self.gate > 0:
             raise InputError(None, "icp warm start: min_constraint must lie in (0, 0.5) and gate be positive")
         return self.fuse == "auto" and increments is not None and frames.planar and method != "point-to-point"
@@ -279,14 +309,20 @@ class IcpWarmStart:
         summary = (f"icp warm start: {counts['scan']} of {len(src)} steps from the scan match, "
                    + ", ".join(f"{v} {k}" for k, v in list(counts.items())[1:]) + "; "
                    + (", ".join(f"{k}: {v}" for k, v in reasons.items()) or "no fallback"))
+        fallback = [v for v in self.verdicts if v.source == "odometry"]
+        if self.verdicts:
+            summary += (f"; windows of {self._reach:.1f} m: {len(fallback)} of {len(self.verdicts)} from the odometry"
+                        + (f" (scan matching drifted: {', '.join(f'{v.start}-{v.end}' for v in fallback[:10])}"
+                           + (", ..." if len(fallback) > 10 else "") + ")" if fallback else ""))
         return {
             "fused": True,
             "summary": summary,  # printed by the preparation, whether computed or read from the cache
             "steps": int(len(src)),
             "sources": counts,
             "reasons": reasons,
+            "windows": [asdict(v) for v in self.verdicts],
             "settings": {"min_fitness": self.min_fitness, "min_constraint": self.min_constraint,
-                         "gate": self.gate, "better_fitness": self.better_fitness,
+                         "gate": self.gate, "better_fitness": self.better_fitness, "windows": self.windows,
                          "fine_distance_m": round(self._fine, 4), "range_median_m": round(self._reach, 4)},
             "per_step": {
                 "source": [self.SOURCES[k] for k in self._source.tolist()],

@@ -16,10 +16,14 @@ from dm2_backend.pipeline.run_folder import run_folder
               help="Scene, path, noise and drift seed.")
 @click.option("--path", "path_kind", type=click.Choice(["loop", "eight"]), default="loop", show_default=True,
               help="Drive laps of a loop or of a figure-eight.")
-@click.option("--scene", type=click.Choice(["street", "corridors"]), default="street", show_default=True,
+@click.option("--scene", type=click.Choice(["street", "corridors", "hospital"]), default="street",
+              show_default=True,
               help="street: buildings, walls, poles and cars along a street; corridors: a ring of featureless "
                    "corridors for a front-facing 2D laser (planar; a frame every 0.25 m; --range default 8 m; "
-                   "--rate, --seed and the drift options apply, the other path and LiDAR options do not).")
+                   "--rate, --seed and the drift options apply, the other path and LiDAR options do not); "
+                   "hospital: a CARMEN log like the Freiburg hospital's (ROBOTLASER1, laser 0.22 m ahead, "
+                   "interlaced quarter scans, max-range codes, long returns, pauses, drifting odometry; a frame "
+                   "every 0.2 m; --seed only).")
 @click.option("--laps", type=click.FloatRange(min=0, min_open=True), default=2.0, show_default=True)
 @click.option("--extent", type=click.FloatRange(min=10), default=40.0, show_default=True,
               help="Half size of the scene (m); the street's radius is 0.7 x extent.")
@@ -59,6 +63,8 @@ def command(frames, out, seed, path_kind, scene, laps, extent, rate, planar, bea
     """
     if scene == "corridors":
         return corridors(frames, out, seed, rate, max_range, yaw_bias, yaw_noise, trans_noise, force)
+    if scene == "hospital":
+        return hospital(frames, out, seed, force)
     from dm2_backend.simulate.lidar import LidarModel
     from dm2_backend.simulate.sequence import SimSettings, generate
 
@@ -98,3 +104,16 @@ def corridors(frames, out, seed, rate, max_range, yaw_bias, yaw_noise, trans_noi
                f"{info['path_length_m']:.0f} m path; odometry off by up to "
                f"{info['warm_start']['max_position_error_m']:.2f} m; {info['seconds']:.1f} s")
     click.echo(f"wrote {out} (SIMULATED; see README.txt)")
+
+
+def hospital(frames, out, seed, force) -> None:
+    """``--scene hospital``: the hospital-like CARMEN log of :mod:`dm2_backend.simulate.hospital`."""
+    from dm2_backend.simulate.hospital import HospitalSettings, write_hospital
+
+    with run_folder(out, "simulate", force=force):
+        click.echo(f"simulating a hospital-like CARMEN log of {frames} scans (seed {seed}) into {out}")
+        info = write_hospital(out, HospitalSettings(frames=frames, seed=seed))
+    click.echo(f"{frames} scans, {info['path_length_m']:.0f} m path; odometry off by up to "
+               f"{info['odometry']['max_position_error_m']:.2f} m")
+    click.echo(f"wrote {out} (SIMULATED): hospital.clf, truth.tum, hospital.relations; refine it with "
+               f"dm2 refine --scans {out}/hospital.clf --relations {out}/hospital.relations --gt {out}/truth.tum")

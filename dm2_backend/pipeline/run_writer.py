@@ -138,10 +138,19 @@ def write_run(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final: np
         epochs=epochs,
         details={**(details or {}), **({"full_rate": full_rate.summary()} if full_rate else {}),
                  "consistency": {name: p.summary() for name, p in profiles.items()},
-                 **({"warm_start": {k: v for k, v in prep.warm_report.items() if k != "per_step"}}
-                                        if prep.warm_report else {})},
+                 **({"warm_start": _warm_summary(prep.warm_report)} if prep.warm_report else {})},
     )
     if epochs is not None:
         plots.plot_run_epochs(out / "epochs.png", report.to_dict())  # from the start (epoch 0) on
     report.write(out / "report.json")
     return report
+
+
+def _warm_summary(warm_report: dict) -> dict:
+    """The warm start's report for ``report.json``: without the per-step record, and of the per-window verdicts
+    (``warm_start.json`` holds them all) the windows taken from the odometry."""
+    out = {k: v for k, v in warm_report.items() if k not in ("per_step", "windows")}
+    if "windows" in warm_report:
+        out["windows_from_odometry"] = [w for w in warm_report["windows"] if w.get("source") == "odometry"]
+        out["windows_checked"] = len(warm_report["windows"])
+    return out

@@ -50,16 +50,18 @@ def loop_path(frames: int, radius: float, laps: float, seed: int) -> np.ndarray:
 
 def drifting_odometry(
     truth: np.ndarray, seed: int, yaw_sigma: float, trans_sigma: float, yaw_bias: float = 0.0,
-    z_sigma: float = 0.0, tilt_sigma: float = 0.0,
+    z_sigma: float = 0.0, tilt_sigma: float = 0.0, scale_error: float = 0.0,
 ) -> np.ndarray:
     """Chain the true relative motions with random-walk errors, as a wheel/LiDAR odometry would.
 
     Per frame: yaw noise ``yaw_sigma`` rad plus a constant ``yaw_bias`` rad (a miscalibrated gyro),
     translation noise ``trans_sigma`` x step length in x and y, and for 3D trajectories ``z_sigma`` x step
-    length in z and ``tilt_sigma`` rad in roll and pitch. Errors accumulate: the drift grows along the path.
+    length in z and ``tilt_sigma`` rad in roll and pitch; ``scale_error`` lengthens every step by that fraction
+    (a wrong wheel radius). Errors accumulate: the drift grows along the path.
     """
     rng = np.random.default_rng(seed)
     rel = se3.relative(truth[:-1], truth[1:])
+    rel[:, :3, 3] *= 1.0 + scale_error
     step = np.linalg.norm(rel[:, :3, 3], axis=1)
     noise = np.zeros((len(rel), 6))  # x y z roll pitch yaw
     noise[:, :2] = rng.normal(0, 1, (len(rel), 2)) * (trans_sigma * step)[:, None]
