@@ -2,18 +2,20 @@
 
     python benchmarks/consistency_cases.py [--out benchmarks/results]
 
-Cases: the real LiDAR keyframes' front-end poses (../shared/data, skipped when absent) and the simulated street's
-true poses, each as given and broken four ways (a 0.3 m / 2 degree jump at one frame, the same jump carried on,
-a drift building up to it over 10 frames, a closure 1 m / 5 degrees off forced into their pose graph). A hit is
-a flag within the profile's resolution (a neighbouring stretch and a gap) of a broken frame; a false flag lies
-farther from every one. Writes ``consistency-cases.json`` / ``.md`` and ``docs/consistency-keyframes.png`` (the
-keyframes with the carried jump, the README's picture). Not part of the test suite.
+Cases: the real LiDAR keyframes' front-end poses (../shared/data, skipped when absent), the true poses of the LiDAR
+ray-cast through their map (when the benchmark cache holds it) and of the simulated street, each as given and broken
+four ways (a 0.3 m / 2 degree jump at one frame, the same jump carried on, a drift building up to it over 10 frames,
+a closure 1 m / 5 degrees off forced into their pose graph). A hit is a flag within the profile's resolution (a
+neighbouring stretch and a gap) of a broken frame; a false flag lies farther from every one. Writes
+``consistency-cases.json`` / ``.md`` and ``docs/consistency-keyframes.png`` (the keyframes with the carried jump,
+the README's picture). Not part of the test suite.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -38,6 +40,7 @@ from dm2_backend.simulate.sequence import SimSettings, simulate
 
 REPO = Path(__file__).resolve().parents[1]
 KEYFRAMES = REPO.parent / "shared" / "data" / "lidar3d" / "balm_realworld_000-079"
+BENCH_CACHE = Path(os.environ.get("DM2_BENCH_CACHE", Path.home() / ".cache" / "dm2" / "bench"))
 
 
 def sequences() -> dict[str, tuple[ScanSequence, np.ndarray]]:
@@ -48,6 +51,10 @@ def sequences() -> dict[str, tuple[ScanSequence, np.ndarray]]:
         out["real keyframes (front end)"] = (real.scans, real.given.poses)
     else:
         print(f"skipped the real keyframes: {KEYFRAMES} absent", file=sys.stderr)
+    for folder in sorted(BENCH_CACHE.glob("realmap-balm-*"))[-1:]:  # made by `benchmarks/run.py --only sim-realmap`
+        sim = load_inputs(folder / "velodyne", None, folder / "poses.txt", None,
+                          ReadOptions(times=folder / "times.txt"))
+        out["LiDAR ray-cast through the keyframes' map (truth)"] = (sim.scans, sim.given.poses)
     scans, gt, _ = simulate(SimSettings(frames=80, seed=3, extent=10.0, laps=1.5), progress=False)
     out["simulated street (truth)"] = (ScanSequence(lambda i: Scan(scans[i]), len(scans),
                                                     timestamps=np.arange(len(scans)) * 0.1, planar=False), gt)
