@@ -206,6 +206,8 @@ def print_summary(report: RunReport, out: Path) -> None:
             click.echo(f"{key:<28} warm start {before[key]:10.4f}  ->  {report.method} {after[key]:10.4f}")
     if "error" in after:
         click.echo(f"evaluation failed: {after['error']}", err=True)
+    for text in report.cautions or []:
+        click.echo(f"caution: {text}")
     if report.details.get("stopped"):
         click.echo(f"warning: {report.details['stopped']}", err=True)
     t = report.timings
