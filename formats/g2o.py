@@ -262,5 +262,6 @@ FORMAT = trajectory_format(
         read=_read,
         write=_write,
         suffixes=(".g2o",),
+        stamped=False,
     )
 )

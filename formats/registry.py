@@ -65,6 +65,9 @@ class TrajectoryFormat:
     ordered_stamps: bool = True
     #: the format's reader accepts repeated timestamps by default (else the writer must not get them either)
     repeated_stamps: bool = False
+    #: the format stores timestamps (KITTI poses, g2o, .npy do not: a trajectory's stamps are not written, and
+    #: a writer of a stamped format given none invents them; ``dm2 convert`` says so)
+    stamped: bool = True
 
 
 @dataclass(frozen=True)
@@ -150,15 +153,17 @@ def read_trajectory(path: str | Path, fmt: str | None = None, options: ReadOptio
     return traj
 
 
-def check_writable(traj: Trajectory, fmt: str, path: str | Path) -> None:
+def check_writable(traj: Trajectory, fmt: str, path: str | Path, stamps_written: bool | None = None) -> None:
     """:class:`InputError` naming the trajectory's source when ``fmt``'s own reader would refuse what its
     writer would write: non-finite or broken poses, non-finite stamps, and (for formats that need them
-    ordered) decreasing or repeated stamps. What dm2 writes, dm2 reads."""
+    ordered) decreasing or repeated stamps. What dm2 writes, dm2 reads. Stamps are checked only where they
+    are written (``stamps_written``; default: the format stores them)."""
     spec = TRAJECTORY_FORMATS[fmt]
     source = traj.meta.get("source") or path
+    stamps_written = spec.stamped if stamps_written is None else stamps_written
     try:
         validate_poses(traj.poses.copy(), source)  # a copy: validation snaps near-rotations in place
-        if traj.timestamps is not None:
+        if traj.timestamps is not None and stamps_written:
             if spec.ordered_stamps:
                 validate_timestamps(traj.timestamps, source, duplicates_ok=spec.repeated_stamps)
             elif not np.isfinite(traj.timestamps).all():
@@ -178,8 +183,9 @@ def write_trajectory(
         raise InputError(path, f"format {fmt!r} cannot be written; writable: {writable}")
     if len(traj) == 0:
         raise InputError(path, "no poses to write")
-    check_writable(traj, fmt, path)
-    spec.write(traj, path, options or ReadOptions())
+    options = options or ReadOptions()
+    check_writable(traj, fmt, path, stamps_written=spec.stamped or bool(options.times))
+    spec.write(traj, path, options)
 
 
 def read_spec(fmt: str, path: Path, options: ReadOptions) -> dict:

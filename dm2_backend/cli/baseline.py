@@ -14,6 +14,29 @@ path_type = click.Path(path_type=Path)
 _HELP = "\n".join(f"  {name:<9} {text}" for name, text in METHODS.items())
 
 
+#: options of a run from scans that mean nothing for an existing graph (refused, not ignored, with --graph)
+SCAN_ONLY = ("poses", "scans_format", "poses_format", "config_path", "relations", "warm_start",
+             "place_recognition", "registration", "topic", "times", "calib", "intrinsics", "depth_scale")
+
+
+def check_graph_options(kw: dict) -> None:
+    given = [name for name in SCAN_ONLY if kw.get(name)]
+    if given:
+        names = ", ".join("--" + ("config" if n == "config_path" else n.replace("_", "-")) for n in given)
+        raise click.UsageError(f"{names}: not used with --graph (the graph file is the whole input)")
+
+
+def read_graph_gt(kw: dict):
+    """--gt for --graph: the ground truth of the graph's vertices, one pose per vertex in id order."""
+    if kw["gt"] is None:
+        return None
+    from dm2_backend.cli.options import read_options
+    from dm2_backend.formats import read_trajectory
+
+    return read_trajectory(kw["gt"], kw["gt_format"], read_options(duplicate_times=kw["duplicate_times"]))
+
+
+
 @click.command("baseline", help=f"""Run a baseline back-end METHOD and write a run folder like refine's.
 
 \b
@@ -46,12 +69,18 @@ def command(method, graph_path, robust, robust_k, max_iterations, relative_tol, 
             raise click.UsageError(f"--graph works with {' and '.join(GRAPH_METHODS)}, not {method}")
         if kw["scans"] is not None:
             raise click.UsageError("give either --graph or --scans")
+        check_graph_options(kw)
+        gt = read_graph_gt(kw)
         with run_folder(kw["out"], "baseline", force=kw["force"]):
-            report = optimise_file(method, graph_path, kw["out"], options)
+            report = optimise_file(method, graph_path, kw["out"], options, gt=gt)
         r = report
         click.echo(f"{r['nodes']} nodes, {r['edges']} edges: error {r['initial_error']:.6g} -> "
                    f"{r['final_error']:.6g} in {r['iterations']} iterations, "
                    f"{r['timings']['optimise']:.2f} s")
+        for key, value in r.get("metrics", {}).items():
+            click.echo(f"{key:<28} graph {r['initial_metrics'][key]:10.4f}  ->  {method} {value:10.4f}")
+        for text in r.get("cautions", []):
+            click.echo(f"caution: {text}")
         click.echo(f"wrote {kw['out']}")
         return
     if kw["scans"] is None:

@@ -96,7 +96,12 @@ def prepare_run(kw: dict, overrides: dict):
     if kw["seed"] is not None:
         overrides["seed"] = kw["seed"]
     cfg = config.load(kw["config_path"], overrides)
-    if default_to_icp(cfg, inputs, bool(kw["warm_start"]) or config.sets(kw["config_path"], "warm_start")):
+    asked = bool(kw["warm_start"]) or config.sets(kw["config_path"], "warm_start")
+    if asked and cfg["warm_start"]["name"] == "poses" and inputs.given is None:
+        source, what = (None, "--warm-start poses") if kw["warm_start"] else (kw["config_path"], "warm_start poses")
+        raise InputError(source, f"{what} starts from a given trajectory and there is none: give --poses FILE "
+                                 "(or --warm-start icp to compute one from the scans)")
+    if default_to_icp(cfg, inputs, asked):
         cfg["warm_start"] = {"name": "icp", "options": {}}
     cache = None if kw["no_cache"] else (kw["cache_dir"] or default_cache_dir())
     return inputs, cfg, cache
