@@ -188,15 +188,30 @@ def write_trajectory(
     spec.write(traj, path, options)
 
 
-def read_spec(fmt: str, path: Path, options: ReadOptions) -> dict:
-    """Everything that determines what ``open_scans`` reads: the format, the resolved path and every option
-    (paths resolved; ``extra`` included), as JSON-ready values."""
-    def plain(value):
-        return str(Path(value).resolve()) if isinstance(value, Path) else value
+#: read options whose effective value a scan source reports in its ``meta`` (its default when not given)
+EFFECTIVE_OPTIONS = ("intrinsics", "depth_scale", "stride")
 
+
+def _plain(value):
+    """One spelling per value for a cache key: paths resolved, numbers as floats, sequences as lists."""
+    if isinstance(value, Path):
+        return str(value.resolve())
+    if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
+        return float(value)
+    if isinstance(value, (tuple, list, np.ndarray)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def read_spec(fmt: str, path: Path, options: ReadOptions, effective: dict | None = None) -> dict:
+    """Everything that determines what ``open_scans`` reads: the format, the resolved path and every option
+    (paths resolved; ``extra`` included), normalised (``--intrinsics 1,2,3,4`` and ``"1 2 3 4"``, a depth
+    scale given or left at the layout's default of the same value: one key), as JSON-ready values.
+    ``effective``: the values the source used for :data:`EFFECTIVE_OPTIONS` (its ``meta``)."""
     spec = {"format": fmt, "path": str(Path(path).resolve())}
-    spec.update({k: plain(v) for k, v in vars(options).items() if k != "extra"})  # every declared field
-    spec["extra"] = {k: plain(v) for k, v in sorted(options.extra.items())}
+    spec.update({k: _plain(v) for k, v in vars(options).items() if k != "extra"})  # every declared field
+    spec.update({k: _plain(v) for k, v in (effective or {}).items() if k in EFFECTIVE_OPTIONS})
+    spec["extra"] = {k: _plain(v) for k, v in sorted(options.extra.items())}
     return spec
 
 
@@ -208,7 +223,7 @@ def open_scans(path: str | Path, fmt: str | None = None, options: ReadOptions | 
     options = options or ReadOptions()
     spec = _lookup(SCAN_SOURCES, name, "scan source", path)
     seq = spec.open(path, options)
-    seq.read_spec = read_spec(name, path, options)
+    seq.read_spec = read_spec(name, path, options, seq.meta)
     seq.sensor = seq.sensor or spec.sensor or (LASER_2D if seq.planar else LIDAR)
     if len(seq) == 0:
         raise InputError(seq.source or path, "holds no scans")
