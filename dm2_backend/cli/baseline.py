@@ -7,7 +7,8 @@ from pathlib import Path
 import click
 
 from dm2_backend.baselines.options import GRAPH_METHODS, KERNELS, METHODS, SolverOptions
-from dm2_backend.cli.refine import output_folder, prepare_run, print_summary, run_options
+from dm2_backend.cli.refine import command_started, output_folder, prepare_run, print_summary, run_options
+from dm2_backend.formats.g2o import INFORMATION_MODES
 from dm2_backend.pipeline.run_folder import run_folder
 
 path_type = click.Path(path_type=Path)
@@ -48,6 +49,9 @@ With --graph FILE.g2o (gtsam, g2o) an existing pose graph is optimised instead o
 @run_options(scans_required=False)
 @click.option("--graph", "graph_path", type=path_type, default=None,
               help="Optimise this g2o pose graph (no scans needed).")
+@click.option("--information", type=click.Choice(INFORMATION_MODES), default="file", show_default=True,
+              help="With --graph: information matrices that are not positive semi-definite are optimised as the "
+                   "file writes them (g2o; GTSAM cannot weigh them), or read as the nearest positive-definite ones.")
 @click.option("--robust", type=click.Choice([*KERNELS, "none"]), default=None,
               help="Robust kernel on every edge [default: cauchy for graphs built from scans (registrations "
                    "have outliers), none for --graph].")
@@ -55,7 +59,7 @@ With --graph FILE.g2o (gtsam, g2o) an existing pose graph is optimised instead o
 @click.option("--max-iterations", type=int, default=100, show_default=True)
 @click.option("--relative-tol", type=float, default=1e-5, show_default=True,
               help="Stop when the error decreases by less than this fraction.")
-def command(method, graph_path, robust, robust_k, max_iterations, relative_tol, **kw) -> None:
+def command(method, graph_path, information, robust, robust_k, max_iterations, relative_tol, **kw) -> None:
     if robust is None:
         robust = "none" if graph_path is not None else "cauchy"
     robust = None if robust == "none" else robust
@@ -72,7 +76,8 @@ def command(method, graph_path, robust, robust_k, max_iterations, relative_tol, 
         check_graph_options(kw)
         gt = read_graph_gt(kw)
         with run_folder(kw["out"], "baseline", force=kw["force"]):
-            report = optimise_file(method, graph_path, kw["out"], options, gt=gt)
+            report = optimise_file(method, graph_path, kw["out"], options, gt=gt, started=command_started(),
+                                   information=information)
         r = report
         click.echo(f"{r['nodes']} nodes, {r['edges']} edges: error {r['initial_error']:.6g} -> "
                    f"{r['final_error']:.6g} in {r['iterations']} iterations, "
@@ -92,5 +97,6 @@ def command(method, graph_path, robust, robust_k, max_iterations, relative_tol, 
         overrides["warm_start"] = {"name": "icp"}
     inputs, cfg, cache = prepare_run(kw, overrides)
     with output_folder(kw, "baseline", cfg, inputs):
-        report = baseline(method, inputs, cfg, kw["out"], cache, options, progress=not kw["quiet"])
+        report = baseline(method, inputs, cfg, kw["out"], cache, options, progress=not kw["quiet"],
+                          started=command_started())
     print_summary(report, kw["out"])

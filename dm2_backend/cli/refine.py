@@ -135,7 +135,8 @@ def command(epochs, device, resume, nproc, rerun_path, **kw) -> None:
 
         check_rerun()  # before the run, not after it
     with output_folder(kw, "refine", cfg, inputs, resume):
-        report = refine(inputs, cfg, kw["out"], cache, resume=resume, progress=not kw["quiet"])
+        report = refine(inputs, cfg, kw["out"], cache, resume=resume, progress=not kw["quiet"],
+                        started=command_started())
     if report is not None:  # None: a torchrun rank other than 0
         print_summary(report, kw["out"])
         if rerun_path is not None:
@@ -191,6 +192,13 @@ def warn_camera_frame(kw: dict, inputs) -> None:
         if traj is not None and looks_camera_frame(traj.poses):
             click.echo(f"warning: {path}: these KITTI poses look camera-frame (y down, z forward) but no calib.txt "
                        "was given or found: they are used as LiDAR poses; give --calib calib.txt", err=True)
+
+
+def command_started() -> float | None:
+    """When the ``dm2`` command started (``time.perf_counter``), for a run's total time; None outside one."""
+    ctx = click.get_current_context(silent=True)
+    obj = ctx.find_root().obj if ctx is not None else None
+    return obj.get("started") if isinstance(obj, dict) else None
 
 
 def check_device(device: str) -> None:

@@ -196,7 +196,8 @@ def estimate_map(sampler: MapSampler, scans: ScanSequence, est: Trajectory, max_
         if len(i_scan) == len(scans):
             return sampler.evaluate(est.poses[i_pose[np.argsort(i_scan)]])
         if len(est) != len(scans):
-            raise InputError(source, f"only {len(i_scan)} of {len(scans)} scans have a pose within {max_diff} s")
+            raise InputError(source, f"only {len(i_scan)} of {len(scans)} scans have a pose within {max_diff} s "
+                                      "(see --max-diff)")
     elif len(est) != len(scans):
         raise InputError(source, f"{len(est)} poses for {len(scans)} scans and no timestamps to associate by")
     return sampler.evaluate(est.poses)  # by index

@@ -4,6 +4,7 @@ frame), the maps, the DeepMapping2 priors, plots, ``config.yaml`` / ``resolved.y
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -83,10 +84,12 @@ def map_metrics(sampler: MapSampler, poses: np.ndarray) -> dict[str, float]:
 def write_run(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final: np.ndarray, method: str,
               timings: dict, details: dict | None = None, epochs: list[dict] | None = None,
               sampler: MapSampler | None = None, start: np.ndarray | None = None,
-              files: list[str] | None = None) -> RunReport:
+              files: list[str] | None = None, started: float | None = None) -> RunReport:
     """The run folder of ``refine`` and ``baseline``: trajectories, maps, priors, plots and ``report.json``
     (written once). ``details``: the method's own report entries; ``sampler``: the scans prepared for the map
-    metrics (made here when None); ``start``: where the optimiser started; ``files``: files the method wrote."""
+    metrics (made here when None); ``start``: where the optimiser started; ``files``: files the method wrote;
+    ``started``: when the command started (``time.perf_counter``): ``timings["total"]`` then runs from it to
+    the report, reading the inputs and writing this folder included."""
     out.mkdir(parents=True, exist_ok=True)
     sampler = sampler or map_sampler(inputs)
     stages = {"warm_start": prep.warm_start, "loop_closed": prep.topology.poses, "start": start, "final": final}
@@ -110,6 +113,8 @@ def write_run(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final: np
         outputs.write_report(out / "warm_start.json", prep.warm_report)
         written.append("warm_start.json")
     final_metrics, cautions = evaluation_of(final_traj, inputs)
+    if started is not None:
+        timings = {**timings, "total": time.perf_counter() - started}
     report = RunReport(
         method=method,
         frames=len(prep.frames),
