@@ -220,7 +220,8 @@ def read_g2o(path: str | Path, information: str = "file") -> PoseGraph:
     not_psd = _project_information(matrices, e_lines, path, project=information == "nearest-psd")
     ids = np.union1d(v_ids, edges.reshape(-1)).astype(int)
     known = {int(n): T for n, T in zip(v_ids, v_poses, strict=True)}
-    filled = _fill_missing(ids, known, edges, relative) if len(known) < len(ids) else 0
+    with np.errstate(over="ignore", invalid="ignore"):  # chained huge numbers: refused just below, no warnings
+        filled = _fill_missing(ids, known, edges, relative) if len(known) < len(ids) else 0
     for node, number in parser.fixed:
         if node not in known:
             raise InputError(path, f"FIX of unknown node {node}", line=number)

@@ -113,7 +113,9 @@ def test_a_runs_total_counts_the_whole_command(tmp_path):
 
 @pytest.mark.parametrize("text", ["VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nVERTEX_SE3:QUAT 1 1e200 0 0 1e200 0 0 1\n",
                                   "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1e308 1e308 0\n"
-                                  "EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n"])
+                                  "EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n",
+                                  "EDGE_SE3:QUAT 0 1 1e308 0 0 0 0 0 1" + " 1" * 21 + "\n"
+                                  "EDGE_SE3:QUAT 1 2 1e308 0 0 0 0 0 1" + " 1" * 21 + "\n"])
 @pytest.mark.filterwarnings("error::RuntimeWarning")  # numpy's overflow warnings around the line: none
 def test_a_malformed_g2o_is_one_line_before_any_solver(tmp_path, text):
     path = tmp_path / "huge.g2o"
