@@ -123,3 +123,10 @@ def test_a_malformed_g2o_is_one_line_before_any_solver(tmp_path, text):
     r = run("baseline", "gtsam", "--graph", path, "-o", tmp_path / "run")
     one_line_error(r, "huge.g2o")
     assert "poses_kitti" not in r.output  # refused when read, not when the result is written
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_kitti_poses_with_huge_rotation_entries_are_one_line(tmp_path):
+    path = tmp_path / "poses.txt"
+    path.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n1e200 0 0 0 0 1e200 0 0 0 0 1 0\n")
+    one_line_error(run("info", path, "--format", "kitti"), "poses.txt", "not a rotation")
