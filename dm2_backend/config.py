@@ -10,7 +10,7 @@ import yaml
 
 from dm2_backend import config_schema
 from dm2_backend.atomic import atomic_write
-from dm2_backend.errors import InputError
+from dm2_backend.errors import InputError, did_you_mean
 from dm2_backend.optim.config import OptimConfig
 
 DEFAULTS: dict = {
@@ -64,7 +64,9 @@ def load(path: str | Path | None, overrides: dict | None = None) -> dict:
             raise InputError(path, "the config must be a mapping")
         unknown = set(user) - set(DEFAULTS)
         if unknown:
-            raise InputError(path, f"unknown config sections: {', '.join(sorted(map(str, unknown)))}")
+            first = sorted(map(str, unknown))[0]
+            raise InputError(path, f"unknown config sections: {', '.join(sorted(map(str, unknown)))}"
+                                   f"{did_you_mean(first, DEFAULTS)}")
         cfg = merge(cfg, user)
     cfg = merge(cfg, overrides or {})
     try:

@@ -23,6 +23,7 @@ from pydantic import (
     ValidationError,
 )
 
+from dm2_backend.errors import did_you_mean
 from dm2_backend.optim.config import OptimConfig
 
 #: config section -> entry-point group of its plugins
@@ -95,8 +96,8 @@ def check_plugin_options(section: str, group: str, name: str, options: dict) -> 
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(set(options) - set(fields))
     if unknown:
-        raise ConfigError(f"{section}.options: {name} has no option {unknown[0]!r}; its options: "
-                          f"{', '.join(sorted(fields))}")
+        raise ConfigError(f"{section}.options: {name} has no option {unknown[0]!r}"
+                          f"{did_you_mean(unknown[0], fields)}; its options: {', '.join(sorted(fields))}")
     hints = _hints(cls)
     for key, value in options.items():
         hint = hints.get(key)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import difflib
 import re
 from pathlib import Path
 
@@ -39,3 +40,9 @@ class InputError(Exception):
             where += f" [topic {self.topic}]"
         text = f"{where}: {self.problem}" if where else self.problem
         return one_line(text)  # third-party messages (YAML, rosbags) span lines; the CLI promises one
+
+
+def did_you_mean(name: str, choices) -> str:
+    """``" (did you mean 'epochs'?)"`` for the closest of ``choices`` to a mistyped ``name``, else ``""``."""
+    close = difflib.get_close_matches(str(name), [str(c) for c in choices], n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""

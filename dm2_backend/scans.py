@@ -108,7 +108,7 @@ def associate_scans(
                 return scans, poses  # stamps in different clocks; the counts agree, pair by index
             raise InputError(
                 scans.source,
-                f"only {len(i_scan)} of {len(scans)} scans have a pose within {max_diff} s",
+                f"only {len(i_scan)} of {len(scans)} scans have a pose within {max_diff} s (see --max-diff)",
             )
         return scans.subset(i_scan), poses.subset(i_pose)
     if len(scans) != len(poses):

@@ -195,5 +195,6 @@ FORMAT = trajectory_format(
         suffixes=(".npy", "init_pose.npy"),
         sniff=sniff,
         describe=describe,
+        stamped=False,
     )
 )

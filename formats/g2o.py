@@ -10,7 +10,8 @@
 Quaternions are normalised as ``gtsam.readG2o`` does. Nodes without a vertex line (an edges-only file) get
 initial poses by chaining the odometry edges ``i -> i+1`` from identity, then any other edge in file
 order, which is what ``gtsam.readG2o`` gives for the usual edges-only file. Information matrices that are
-not positive semi-definite are read as the nearest positive-definite ones, with one warning (see
+not positive semi-definite get one warning and are kept as the file writes them, so that a solver optimises
+what the file says (``information="nearest-psd"``: read as the nearest positive-definite ones, see
 :func:`_project_information`).
 """
 
@@ -123,13 +124,24 @@ def _poses_from(values: np.ndarray, lines: np.ndarray, is3d: bool, path: Path) -
 
 #: eigenvalues of a projected information matrix are at least this fraction of its largest (invertible)
 PSD_FLOOR = 1e-9
+#: how information matrices that are not positive semi-definite are read: as the file writes them, or the
+#: nearest positive-definite ones
+INFORMATION_MODES = ("file", "nearest-psd")
 
 
-def _project_information(info: np.ndarray, lines: np.ndarray, path: Path) -> int:
+def indefinite(info: np.ndarray) -> np.ndarray:
+    """Which of the (E, d, d) information matrices are not positive semi-definite (beyond rounding)."""
+    if len(info) == 0:
+        return np.zeros(0, bool)
+    w = np.linalg.eigvalsh(info)
+    return w[:, 0] < -1e-9 * np.maximum(np.abs(w).max(axis=1), 1.0)
+
+
+def _project_information(info: np.ndarray, lines: np.ndarray, path: Path, project: bool = True) -> int:
     """Replace (in place) information matrices that are not positive semi-definite by the nearest ones that
     are, with negative eigenvalues raised to :data:`PSD_FLOOR` of the largest (kept invertible, so that
     gtsam's and g2o's Cholesky factorisations work); one warning says how many and the first line. Returns
-    how many were replaced.
+    how many were not positive semi-definite; ``project=False`` warns and keeps them as they are.
 
     Real graphs hold such matrices (SE-Sync's ``cubicle.g2o``). ``gtsam.readG2o`` keeps them as they are and
     its noise model then factorises them wrongly without a word (an LLT of an indefinite matrix; NaN sigmas
@@ -139,13 +151,18 @@ def _project_information(info: np.ndarray, lines: np.ndarray, path: Path) -> int
     w, V = np.linalg.eigh(info)
     top = np.maximum(np.abs(w).max(axis=1), 1.0)
     bad = w[:, 0] < -1e-9 * top
-    if bad.any():
+    if bad.any() and not project:
+        log.warning("%s: %d of %d information matrices are not positive semi-definite (first on line %d); "
+                    "optimised as the file writes them (--information nearest-psd: the nearest positive-definite "
+                    "ones)", path, int(bad.sum()), len(info), int(lines[int(np.argmax(bad))]))
+    elif bad.any():
         floor = PSD_FLOOR * np.abs(w[bad]).max(axis=1, keepdims=True)
         wb = np.maximum(w[bad], floor)
         info[bad] = (V[bad] * wb[:, None, :]) @ np.swapaxes(V[bad], 1, 2)
         info[bad] = (info[bad] + np.swapaxes(info[bad], 1, 2)) / 2
         log.warning("%s: %d of %d information matrices are not positive semi-definite (first on line %d); "
-                    "using the nearest positive-definite ones", path, int(bad.sum()), len(info),
+                    "using the nearest positive-definite ones (--information nearest-psd)", path, int(bad.sum()),
+                    len(info),
                     int(lines[int(np.argmax(bad))]))
     return int(bad.sum())
 
@@ -177,8 +194,11 @@ def _fill_missing(ids: np.ndarray, known: dict[int, np.ndarray], edges: np.ndarr
     return len(known) - before
 
 
-def read_g2o(path: str | Path) -> PoseGraph:
-    """Parse a g2o file; :class:`InputError` naming the line for anything malformed."""
+def read_g2o(path: str | Path, information: str = "file") -> PoseGraph:
+    """Parse a g2o file; :class:`InputError` naming the line for anything malformed. ``information``: how
+    matrices that are not positive semi-definite are read (:data:`INFORMATION_MODES`)."""
+    if information not in INFORMATION_MODES:
+        raise ValueError(f"information must be one of {', '.join(INFORMATION_MODES)}, not {information!r}")
     path = Path(path)
     parser = _Parser(path)
     for number, fields in _text.data_lines(_text.open_text(path)):
@@ -195,25 +215,30 @@ def read_g2o(path: str | Path) -> PoseGraph:
     e_values = _table(path, [v for _, _, v, _ in parser.edges], e_lines, 28 if is3d else 9)
     k = 7 if is3d else 3
     relative = _poses_from(e_values[:, :k], e_lines, is3d, path).reshape(-1, 4, 4)
-    information = _upper_to_full(e_values[:, k:], 6 if is3d else 3)
-    _check_magnitudes(information, e_lines, path)
-    projected = _project_information(information, e_lines, path)
+    matrices = _upper_to_full(e_values[:, k:], 6 if is3d else 3)
+    _check_magnitudes(matrices, e_lines, path)
+    not_psd = _project_information(matrices, e_lines, path, project=information == "nearest-psd")
     ids = np.union1d(v_ids, edges.reshape(-1)).astype(int)
     known = {int(n): T for n, T in zip(v_ids, v_poses, strict=True)}
-    filled = _fill_missing(ids, known, edges, relative) if len(known) < len(ids) else 0
+    with np.errstate(over="ignore", invalid="ignore"):  # chained huge numbers: refused just below, no warnings
+        filled = _fill_missing(ids, known, edges, relative) if len(known) < len(ids) else 0
     for node, number in parser.fixed:
         if node not in known:
             raise InputError(path, f"FIX of unknown node {node}", line=number)
+    poses = np.stack([known[int(n)] for n in ids]).reshape(-1, 4, 4)
+    validate_poses(poses, path)  # before any solver: chained edges can carry a position past any map
     meta: dict = {"source": str(path)}
     if filled:
         meta["initialised_from_edges"] = filled
     if parser.skipped:
         meta["skipped"] = dict(parser.skipped)
-    if projected:
-        meta["information_projected"] = projected
+    if not_psd:
+        meta["information_not_psd"] = not_psd
+        if information == "nearest-psd":
+            meta["information_projected"] = not_psd
     return PoseGraph(
-        ids=ids, poses=np.stack([known[int(n)] for n in ids]).reshape(-1, 4, 4), edges=edges,
-        relative=relative, information=information, planar=not is3d,
+        ids=ids, poses=poses, edges=edges,
+        relative=relative, information=matrices, planar=not is3d,
         fixed=sorted({n for n, _ in parser.fixed}), meta=meta,
     )
 
@@ -246,9 +271,7 @@ def write_g2o(graph: PoseGraph, path: str | Path) -> None:
 
 
 def _read(path: Path, options: ReadOptions) -> Trajectory:
-    traj = read_g2o(path).to_trajectory()
-    validate_poses(traj.poses, path)  # chained edges can carry a position past any map (overflowing distances)
-    return traj
+    return read_g2o(path).to_trajectory()  # its poses validated
 
 
 def _write(traj: Trajectory, path: Path, options: ReadOptions) -> None:
@@ -262,5 +285,6 @@ FORMAT = trajectory_format(
         read=_read,
         write=_write,
         suffixes=(".g2o",),
+        stamped=False,
     )
 )

@@ -159,5 +159,6 @@ FORMAT = trajectory_format(
         write=write_kitti,
         suffixes=(".txt", ".kitti"),
         sniff=sniff,
+        stamped=False,  # times.txt beside (written with ``options.times``)
     )
 )

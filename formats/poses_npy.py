@@ -56,5 +56,6 @@ FORMAT = trajectory_format(
         write=write_poses_npy,
         suffixes=(".npy",),
         sniff=sniff,
+        stamped=False,
     )
 )

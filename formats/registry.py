@@ -65,6 +65,9 @@ class TrajectoryFormat:
     ordered_stamps: bool = True
     #: the format's reader accepts repeated timestamps by default (else the writer must not get them either)
     repeated_stamps: bool = False
+    #: the format stores timestamps (KITTI poses, g2o, .npy do not: a trajectory's stamps are not written, and
+    #: a writer of a stamped format given none invents them; ``dm2 convert`` says so)
+    stamped: bool = True
 
 
 @dataclass(frozen=True)
@@ -150,15 +153,17 @@ def read_trajectory(path: str | Path, fmt: str | None = None, options: ReadOptio
     return traj
 
 
-def check_writable(traj: Trajectory, fmt: str, path: str | Path) -> None:
+def check_writable(traj: Trajectory, fmt: str, path: str | Path, stamps_written: bool | None = None) -> None:
     """:class:`InputError` naming the trajectory's source when ``fmt``'s own reader would refuse what its
     writer would write: non-finite or broken poses, non-finite stamps, and (for formats that need them
-    ordered) decreasing or repeated stamps. What dm2 writes, dm2 reads."""
+    ordered) decreasing or repeated stamps. What dm2 writes, dm2 reads. Stamps are checked only where they
+    are written (``stamps_written``; default: the format stores them)."""
     spec = TRAJECTORY_FORMATS[fmt]
     source = traj.meta.get("source") or path
+    stamps_written = spec.stamped if stamps_written is None else stamps_written
     try:
         validate_poses(traj.poses.copy(), source)  # a copy: validation snaps near-rotations in place
-        if traj.timestamps is not None:
+        if traj.timestamps is not None and stamps_written:
             if spec.ordered_stamps:
                 validate_timestamps(traj.timestamps, source, duplicates_ok=spec.repeated_stamps)
             elif not np.isfinite(traj.timestamps).all():
@@ -178,19 +183,35 @@ def write_trajectory(
         raise InputError(path, f"format {fmt!r} cannot be written; writable: {writable}")
     if len(traj) == 0:
         raise InputError(path, "no poses to write")
-    check_writable(traj, fmt, path)
-    spec.write(traj, path, options or ReadOptions())
+    options = options or ReadOptions()
+    check_writable(traj, fmt, path, stamps_written=spec.stamped or bool(options.times))
+    spec.write(traj, path, options)
 
 
-def read_spec(fmt: str, path: Path, options: ReadOptions) -> dict:
+#: read options whose effective value a scan source reports in its ``meta`` (its default when not given)
+EFFECTIVE_OPTIONS = ("intrinsics", "depth_scale", "stride")
+
+
+def _plain(value):
+    """One spelling per value for a cache key: paths resolved, numbers as floats, sequences as lists."""
+    if isinstance(value, Path):
+        return str(value.resolve())
+    if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
+        return float(value)
+    if isinstance(value, (tuple, list, np.ndarray)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def read_spec(fmt: str, path: Path, options: ReadOptions, effective: dict | None = None) -> dict:
     """Everything that determines what ``open_scans`` reads: the format, the resolved path and every option
-    (paths resolved; ``extra`` included), as JSON-ready values."""
-    def plain(value):
-        return str(Path(value).resolve()) if isinstance(value, Path) else value
-
+    (paths resolved; ``extra`` included), normalised (``--intrinsics 1,2,3,4`` and ``"1 2 3 4"``, a depth
+    scale given or left at the layout's default of the same value: one key), as JSON-ready values.
+    ``effective``: the values the source used for :data:`EFFECTIVE_OPTIONS` (its ``meta``)."""
     spec = {"format": fmt, "path": str(Path(path).resolve())}
-    spec.update({k: plain(v) for k, v in vars(options).items() if k != "extra"})  # every declared field
-    spec["extra"] = {k: plain(v) for k, v in sorted(options.extra.items())}
+    spec.update({k: _plain(v) for k, v in vars(options).items() if k != "extra"})  # every declared field
+    spec.update({k: _plain(v) for k, v in (effective or {}).items() if k in EFFECTIVE_OPTIONS})
+    spec["extra"] = {k: _plain(v) for k, v in sorted(options.extra.items())}
     return spec
 
 
@@ -202,7 +223,7 @@ def open_scans(path: str | Path, fmt: str | None = None, options: ReadOptions | 
     options = options or ReadOptions()
     spec = _lookup(SCAN_SOURCES, name, "scan source", path)
     seq = spec.open(path, options)
-    seq.read_spec = read_spec(name, path, options)
+    seq.read_spec = read_spec(name, path, options, seq.meta)
     seq.sensor = seq.sensor or spec.sensor or (LASER_2D if seq.planar else LIDAR)
     if len(seq) == 0:
         raise InputError(seq.source or path, "holds no scans")

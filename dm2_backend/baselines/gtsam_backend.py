@@ -12,6 +12,7 @@ from scipy.sparse.csgraph import connected_components
 
 from dm2_backend.baselines.options import KERNELS, GraphResult, SolverOptions
 from dm2_backend.errors import InputError
+from dm2_backend.formats.g2o import indefinite
 from dm2_backend.geometry import se3
 from dm2_backend.pose_graph import PoseGraph
 
@@ -104,8 +105,16 @@ def lm_params(options: SolverOptions) -> gtsam.LevenbergMarquardtParams:
 
 
 def optimize(graph: PoseGraph, options: SolverOptions | None = None) -> GraphResult:
-    """Levenberg-Marquardt from the graph's initial poses."""
+    """Levenberg-Marquardt from the graph's initial poses. GTSAM whitens each edge by a square root of its
+    information, which a matrix that is not positive semi-definite does not have: such a graph is refused
+    (one line) rather than weighed by a wrong factorisation."""
     options = options or SolverOptions()
+    bad = indefinite(graph.information)
+    if bad.any():
+        raise InputError(graph.meta.get("source"), f"{int(bad.sum())} information matrices are not positive "
+                         "semi-definite and GTSAM can only weigh an edge by a square root of its information: "
+                         "`dm2 baseline g2o` optimises the matrices as the file writes them, --information "
+                         "nearest-psd uses the nearest positive-definite ones")
     t = time.perf_counter()
     fg = factor_graph(graph, options)
     initial = to_values(graph)

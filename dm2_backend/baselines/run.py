@@ -16,6 +16,9 @@ from dm2_backend.baselines.multiway import multiway
 from dm2_backend.baselines.options import GRAPH_METHODS, METHODS, GraphResult, SolverOptions
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import plots
+from dm2_backend.evaluation.cautions import pose_cautions
+from dm2_backend.evaluation.evaluate import EvalOptions, evaluate
+from dm2_backend.evaluation.report import run_metrics
 from dm2_backend.formats import write_trajectory
 from dm2_backend.formats.g2o import read_g2o, write_g2o
 from dm2_backend.pipeline import outputs
@@ -38,8 +41,9 @@ def solve(method: str, graph: PoseGraph, options: SolverOptions) -> GraphResult:
 
 
 def baseline(method: str, inputs: RunInputs, cfg: dict, out: Path, cache_dir: Path | None,
-             options: SolverOptions, progress: bool = True) -> RunReport:
-    """Prepare (cached, shared with ``dm2 refine``), run the baseline, write the run folder."""
+             options: SolverOptions, progress: bool = True, started: float | None = None) -> RunReport:
+    """Prepare (cached, shared with ``dm2 refine``), run the baseline, write the run folder. ``started``:
+    when the command started (``time.perf_counter``): the report's total then counts it all."""
     if method not in METHODS:
         raise InputError(None, f"unknown baseline {method!r}; choices: {', '.join(METHODS)}")
     options.check()
@@ -66,15 +70,20 @@ def baseline(method: str, inputs: RunInputs, cfg: dict, out: Path, cache_dir: Pa
     timings["optimise"] = time.perf_counter() - t_opt
     timings["total"] = time.perf_counter() - t_start
     return write_run(out, cfg, inputs, prep, final, method, timings, extra,
-                     files=["graph.g2o"] if method in GRAPH_SOLVERS else None)
+                     files=["graph.g2o"] if method in GRAPH_SOLVERS else None, started=started)
 
 
-def optimise_file(method: str, path: Path, out: Path, options: SolverOptions) -> dict:
+def optimise_file(method: str, path: Path, out: Path, options: SolverOptions, gt: Trajectory | None = None,
+                  started: float | None = None, information: str = "file") -> dict:
     """Optimise a g2o file; writes ``poses.g2o`` (optimised vertices, same edges), ``poses_kitti.txt``,
-    ``poses.npy``, ``trajectory.png`` and ``report.json``."""
+    ``poses.npy``, ``trajectory.png`` and ``report.json``. ``gt``: one pose per vertex (in id order); the
+    report then holds the metrics of the file's vertices (``initial_metrics``) and of the result."""
     t_start = time.perf_counter()
-    graph = read_g2o(path)
+    graph = read_g2o(path, information)
     t_read = time.perf_counter() - t_start
+    if gt is not None and len(gt) != len(graph):
+        raise InputError(gt.meta.get("source"), f"{len(gt)} ground-truth poses for the {len(graph)} vertices of "
+                                                f"{path}: --gt with --graph needs one pose per vertex, in id order")
     result = solve(method, graph, options)
     out.mkdir(parents=True, exist_ok=True)
     write_g2o(replace(graph, poses=result.poses), out / "poses.g2o")
@@ -92,9 +101,22 @@ def optimise_file(method: str, path: Path, out: Path, options: SolverOptions) ->
         "planar": graph.planar,
         **result.summary(),
         "graph_meta": graph.meta,
-        "timings": {"read": t_read, "optimise": result.seconds, "total": time.perf_counter() - t_start},
+        "timings": {"read": t_read, "optimise": result.seconds,
+                    "total": time.perf_counter() - (t_start if started is None else started)},
         "peak_rss_mb": outputs.peak_rss_mb(),
         "files": ["poses.g2o", "poses_kitti.txt", "poses.npy", "trajectory.png", "report.json"],
     }
+    if gt is not None:
+        report.update(graph_metrics(gt, graph.poses, result.poses, graph.planar))
     outputs.write_report(out / "report.json", report)
     return report
+
+
+def graph_metrics(gt: Trajectory, initial: np.ndarray, final: np.ndarray, planar: bool) -> dict:
+    """``initial_metrics``, ``metrics`` and ``cautions`` of a graph's vertices against ``gt`` (by index: the
+    vertices carry no stamps)."""
+    options = EvalOptions(by_index=True)
+    before = evaluate(Trajectory(initial, planar=planar), gt=gt, options=options)
+    after = evaluate(Trajectory(final, planar=planar), gt=gt, options=options)
+    return {"initial_metrics": run_metrics(before), "metrics": run_metrics(after),
+            "cautions": pose_cautions(after.poses)}

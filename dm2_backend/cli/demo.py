@@ -2,15 +2,26 @@
 
 from __future__ import annotations
 
+import getpass
 import tempfile
 from pathlib import Path
 
 import click
 
 
+def default_folder() -> Path:
+    """One demo folder per user in the temporary directory."""
+    try:
+        user = getpass.getuser()
+    except (KeyError, OSError):  # no user name to be had (a container's numeric uid)
+        user = "user"
+    return Path(tempfile.gettempdir()) / f"dm2-demo-{user}"
+
+
 @click.command("demo")
 @click.option("--out", "-o", type=click.Path(path_type=Path), default=None,
-              help="Folder for the sample and the run (default: a temporary folder).")
+              help="Folder for the sample and the run [default: dm2-demo-USER in the temporary folder, replaced by "
+                   "the next demo].")
 @click.option("--frames", type=int, default=300, show_default=True, help="Frames to simulate.")
 @click.option("--epochs", type=click.IntRange(min=1), default=None, help="Optimisation epochs (default: the config)")
 @click.option("--seed", type=int, default=0, show_default=True)
@@ -26,8 +37,10 @@ def command(out: Path | None, frames: int, epochs: int | None, seed: int, force:
     from dm2_backend.pipeline.run_folder import run_folder
     from dm2_backend.simulate.sequence import SimSettings, simulate, write_sequence
 
-    root = out or Path(tempfile.mkdtemp(prefix="dm2-demo-"))
-    with run_folder(root, "demo", force=force):
+    root = out or default_folder()
+    # the default folder is the demo's own: each demo replaces the last one's files (as --force) instead of
+    # leaving another folder in the temporary directory
+    with run_folder(root, "demo", force=force or out is None):
         sample = root / "sample"
         click.echo(f"simulating {frames} planar laser frames (seed {seed}) into {sample}")
         scans, gt, warm = simulate(SimSettings(frames=frames, seed=seed, planar=True), progress=not quiet)

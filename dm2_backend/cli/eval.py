@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from dm2_backend.cli.options import duplicate_times_option
+from dm2_backend.cli.options import depth_scale_option, duplicate_times_option, intrinsics_option, read_options
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.ape_rpe import ALIGN_MODES, DELTA_UNITS
@@ -31,7 +31,14 @@ from dm2_backend.pipeline.inputs import looks_planar
 path_type = click.Path(path_type=Path)
 
 
-def _labels(paths: tuple[Path, ...]) -> list[str]:
+def _labels(paths: tuple[Path, ...], given: tuple[str, ...] = ()) -> list[str]:
+    """One label per estimate: ``--label`` in order, else the file name (made unique with ``#k``)."""
+    if given:
+        if len(given) != len(paths):
+            raise click.UsageError(f"{len(given)} --label for {len(paths)} estimates: give one per estimate, in order")
+        if len(set(given)) != len(given):
+            raise click.BadParameter("labels must differ", param_hint="--label")
+        return list(given)
     labels: list[str] = []
     for p in paths:
         name = p.name
@@ -91,9 +98,6 @@ def _profiles(folder: Path, scans, at_scans: dict[str, np.ndarray]) -> list[Path
 #: the alignment line printed above the table
 ALIGN_TEXT = {"se3": "SE(3) Umeyama, no scale (evo -a; dm2's default)", "sim3": "Sim(3) Umeyama (evo -as)",
               "none": "none (evo's default)"}
-#: positions whose second principal spread is under this fraction of the first lie "on a line"
-LINE_RATIO = 0.02
-
 
 def _positional(files: tuple[Path, ...], gt_path: Path | None, est_paths: tuple[Path, ...]
                 ) -> tuple[Path | None, tuple[Path, ...]]:
@@ -122,19 +126,6 @@ def _alignment(align: str | None, align_flag: bool, scale_flag: bool, align_orig
     return align or ("none" if align_origin else "se3")
 
 
-def free_rotation_warning(positions: np.ndarray) -> str | None:
-    """A warning when the ground-truth positions lie nearly on a line (or a point): aligning them leaves the
-    rotation about that line free, so the aligned APE rotation says little."""
-    if len(positions) < 3:
-        return "fewer than 3 matched poses: the alignment is not determined"
-    spread = np.linalg.svd(positions - positions.mean(axis=0), compute_uv=False) / np.sqrt(len(positions))
-    if spread[0] == 0 or spread[1] < LINE_RATIO * spread[0]:
-        return (f"the ground-truth path is nearly a straight line ({spread[1]:.3g} m across, {spread[0]:.3g} m "
-                "along): the alignment leaves the rotation about it free and the APE rotation is not meaningful "
-                "(try --align-origin or --align none)")
-    return None
-
-
 @click.command("eval")
 @click.argument("files", nargs=-1, type=path_type)
 @click.option("--gt", "gt_path", type=path_type, default=None, help="Ground-truth trajectory.")
@@ -150,6 +141,10 @@ def free_rotation_warning(positions: np.ndarray) -> str | None:
               help="Scan source: adds the map entropy and plane variance of the scans at each estimate "
                    "(no ground truth needed).")
 @click.option("--scans-format", default=None, help="Format of --scans (detected otherwise).")
+@click.option("--scans-topic", default=None, help="Bag topic of --scans.")
+@click.option("--scans-times", type=path_type, default=None, help="KITTI times.txt for --scans.")
+@intrinsics_option
+@depth_scale_option
 @click.option("--profile", "profile_dir", type=path_type, default=None,
               help="With --scans: write each estimate's consistency profile into this folder (consistency.json, "
                    ".csv, .png): per frame, how far its points lie from the planes the other frames make, and "
@@ -165,6 +160,10 @@ def free_rotation_warning(positions: np.ndarray) -> str | None:
 @click.option("-s", "scale_flag", is_flag=True, help="With -a: also correct the scale, as evo's -as (= --align sim3).")
 @click.option("--max-diff", type=float, default=0.01, show_default=True,
               help="Max. seconds between associated stamps (association by index when a file has none).")
+@click.option("--by-index", is_flag=True,
+              help="Pair the poses in order (the first min(N, M)), whatever their stamps and counts.")
+@click.option("--label", "labels", multiple=True,
+              help="Name of each estimate in the table and outputs (repeat, in the order of the estimates).")
 @click.option("--delta", type=float, default=1.0, show_default=True, help="RPE pair distance.")
 @click.option("--delta-unit", type=click.Choice(list(DELTA_UNITS)), default="f", show_default=True,
               help="RPE delta unit: f frames, m metres.")
@@ -178,9 +177,9 @@ def free_rotation_warning(positions: np.ndarray) -> str | None:
               help="Write evo result archives (.zip, readable by evo_res) into this folder.")
 @duplicate_times_option
 def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topic, gt_times, est_times,
-            scans_path, scans_format, profile_dir, relations_path, relations_max_dt, align, align_origin, align_flag,
-            scale_flag, max_diff, delta, delta_unit, json_path, csv_path, md_path, plot_dir, run_report, evo_dir,
-            duplicate_times) -> None:
+            scans_path, scans_format, scans_topic, scans_times, intrinsics, depth_scale, profile_dir,
+            relations_path, relations_max_dt, align, align_origin, align_flag, scale_flag, max_diff, by_index, labels,
+            delta, delta_unit, json_path, csv_path, md_path, plot_dir, run_report, evo_dir, duplicate_times) -> None:
     """Evaluate one or more estimated trajectories against a ground truth, relations and/or the map they make.
 
     APE and RPE (translation m, rotation deg) are computed with evo and equal evo_ape / evo_rpe;
@@ -200,26 +199,30 @@ def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topi
         raise click.UsageError("--profile scores the scans at each estimate: give --scans too")
     if run_report is not None and plot_dir is None:
         raise click.UsageError("--run-report is used for the error-vs-epoch plot: give --plot DIR too")
+    est_labels = _labels(est_paths, labels)
+    # the scans are read as refine reads them (the same options, parsed by the same function)
+    scan_options = read_options(scans_topic, scans_times, None, intrinsics, depth_scale, duplicate_times)
 
     gt_options = ReadOptions(topic=gt_topic, times=gt_times, duplicate_times=duplicate_times)
     gt = read_trajectory(gt_path, gt_format, gt_options) if gt_path else None
     if gt is not None and len(gt) == 0:
         raise InputError(gt_path, "no poses")
     relations = load_relations(relations_path) if relations_path else None
-    scans = open_scans(scans_path, scans_format, ReadOptions(duplicate_times=duplicate_times)) if scans_path else None
+    scans = open_scans(scans_path, scans_format, scan_options) if scans_path else None
     sampler = MapSampler.from_scans(scans) if scans is not None else None
     report = EvalReport(
         ground_truth=str(gt_path) if gt_path else None,
         relations_file=str(relations_path) if relations_path else None,
-        settings={"align": align, "align_origin": align_origin, "max_diff": max_diff, "delta": delta,
+        settings={"align": align, "align_origin": align_origin, "max_diff": max_diff, "by_index": by_index,
+                  "delta": delta,
                   "delta_unit": delta_unit, "relations_max_dt": relations_max_dt},
         map=None if sampler is None else {"scans_path": str(scans_path), **sampler.settings_summary()},
     )
     est_options = ReadOptions(topic=est_topic, times=est_times, duplicate_times=duplicate_times)
-    options = EvalOptions(align=align, align_origin=align_origin, max_diff=max_diff, delta=delta,
-                          delta_unit=delta_unit, relations_max_dt=relations_max_dt)
+    options = EvalOptions(align=align, align_origin=align_origin, max_diff=max_diff, by_index=by_index,
+                          delta=delta, delta_unit=delta_unit, relations_max_dt=relations_max_dt)
     at_scans = {}
-    for path, label in zip(est_paths, _labels(est_paths), strict=True):
+    for path, label in zip(est_paths, est_labels, strict=True):
         est = read_trajectory(path, est_format, est_options)
         if len(est) == 0:
             raise InputError(path, "no poses")
@@ -229,11 +232,6 @@ def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topi
                                          options=options))
 
     click.echo(f"alignment: {ALIGN_TEXT[align] if not align_origin else 'first poses only (--align-origin)'}")
-    for entry in report.estimates:
-        if entry.poses is not None and align in ("se3", "sim3"):
-            warning = free_rotation_warning(np.array(entry.poses.ref.positions_xyz))
-            if warning:
-                click.echo(f"warning: {entry.label}: {warning}", err=True)
     click.echo(terminal_text(report))
     written = []
     if json_path:

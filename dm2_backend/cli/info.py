@@ -79,6 +79,37 @@ def relation_rows(path: Path) -> list[tuple[str, str]]:
     ]
 
 
+#: trajectories a run folder holds, in the order they are listed
+RUN_TRAJECTORIES = ("poses_tum.txt", "poses_kitti.txt", "poses.npy", "poses.g2o", "warm_start_tum.txt")
+
+
+def is_run_folder(path: Path) -> bool:
+    """A folder written by ``dm2 refine`` / ``baseline`` (its ``report.json`` beside the run's own record)."""
+    return path.is_dir() and (path / "report.json").is_file() and (
+        (path / ".dm2-run.json").is_file() or (path / "poses.npy").is_file())
+
+
+def run_folder_rows(path: Path) -> list[tuple[str, str]]:
+    """A run folder: what made it, its frames, metrics and cautions, and the trajectories to give other tools."""
+    from dm2_backend.evaluation.report import read_run_report
+
+    report = read_run_report(path)
+    rows = [("path", str(path)), ("format", "dm2 run folder (dm2 refine / dm2 baseline)"),
+            ("method", str(report.get("method", "-")))]
+    for key in ("frames", "nodes"):
+        if isinstance(report.get(key), int):
+            rows.append((key, str(report[key])))
+    for key, value in report.get("metrics", {}).items():
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            rows.append((f"metric {key}", f"{value:.6g}"))
+    rows += [("caution", c) for c in report.get("cautions", []) if isinstance(c, str)]
+    present = [name for name in RUN_TRAJECTORIES if (path / name).is_file()]
+    if present:
+        rows.append(("trajectories", ", ".join(present)))
+    rows.append(("next", f"dm2 info {path / (present[0] if present else 'report.json')}; dm2 compare {path} ..."))
+    return rows
+
+
 def _try(detect, path: Path) -> str | None:
     try:
         return detect(path)
@@ -92,6 +123,8 @@ def describe(path: Path, fmt: str | None, options: ReadOptions) -> list[tuple[st
         raise InputError(path, "no such file or folder")
     if fmt == "relations" or (fmt is None and path.name.lower().endswith(".relations")):
         return relation_rows(path)
+    if fmt is None and is_run_folder(path):
+        return run_folder_rows(path)
     traj_fmt = fmt if fmt in TRAJECTORY_FORMATS else (None if fmt else _try(detect_trajectory_format, path))
     scan_fmt = fmt if fmt in SCAN_SOURCES else (None if fmt else _try(detect_scan_source, path))
     if traj_fmt is None and scan_fmt is None:

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import importlib
 import sys
+import time
 import traceback
 
 import click
 
 from dm2_backend import __version__
-from dm2_backend.errors import InputError
+from dm2_backend.errors import InputError, did_you_mean
 from dm2_backend.progress import setup_logging
 
 #: sub-command name -> module in dm2_backend.cli, imported only when the command is used (start-up stays fast)
@@ -31,6 +32,12 @@ class Dm2Group(click.Group):
         if name not in COMMANDS:
             return None
         return importlib.import_module(f"dm2_backend.cli.{COMMANDS[name]}").command
+
+    def resolve_command(self, ctx: click.Context, args: list[str]):
+        name = click.utils.make_str(args[0]) if args else ""
+        if args and name not in COMMANDS and not name.startswith("-"):
+            ctx.fail(f"No such command {name!r}.{did_you_mean(name, COMMANDS)}")
+        return super().resolve_command(ctx, args)
 
     def invoke(self, ctx: click.Context):
         try:
@@ -54,6 +61,7 @@ def cli(ctx: click.Context, debug: bool) -> None:
     """dm2: refine any SLAM trajectory with DeepMapping2."""
     ctx.ensure_object(dict)
     ctx.obj["debug"] = debug
+    ctx.obj.setdefault("started", time.perf_counter())  # a run's "total": the whole command, reading and writing too
     setup_logging()  # stage lines and warnings on stderr, one line each (dm2_backend.progress)
 
 

@@ -96,7 +96,12 @@ def prepare_run(kw: dict, overrides: dict):
     if kw["seed"] is not None:
         overrides["seed"] = kw["seed"]
     cfg = config.load(kw["config_path"], overrides)
-    if default_to_icp(cfg, inputs, bool(kw["warm_start"]) or config.sets(kw["config_path"], "warm_start")):
+    asked = bool(kw["warm_start"]) or config.sets(kw["config_path"], "warm_start")
+    if asked and cfg["warm_start"]["name"] == "poses" and inputs.given is None:
+        source, what = (None, "--warm-start poses") if kw["warm_start"] else (kw["config_path"], "warm_start poses")
+        raise InputError(source, f"{what} starts from a given trajectory and there is none: give --poses FILE "
+                                 "(or --warm-start icp to compute one from the scans)")
+    if default_to_icp(cfg, inputs, asked):
         cfg["warm_start"] = {"name": "icp", "options": {}}
     cache = None if kw["no_cache"] else (kw["cache_dir"] or default_cache_dir())
     return inputs, cfg, cache
@@ -130,7 +135,8 @@ def command(epochs, device, resume, nproc, rerun_path, **kw) -> None:
 
         check_rerun()  # before the run, not after it
     with output_folder(kw, "refine", cfg, inputs, resume):
-        report = refine(inputs, cfg, kw["out"], cache, resume=resume, progress=not kw["quiet"])
+        report = refine(inputs, cfg, kw["out"], cache, resume=resume, progress=not kw["quiet"],
+                        started=command_started())
     if report is not None:  # None: a torchrun rank other than 0
         print_summary(report, kw["out"])
         if rerun_path is not None:
@@ -188,6 +194,13 @@ def warn_camera_frame(kw: dict, inputs) -> None:
                        "was given or found: they are used as LiDAR poses; give --calib calib.txt", err=True)
 
 
+def command_started() -> float | None:
+    """When the ``dm2`` command started (``time.perf_counter``), for a run's total time; None outside one."""
+    ctx = click.get_current_context(silent=True)
+    obj = ctx.find_root().obj if ctx is not None else None
+    return obj.get("started") if isinstance(obj, dict) else None
+
+
 def check_device(device: str) -> None:
     """``cuda`` without a usable CUDA device is an input error before any work (not an assertion inside torch
     after the preparation)."""
@@ -206,6 +219,8 @@ def print_summary(report: RunReport, out: Path) -> None:
             click.echo(f"{key:<28} warm start {before[key]:10.4f}  ->  {report.method} {after[key]:10.4f}")
     if "error" in after:
         click.echo(f"evaluation failed: {after['error']}", err=True)
+    for text in report.cautions or []:
+        click.echo(f"caution: {text}")
     if report.details.get("stopped"):
         click.echo(f"warning: {report.details['stopped']}", err=True)
     t = report.timings

@@ -1,7 +1,8 @@
 """APE and RPE computed through the evo library, so the numbers equal ``evo_ape`` / ``evo_rpe``.
 
 Association: by timestamps (``evo.core.sync.associate_trajectories`` with ``max_diff``) when both
-trajectories have them, by index (the first min(N, M) poses) otherwise. Alignment of the estimate onto the
+trajectories have them, by index otherwise when the counts agree (different counts are refused unless
+``by_index`` forces the first min(N, M) poses). Alignment of the estimate onto the
 ground truth: ``se3`` / ``sim3`` (Umeyama, evo's ``align``), ``none``, or evo's ``align_origin``.
 Translation errors in metres, rotation errors in degrees (evo's ``rotation_angle_deg`` relation).
 """
@@ -9,7 +10,7 @@ Translation errors in metres, rotation errors in degrees (evo's ``rotation_angle
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -79,10 +80,11 @@ def to_evo(traj: Trajectory, name: str | None = None) -> PosePath3D:
 
 
 def associate(
-    ref: PosePath3D, est: PosePath3D, max_diff: float, source: str | Path | None = None
+    ref: PosePath3D, est: PosePath3D, max_diff: float, source: str | Path | None = None, by_index: bool = False
 ) -> tuple[PosePath3D, PosePath3D, str]:
-    """Associated copies of ``(ref, est)`` and the mode, ``"time"`` or ``"index"``."""
-    if isinstance(ref, PoseTrajectory3D) and isinstance(est, PoseTrajectory3D):
+    """Associated copies of ``(ref, est)`` and the mode, ``"time"`` or ``"index"``. By index (``by_index``, or
+    a side without stamps) the counts must agree unless ``by_index`` forces it (the first min(N, M) poses)."""
+    if not by_index and isinstance(ref, PoseTrajectory3D) and isinstance(est, PoseTrajectory3D):
         try:
             ref, est = sync.associate_trajectories(ref, est, max_diff=max_diff)
         except sync.SyncException:
@@ -90,6 +92,13 @@ def associate(
                 source, f"no pose within {max_diff} s of a ground-truth timestamp (see --max-diff)"
             ) from None
         return ref, est, "time"
+    if ref.num_poses != est.num_poses and not by_index:
+        missing = "the estimate has" if isinstance(ref, PoseTrajectory3D) else "the ground truth has"
+        if not isinstance(ref, PoseTrajectory3D) and not isinstance(est, PoseTrajectory3D):
+            missing = "neither has"
+        raise InputError(source, f"{est.num_poses} poses against {ref.num_poses} of the ground truth and {missing} "
+                                 "no timestamps to associate them by; give the stamps (--est-times / --gt-times) "
+                                 f"or --by-index to compare the first {min(ref.num_poses, est.num_poses)} of each")
     n = min(ref.num_poses, est.num_poses)
     ref, est = copy.deepcopy(ref), copy.deepcopy(est)
     ref.reduce_to_ids(np.arange(n))
@@ -199,12 +208,16 @@ def evaluate_poses(
     delta_unit: str = "f",
     names: tuple[str, str] = ("reference", "estimate"),
     source: str | Path | None = None,
+    by_index: bool = False,
 ) -> PoseErrors:
     """APE and RPE (translation m, rotation deg) of ``est`` against ``gt``; ``source`` names the estimate
-    in errors. Raises :class:`InputError` when nothing associates or evo rejects the data."""
+    in errors; ``by_index``: pair the poses in order, whatever their stamps and counts. Raises
+    :class:`InputError` when nothing associates or evo rejects the data."""
     if delta_unit not in DELTA_UNITS:
         raise ValueError(f"unknown delta unit {delta_unit!r}; choices: {', '.join(DELTA_UNITS)}")
-    ref, est_e, mode = associate(to_evo(gt, names[0]), to_evo(est, names[1]), max_diff, source)
+    if by_index:  # stamps play no part
+        gt, est = replace(gt, timestamps=None), replace(est, timestamps=None)
+    ref, est_e, mode = associate(to_evo(gt, names[0]), to_evo(est, names[1]), max_diff, source, by_index)
     suffix = _title_suffix(align, align_origin)
     raw = np.array(est_e.poses_se3)
     try:

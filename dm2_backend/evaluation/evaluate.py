@@ -6,7 +6,7 @@ metric; with scans: the map's sharpness (entropy and plane variance) at the esti
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +26,8 @@ class EvalOptions:
 
     align: str = "se3"
     align_origin: bool = False
-    #: seconds between associated stamps; ``by_index``: the poses are already paired one to one
+    #: seconds between associated stamps; ``by_index``: pair the poses in order (already paired one to one,
+    #: or ``dm2 eval --by-index``: the first min(N, M), whatever the stamps)
     max_diff: float = 0.01
     by_index: bool = False
     delta: float = 1.0
@@ -43,11 +44,10 @@ def evaluate(est: Trajectory, label: str = "", path: str | Path = "", *, gt: Tra
     entry = EstimateReport(label=label, path=str(path), positions=est.positions)
     if gt is not None:
         covered = est if gt_frames is None else est.subset(gt_frames)
-        ref, mine = (replace(gt, timestamps=None), replace(covered, timestamps=None)) if options.by_index \
-            else (gt, covered)
-        entry.poses = evaluate_poses(ref, mine, align=options.align, align_origin=options.align_origin,
+        entry.poses = evaluate_poses(gt, covered, align=options.align, align_origin=options.align_origin,
                                      max_diff=options.max_diff, delta=options.delta, delta_unit=options.delta_unit,
-                                     names=("ground truth", label or "estimate"), source=path or None)
+                                     names=("ground truth", label or "estimate"), source=path or None,
+                                     by_index=options.by_index)
         if entry.poses.n_matched >= 3:
             entry.paper = paper_ate(np.array(entry.poses.ref.poses_se3), entry.poses.est_raw)
     if relations is not None:

@@ -201,7 +201,8 @@ def poses_of_scans(scans: ScanSequence, est: Trajectory, max_diff: float = 0.01,
         if len(i_scan) == len(scans):
             return est.poses[i_pose[np.argsort(i_scan)]]
         if len(est) != len(scans):
-            raise InputError(source, f"only {len(i_scan)} of {len(scans)} scans have a pose within {max_diff} s")
+            raise InputError(source, f"only {len(i_scan)} of {len(scans)} scans have a pose within {max_diff} s "
+                                      "(see --max-diff)")
     elif len(est) != len(scans):
         raise InputError(source, f"{len(est)} poses for {len(scans)} scans and no timestamps to associate by")
     return est.poses  # by index

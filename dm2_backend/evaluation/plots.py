@@ -157,10 +157,13 @@ def metric_label(name: str) -> str:
     return UNNAMED_METRIC if name == "ate" else name
 
 
-def epochs_figure(epochs: list, start: float | dict[str, float] | None = None) -> Figure | None:
+def epochs_figure(epochs: list, start: float | dict[str, float] | None = None,
+                  returned: int | None = None) -> Figure | None:
     """Error versus epochs trained, the start (``start``: its value, or name -> value) at epoch 0; None when
     no epoch has an ``ate`` entry. The y-axis starts at 0, so a small change looks small; the relative
-    change from the start (or the first epoch) to the last epoch is written on the plot."""
+    change from the start (or the first epoch) to the epoch whose poses the run returned (``returned``: the
+    report's ``best_epoch``, counted from 0, -1 the start itself; None: the last epoch) is written on the
+    plot, and that epoch is marked."""
     series = epoch_series(epochs)
     if not series:
         return None
@@ -175,8 +178,14 @@ def epochs_figure(epochs: list, start: float | dict[str, float] | None = None) -
         if x[0] == 0:
             ax.plot([0.0], [y[0]], "s", ms=7, color=line.get_color(), label="start")
         first = "start" if x[0] == 0 else f"epoch {x[0]:.0f}"
+        k = _returned_index(x, returned)
+        if returned is not None and k is not None:
+            ax.plot([x[k]], [y[k]], "*", ms=12, color=line.get_color(), label="returned")
+        k = len(x) - 1 if k is None else k
+        end = "start" if x[k] == 0 else f"epoch {x[k]:.0f}"
+        end += " (returned)" if returned is not None else ""
         if y[0] != 0:
-            notes.append(f"{first} {y[0]:.4g} -> epoch {x[-1]:.0f} {y[-1]:.4g} ({100 * (y[-1] / y[0] - 1):+.1f} %)")
+            notes.append(f"{first} {y[0]:.4g} -> {end} {y[k]:.4g} ({100 * (y[k] / y[0] - 1):+.1f} %)")
         top = max(top, float(np.max(y)))
     ax.set_ylim(0.0, 1.1 * top if top > 0 else 1.0)
     ax.set_xlim(-0.25, max(float(max(x.max() for x, _ in series.values())), 1.0) + 0.25)
@@ -190,10 +199,18 @@ def epochs_figure(epochs: list, start: float | dict[str, float] | None = None) -
     return fig
 
 
-def plot_error_vs_epoch(path: str | Path, epochs: list, start: float | dict[str, float] | None = None
-                        ) -> Path | None:
+def _returned_index(x: np.ndarray, returned: int | None) -> int | None:
+    """Index in ``x`` (epochs trained, 0 the start) of the returned epoch (counted from 0; -1 the start)."""
+    if returned is None or isinstance(returned, bool) or not isinstance(returned, (int, float)):
+        return None
+    hits = np.flatnonzero(x == returned + 1)
+    return int(hits[0]) if len(hits) else None
+
+
+def plot_error_vs_epoch(path: str | Path, epochs: list, start: float | dict[str, float] | None = None,
+                        returned: int | None = None) -> Path | None:
     """:func:`epochs_figure`, written to ``path``; None (nothing written) when it has nothing to draw."""
-    fig = epochs_figure(epochs, start)
+    fig = epochs_figure(epochs, start, returned)
     return None if fig is None else save(fig, path)
 
 
@@ -211,8 +228,9 @@ def run_start(report: dict) -> dict[str, float]:
 
 
 def plot_run_epochs(path: str | Path, report: dict) -> Path | None:
-    """The epoch plot of a run's ``report.json``, with the start from its ``start_metrics``."""
-    return plot_error_vs_epoch(path, report.get("epochs") or [], run_start(report))
+    """The epoch plot of a run's ``report.json``, with the start from its ``start_metrics`` and the epoch it
+    returned (``best_epoch``) marked."""
+    return plot_error_vs_epoch(path, report.get("epochs") or [], run_start(report), report.get("best_epoch"))
 
 
 #: how each closure status is drawn on the topology plot: colour, line width, line style, opacity, label

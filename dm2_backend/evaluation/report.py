@@ -8,6 +8,8 @@ Run report schema (``<run folder>/report.json``, one JSON object)::
                                    "ape_trans_rmse_m", "ape_rot_rmse_deg", "relations_trans_mean_m"
     timings      {stage: seconds}  wall-clock seconds per stage, e.g. {"prepare": 12.1, "refine": 340.2}
     peak_rss_mb  number            peak resident memory of the run, MiB
+    cautions     [str]             optional: where the metrics are ill-posed (a rotation APE the alignment
+                                   does not determine) or a trajectory standing still scores within reach
     epochs       [ {...} ]         optional, per refinement epoch: "epoch" (int), "loss" and "ate" (numbers),
                                    each key optional; "ate" may also be {name: number}; "ate_metric"
                                    names the metric "ate" is (a key of "metrics": "ape_trans_rmse_m" or
@@ -36,6 +38,7 @@ from evo.tools import file_interface
 from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation.ape_rpe import STAT_KEYS, PoseErrors
+from dm2_backend.evaluation.cautions import pose_cautions, standing_still_rmse
 from dm2_backend.evaluation.map_quality import MapQuality
 from dm2_backend.evaluation.paper_ate import LABEL as PAPER_LABEL
 from dm2_backend.evaluation.paper_ate import PaperATE
@@ -128,6 +131,9 @@ def to_json(report: EvalReport) -> dict:
             for key, m in pe.metrics.items():
                 entry["metrics"][key] = {"unit": m.unit, "count": m.count, "title": m.title,
                                          **{k: _num(v) for k, v in m.stats.items()}}
+            entry["standing_still_ape_trans_rmse_m"] = _num(standing_still_rmse(
+                np.asarray(pe.ref.positions_xyz), pe.align, pe.align_origin))
+            entry["cautions"] = pose_cautions(pe)
         if est.paper is not None:
             entry["metrics"]["paper_ate"] = {
                 "label": PAPER_LABEL, "count": est.paper.count, "trans_sqrt_m": _num(est.paper.trans),
@@ -206,8 +212,9 @@ def describe(est: EstimateReport) -> list[str]:
         lines.append(f"{est.label}: {pe.n_matched} pose pairs associated {how} "
                      f"(gt {pe.n_gt}, estimate {pe.n_est}); alignment {align}{scale}")
         if pe.association == "index" and pe.n_gt != pe.n_est:
-            lines.append(f"{est.label}: warning: no timestamps to associate by and the lengths differ; "
+            lines.append(f"{est.label}: warning: associated by index (--by-index) although the lengths differ; "
                          f"only the first {pe.n_matched} poses of each are compared")
+        lines += [f"{est.label}: caution: {text}" for text in pose_cautions(pe)]
     if est.relations is not None:
         r = est.relations
         lines.append(f"{est.label}: {r.used} relations used, {r.skipped} skipped (no pose within "
@@ -334,7 +341,13 @@ def compare_table(reports: dict[str, dict]) -> str:
     if any(any(r.get("prepare", {}).get("cached", {}).values()) for r in reports.values()):
         body.append(["preparation cached", *(_cached(reports[r]) for r in runs)])
     body.append(["peak RSS [MB]", *(_as_number(reports[r].get("peak_rss_mb")) for r in runs)])
-    return format_table(["quantity", *runs], body)
+    notes = [f"{r}: caution: {text}" for r in runs for text in _texts(reports[r].get("cautions"))]
+    return "\n".join([format_table(["quantity", *runs], body), *notes])
+
+
+def _texts(value) -> list[str]:
+    """A report's list of strings (anything else in a hand-edited file is left out)."""
+    return [v for v in value if isinstance(v, str)] if isinstance(value, list) else []
 
 
 def _cached(report: dict) -> str:

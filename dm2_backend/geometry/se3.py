@@ -156,10 +156,13 @@ def wrap_angle(a: np.ndarray) -> np.ndarray:
 
 
 def rotation_error(R: np.ndarray) -> np.ndarray:
-    """Per-matrix deviation from SO(3): max of ``|R^T R - I|`` and ``|det R - 1|``."""
+    """Per-matrix deviation from SO(3): max of ``|R^T R - I|`` and ``|det R - 1|`` (inf where huge entries
+    overflow it, without numpy's warnings: such a matrix is no rotation)."""
     R = np.asarray(R, dtype=np.float64)
-    orth = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(axis=(-1, -2))
-    return np.maximum(orth, np.abs(np.linalg.det(R) - 1.0))
+    with np.errstate(over="ignore", invalid="ignore"):
+        orth = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(axis=(-1, -2))
+        err = np.maximum(orth, np.abs(np.linalg.det(R) - 1.0))
+    return np.where(np.isnan(err), np.inf, err)
 
 
 def project_to_so3(R: np.ndarray) -> np.ndarray:

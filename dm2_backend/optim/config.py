@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
+from dm2_backend.errors import did_you_mean
+
 #: options that take one of a few names (checked when the config is read, before any work)
 CHOICES = {"start": ("auto", "graph", "prepared"), "select": ("map", "loss"), "chamfer_metric": ("point", "plane"),
            "batching": ("topology", "temporal", "random"), "pose_model": ("direct", "lnet"),
@@ -132,7 +134,8 @@ class OptimConfig:
         known = {f.name for f in fields(cls)}
         unknown = set(values or {}) - known
         if unknown:
-            raise ValueError(f"unknown optimiser options: {', '.join(sorted(unknown))}")
+            raise ValueError(f"unknown optimiser options: {', '.join(sorted(unknown))}"
+                             f"{did_you_mean(sorted(unknown)[0], known)}")
         cfg = cls(**(values or {}))
         for f in fields(cls):
             _check_type(f.name, f.type, getattr(cfg, f.name))

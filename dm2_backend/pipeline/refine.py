@@ -19,8 +19,9 @@ log = logging.getLogger(__name__)
 
 
 def refine(inputs: RunInputs, cfg: dict, out: Path, cache_dir: Path | None, resume: bool = False,
-           progress: bool = True) -> RunReport | None:
-    """Run the whole pipeline; returns the report (also written to ``out/report.json``). With
+           progress: bool = True, started: float | None = None) -> RunReport | None:
+    """Run the whole pipeline; returns the report (also written to ``out/report.json``); ``started``: when the
+    command started (``time.perf_counter``), so that the report's total counts reading and writing too. With
     ``cfg["nproc"] > 1`` the optimisation runs in that many spawned processes; started by torchrun, this
     process is one rank, and ranks other than 0 return None (they write nothing)."""
     t_start = time.perf_counter()
@@ -68,4 +69,4 @@ def refine(inputs: RunInputs, cfg: dict, out: Path, cache_dir: Path | None, resu
         extra.update(best_epoch=result.best_epoch, selection=result.selection, start=start.summary(),
                      stopped=result.stopped, derived=result.derived, device=device, processes=sess.dist.world)
         return write_run(out, cfg, inputs, prep, result.poses, "dm2 refine", timings, extra, result.history,
-                         sampler=sampler, start=start.poses)
+                         sampler=sampler, start=start.poses, started=started)

@@ -48,6 +48,8 @@ class RunReport:
     loop_closed_metrics: dict[str, float] | None = None
     start_metrics: dict[str, float] | None = None
     epochs: list[dict] | None = None
+    #: where the result's metrics are ill-posed or within reach of standing still (``evaluation/cautions.py``)
+    cautions: list[str] | None = None
     details: dict = field(default_factory=dict)
     dm2_version: str = __version__
 

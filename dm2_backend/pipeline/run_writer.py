@@ -4,6 +4,7 @@ frame), the maps, the DeepMapping2 priors, plots, ``config.yaml`` / ``resolved.y
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -12,6 +13,7 @@ import numpy as np
 from dm2_backend import config
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import plots
+from dm2_backend.evaluation.cautions import pose_cautions
 from dm2_backend.evaluation.consistency_profile import consistency_profiles, write_profiles
 from dm2_backend.evaluation.evaluate import EvalOptions, evaluate
 from dm2_backend.evaluation.map_quality import MapSampler
@@ -31,17 +33,20 @@ log = logging.getLogger(__name__)
 def metrics_of(traj: Trajectory, inputs: RunInputs) -> dict[str, float]:
     """Accuracy of ``traj`` against the ground truth / relations given to the run (empty without). An
     evaluation that fails is recorded as ``{"error": ...}`` so the run's outputs are still written."""
+    return evaluation_of(traj, inputs)[0]
+
+
+def evaluation_of(traj: Trajectory, inputs: RunInputs) -> tuple[dict[str, float], list[str]]:
+    """:func:`metrics_of` and the cautions on those metrics (an ill-posed rotation APE, the standing-still
+    reference; see ``evaluation/cautions.py``)."""
     try:
-        return _metrics(traj, inputs)
+        # the run's ground truth is already one pose per scan (or per listed scan): paired by index
+        est = evaluate(traj, gt=inputs.gt, relations=inputs.relations, gt_frames=inputs.gt_frames,
+                       options=EvalOptions(by_index=True))
     except InputError as exc:
         log.warning("evaluation failed: %s", exc.message)
-        return {"error": exc.message}
-
-
-def _metrics(traj: Trajectory, inputs: RunInputs) -> dict[str, float]:
-    # the run's ground truth is already one pose per scan (or per listed scan): paired by index
-    return run_metrics(evaluate(traj, gt=inputs.gt, relations=inputs.relations, gt_frames=inputs.gt_frames,
-                                options=EvalOptions(by_index=True)))
+        return {"error": exc.message}, []
+    return run_metrics(est), pose_cautions(est.poses) if est.poses is not None else []
 
 
 def output_timestamps(inputs: RunInputs) -> np.ndarray:
@@ -81,10 +86,12 @@ def map_metrics(sampler: MapSampler, poses: np.ndarray) -> dict[str, float]:
 def write_run(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final: np.ndarray, method: str,
               timings: dict, details: dict | None = None, epochs: list[dict] | None = None,
               sampler: MapSampler | None = None, start: np.ndarray | None = None,
-              files: list[str] | None = None) -> RunReport:
+              files: list[str] | None = None, started: float | None = None) -> RunReport:
     """The run folder of ``refine`` and ``baseline``: trajectories, maps, priors, plots and ``report.json``
     (written once). ``details``: the method's own report entries; ``sampler``: the scans prepared for the map
-    metrics (made here when None); ``start``: where the optimiser started; ``files``: files the method wrote."""
+    metrics (made here when None); ``start``: where the optimiser started; ``files``: files the method wrote;
+    ``started``: when the command started (``time.perf_counter``): ``timings["total"]`` then runs from it to
+    the report, reading the inputs and writing this folder included."""
     out.mkdir(parents=True, exist_ok=True)
     sampler = sampler or map_sampler(inputs)
     stages = {"warm_start": prep.warm_start, "loop_closed": prep.topology.poses, "start": start, "final": final}
@@ -119,12 +126,16 @@ def write_run(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final: np
     if prep.warm_report:  # e.g. the icp warm start's source of every step (scan match or odometry) and why
         outputs.write_report(out / "warm_start.json", prep.warm_report)
         written.append("warm_start.json")
+    final_metrics, cautions = evaluation_of(final_traj, inputs)
+    if started is not None:
+        timings = {**timings, "total": time.perf_counter() - started}
     report = RunReport(
         method=method,
         frames=len(prep.frames),
         planar=prep.frames.planar,
         ground_truth_scans=len(inputs.gt) if inputs.gt is not None else None,
-        metrics={**metrics_of(final_traj, inputs), **maps["final"]},
+        metrics={**final_metrics, **maps["final"]},
+        cautions=cautions or None,
         warm_start_metrics={**metrics_of(warm_traj, inputs), **maps["warm_start"]},
         loop_closed_metrics=None if prep.topology.poses is None else {
             **metrics_of(trajectory_of(prep.topology.poses, inputs), inputs), **maps["loop_closed"]},
