@@ -362,11 +362,15 @@ class Optimiser:
         if resume and dist.enabled:
             state = distributed.broadcast(state)
         if state is not None:
-            self.model.load_state_dict(state["model"])
-            self.field.load_state_dict(state["field"])
-            self.optim.load_state_dict(state["optim"])
-            self.sched.load_state_dict(state["sched"])
-            best, history, start = state["best"], state["history"], state["epoch"] + 1
+            try:
+                self.model.load_state_dict(state["model"])
+                self.field.load_state_dict(state["field"])
+                self.optim.load_state_dict(state["optim"])
+                self.sched.load_state_dict(state["sched"])
+                best, history, start = state["best"], state["history"], state["epoch"] + 1
+            except (KeyError, RuntimeError, ValueError, TypeError) as exc:  # e.g. a 3D run's state into a 2D one
+                raise InputError(ckpt, "--resume: this checkpoint is of another kind of run and does not fit this "
+                                       f"one ({one_line(str(exc))[:160]}); run without --resume") from None
         ddp = distributed.data_parallel(self) if dist.enabled else None
         stopped = None
         # convergence (loss and, with a metric, accuracy against the steps): a few points per epoch
