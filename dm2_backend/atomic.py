@@ -47,21 +47,11 @@ def watching_writes(announce: Callable[[Path], None]) -> Iterator[None]:
 
 def no_space_error(exc: BaseException, path: Path) -> InputError | None:
     """The one-line error for a write of ``path`` that ran out of room (``ENOSPC``, a quota, the file size
-    limit; torch reports them as a failed write), else None."""
-    if isinstance(exc, OSError) and exc.errno in NO_SPACE:
-        why = "file size limit reached" if exc.errno == errno.EFBIG else "no space left on the device"
-    elif isinstance(exc, RuntimeError) and "write" in str(exc) and _full(path.parent):
-        why = "no space left on the device"
-    else:
+    limit), else None."""
+    if not isinstance(exc, OSError) or exc.errno not in NO_SPACE:
         return None
+    why = "file size limit reached" if exc.errno == errno.EFBIG else "no space left on the device"
     return InputError(path.parent, f"{why} (writing {path.name}); nothing half-written was left")
-
-
-def _full(folder: Path) -> bool:
-    try:
-        return shutil.disk_usage(folder).free < 1 << 20
-    except OSError:
-        return False
 
 
 def _temp_name(path: Path) -> Path:
@@ -147,7 +137,7 @@ def atomic_write(path: str | Path, mode: str = "w", **kwargs) -> Iterator[IO]:
         with open(tmp, mode, **kwargs) as fh:
             yield fh
         os.replace(tmp, path)
-    except (OSError, RuntimeError) as exc:
+    except OSError as exc:
         if (error := no_space_error(exc, path)) is not None:
             raise error from None
         raise
@@ -177,7 +167,7 @@ def atomic_path(
             os.rename(tmp, path)
         else:
             os.replace(tmp, path)
-    except (OSError, RuntimeError) as exc:
+    except OSError as exc:
         if (error := no_space_error(exc, path)) is not None:
             raise error from None
         raise

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import math
 import pickle
 import time
@@ -342,8 +343,10 @@ class Optimiser:
         save_mnet(path, self.field, gauge, trained=bool(self.derived["use_bce"]))
 
     def _save(self, path: Path, state: dict) -> None:
+        buffer = io.BytesIO()  # serialised first: a full disk is then an OSError of the write, not torch's
+        torch.save(state, buffer)
         with atomic_write(path, "wb") as fh:
-            torch.save(state, fh)
+            fh.write(buffer.getbuffer())
 
     def run(self, checkpoint_dir: Path | None = None, resume: bool = False) -> OptimResult:
         """Train; with several ranks only rank 0 reads and writes the checkpoint, shows progress and
