@@ -157,6 +157,21 @@ def test_a_users_file_beside_a_previous_run_is_kept_by_force(seq, tmp_path):
     assert (out / "config.yaml").read_text() == "mine"
 
 
+def test_dm2_map_never_replaces_a_users_file_in_a_run_folder(seq, tmp_path):
+    out = tmp_path / "run"
+    assert dm2(*refine_args(seq, out, "--no-cache")).exit_code == 0
+    marker = json.loads((out / MARKER).read_text())
+    assert "map.pgm" in marker["files"]
+    marker["files"].remove("map.pgm")  # as if map.pgm were the user's own
+    (out / MARKER).write_text(json.dumps(marker))
+    (out / "map.pgm").write_text("my map")
+    result = dm2("map", str(out), "--scans", str(seq / "velodyne"))
+    assert result.exit_code == 2, result.output
+    line = last_line(result.output)
+    assert line.startswith("dm2: error:") and "map.pgm" in line and "never replaces" in line, line
+    assert (out / "map.pgm").read_text() == "my map" and not (out / LOCK).exists()
+
+
 def test_a_run_killed_while_writing_its_outputs_has_listed_them(seq, tmp_path):
     """kill -9 as the report (the last output) is about to be written: the marker already lists every file the
     run wrote, so --force replaces all of them and the new marker lists the whole new run."""

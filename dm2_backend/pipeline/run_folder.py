@@ -209,7 +209,17 @@ def adding_to(out: Path) -> Iterator[None]:
     lock = _take_lock(out)
     before = _entries(out)
     try:
-        yield
+        listed = set(_listed_names(out, _read_marker(out)))
+        users = {name for name in before - listed - {LOCK, MARKER} if not is_temporary(name)}
+
+        def refuse_users(path: Path) -> None:
+            with contextlib.suppress(ValueError):
+                rel = Path(os.path.abspath(path)).relative_to(os.path.abspath(out))
+                if rel.parts and rel.parts[0] in users:
+                    raise InputError(out / rel.parts[0], _NOT_OURS.replace("choose another --out", "remove it first"))
+
+        with watching_writes(refuse_users):
+            yield
     finally:
         previous = _read_marker(out)
         if previous is not None:
