@@ -200,16 +200,17 @@ def _tmpfs_available() -> bool:
 
 
 @pytest.mark.skipif(not _tmpfs_available(), reason="needs unshare -Urm to mount a small tmpfs")
-@pytest.mark.parametrize("full", ["out", "cache"])
+@pytest.mark.parametrize("full", ["out", "cache", "zero"])
 def test_a_full_disk_is_one_line_and_leaves_nothing_half_written(seq, tmp_path, full):
     """A real full file system (a small tmpfs in a private mount namespace) under --out or --cache-dir: one
     line naming the folder and "no space left", exit 2, no temporary left; with room the same command runs."""
     mount = tmp_path / "small"
     mount.mkdir()
-    out = mount / "run" if full == "out" else tmp_path / "run"
-    cache = tmp_path / "cache" if full == "out" else mount / "cache"
+    out = tmp_path / "run" if full == "cache" else mount / "run"
+    cache = mount / "cache" if full == "cache" else tmp_path / "cache"
+    fill = 'head -c 1m /dev/zero > "$0/fill" 2>/dev/null; ' if full == "zero" else ""  # 0 bytes free
     args = refine_args(seq, out, "--cache-dir", str(cache))
-    script = ('mount -t tmpfs -o size=96k tmpfs "$0" && "$@"; rc=$?; '
+    script = ('mount -t tmpfs -o size=96k tmpfs "$0" && ' + fill + '"$@"; rc=$?; '
               'find "$0" -name ".tmp-*" | head -1 > "$0.left"; ls -A "$0" > "$0.top"; exit $rc')
     done = subprocess.run(["unshare", "-Urm", "sh", "-c", script, str(mount), sys.executable, "-m", "dm2_backend",
                            *args], capture_output=True, text=True, timeout=300)
@@ -218,8 +219,8 @@ def test_a_full_disk_is_one_line_and_leaves_nothing_half_written(seq, tmp_path, 
     assert line.startswith("dm2: error:") and "no space left" in line and str(mount) in line, done.stderr[-2000:]
     assert "Traceback" not in done.stderr
     assert Path(f"{mount}.left").read_text() == ""  # no temporary in the full folder
-    if full == "out":
-        assert Path(f"{mount}.top").read_text().split() == []  # the run folder it created was removed
+    if full != "cache":  # the run folder it created was removed
+        assert Path(f"{mount}.top").read_text().split() == (["fill"] if full == "zero" else [])
     again = dm2(*refine_args(seq, tmp_path / "again", "--cache-dir", str(tmp_path / "cache2")))
     assert again.exit_code == 0, again.output
 

@@ -151,7 +151,13 @@ def open_folder(out: Path, command: str, *, force: bool = False, resume: bool = 
     except OSError as exc:
         raise InputError(out, f"cannot create the folder: {exc.strerror}") from exc
     folder = RunFolder(out, command, fp or {}, created)
-    folder._lock = _take_lock(out)
+    try:
+        folder._lock = _take_lock(out)
+    except InputError:
+        if created:  # rmdir: only while empty (a concurrent run that holds the folder has its lock in it)
+            with contextlib.suppress(OSError):
+                out.rmdir()
+        raise
     try:
         previous = _read_marker(out)
         listed = _listed_names(out, previous)
@@ -293,7 +299,8 @@ def _take_lock(out: Path):
         fh.write(str(os.getpid()))
         fh.flush()
     except OSError as exc:
-        fh.close()
+        with contextlib.suppress(OSError):  # closing flushes the same unwritten bytes again
+            fh.close()
         (out / LOCK).unlink(missing_ok=True)
         raise InputError(out, f"cannot write in this folder: {_no_space(exc)}") from None
     return fh
