@@ -3,12 +3,17 @@
 Nothing here removes what it did not create: an existing folder is never replaced (a file target that is a
 folder, or a folder target that exists, is an :class:`InputError`), and only our own temporaries
 (``.tmp-PID-name``) are deleted: on every exit path of the writer, and, for writers killed before they could
-(a dead PID), by the next write into the same folder.
+(a dead PID), by the next write into the same folder. A full disk (or a file size limit) is an
+:class:`InputError` naming the folder, with the temporary removed.
+
+A run folder watches the writes (:func:`watching_writes`): each target is announced before it is written, so
+the folder can list it in its marker first, or refuse a name that is the user's.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import re
 import shutil
@@ -19,6 +24,34 @@ from typing import IO
 from dm2_backend.errors import InputError
 
 _TEMP = re.compile(r"\.tmp-(\d+)-")
+#: called with each target path before it is written (see :func:`watching_writes`)
+_watchers: list[Callable[[Path], None]] = []
+#: errors that mean the device (or the size limit of this process) has no room for the write
+NO_SPACE = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+def is_temporary(name: str) -> bool:
+    """Whether ``name`` is one of the ``.tmp-PID-`` temporaries written here."""
+    return _TEMP.match(name) is not None
+
+
+@contextlib.contextmanager
+def watching_writes(announce: Callable[[Path], None]) -> Iterator[None]:
+    """Call ``announce(path)`` before each write of this process meanwhile; it may refuse (raise)."""
+    _watchers.append(announce)
+    try:
+        yield
+    finally:
+        _watchers.remove(announce)
+
+
+def no_space_error(exc: BaseException, path: Path) -> InputError | None:
+    """The one-line error for a write of ``path`` that ran out of room (``ENOSPC``, a quota, the file size
+    limit), else None."""
+    if not isinstance(exc, OSError) or exc.errno not in NO_SPACE:
+        return None
+    why = "file size limit reached" if exc.errno == errno.EFBIG else "no space left on the device"
+    return InputError(path.parent, f"{why} (writing {path.name}); nothing half-written was left")
 
 
 def _temp_name(path: Path) -> Path:
@@ -71,12 +104,18 @@ def _prepare(path: Path, folder: bool, replaceable: Callable[[Path], bool] | Non
                                f"would lose what it holds): remove it or choose another name")
     if folder and path.exists() and not path.is_dir():
         raise InputError(path, "is an existing file; a bag folder would replace it: remove it or choose another name")
+    for announce in list(_watchers):
+        announce(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except (FileExistsError, NotADirectoryError):
         raise InputError(path, "cannot create the output's folder: a parent is a file") from None
     except PermissionError as exc:
         raise InputError(path, f"cannot create the output's folder ({exc.strerror})") from None
+    except OSError as exc:
+        if (error := no_space_error(exc, path)) is not None:
+            raise error from None
+        raise
     clean_stale(path.parent)
 
 
@@ -98,6 +137,10 @@ def atomic_write(path: str | Path, mode: str = "w", **kwargs) -> Iterator[IO]:
         with open(tmp, mode, **kwargs) as fh:
             yield fh
         os.replace(tmp, path)
+    except OSError as exc:
+        if (error := no_space_error(exc, path)) is not None:
+            raise error from None
+        raise
     finally:
         tmp.unlink(missing_ok=True)
 
@@ -124,6 +167,10 @@ def atomic_path(
             os.rename(tmp, path)
         else:
             os.replace(tmp, path)
+    except OSError as exc:
+        if (error := no_space_error(exc, path)) is not None:
+            raise error from None
+        raise
     finally:
         _remove(tmp)
         _remove(old)

@@ -11,6 +11,7 @@ import yaml
 from dm2_backend import config_schema
 from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError, did_you_mean
+from dm2_backend.input_files import CONFIG_MAX_BYTES, read_text_bounded
 from dm2_backend.optim.config import OptimConfig
 
 DEFAULTS: dict = {
@@ -41,25 +42,38 @@ def merge(base: dict, override: dict) -> dict:
     return out
 
 
+class _NoAliasLoader(yaml.SafeLoader):
+    """Safe YAML without aliases: a few nested ``*anchor`` references expand to billions of values (a "YAML
+    bomb") that validation would walk and its error message print; a config has no need of them."""
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            raise yaml.composer.ComposerError(None, None, "aliases (*name) are not accepted in a dm2 config: "
+                                                          "write the values out", self.peek_event().start_mark)
+        return super().compose_node(parent, index)
+
+
+def read_yaml(path: Path) -> object:
+    """The YAML document of a config file: a regular file of bounded size, safe-loaded without aliases."""
+    if Path(path).is_dir():
+        raise InputError(path, "is a folder, expected a YAML file")
+    text = read_text_bounded(path, CONFIG_MAX_BYTES, "config")
+    try:
+        return yaml.load(text, Loader=_NoAliasLoader)  # noqa: S506 (a SafeLoader)
+    except RecursionError:
+        raise InputError(path, "invalid YAML: nested too deeply") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        raise InputError(path, f"invalid YAML: {getattr(exc, 'problem', exc)}",
+                         line=None if mark is None else mark.line + 1) from exc
+
+
 def load(path: str | Path | None, overrides: dict | None = None) -> dict:
     """Defaults, then the YAML file (if any), then command-line overrides."""
     cfg = copy.deepcopy(DEFAULTS)
     if path is not None:
         path = Path(path)
-        try:
-            user = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
-        except FileNotFoundError as exc:
-            raise InputError(path, "no such file") from exc
-        except IsADirectoryError as exc:
-            raise InputError(path, "is a folder, expected a YAML file") from exc
-        except UnicodeDecodeError as exc:
-            raise InputError(path, f"not UTF-8 text ({exc.reason} at byte {exc.start})") from None
-        except RecursionError:
-            raise InputError(path, "invalid YAML: nested too deeply") from None
-        except yaml.YAMLError as exc:
-            mark = getattr(exc, "problem_mark", None)
-            raise InputError(path, f"invalid YAML: {getattr(exc, 'problem', exc)}",
-                             line=None if mark is None else mark.line + 1) from exc
+        user = read_yaml(path) or {}
         if not isinstance(user, dict):
             raise InputError(path, "the config must be a mapping")
         unknown = set(user) - set(DEFAULTS)
@@ -84,7 +98,7 @@ def sets(path: str | Path | None, section: str) -> bool:
     """Whether the YAML config at ``path`` (already read by :func:`load`) sets ``section`` itself."""
     if path is None:
         return False
-    user = yaml.safe_load(Path(path).read_text(encoding="utf-8")) or {}
+    user = read_yaml(Path(path)) or {}
     return isinstance(user, dict) and section in user
 
 

@@ -52,7 +52,8 @@ class PluginSection(_Strict):
 class RunConfig(_Strict):
     """The whole run configuration (``dm2 refine -c``); see ``config.DEFAULTS`` for the defaults."""
 
-    seed: int = 0
+    #: numpy and torch seeds are unsigned 32-bit (checked here, not after the preparation)
+    seed: int = Field(default=0, ge=0, lt=2**32)
     device: Literal["auto", "cpu", "cuda"] | str = "auto"
     nproc: PositiveInt = 1
     frames: FramesSection

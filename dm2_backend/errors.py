@@ -7,11 +7,18 @@ import re
 from pathlib import Path
 
 _BREAKS = re.compile(r"\s*[\r\n]+\s*")
+#: longest error line: a value quoted in a message is cut, not echoed whole (a 50 MB argument)
+MAX_LINE = 1000
 
 
 def one_line(text: str) -> str:
-    """``text`` with its line breaks (and the blanks around them) collapsed to one space."""
-    return _BREAKS.sub(" ", text).strip()
+    """``text`` with its line breaks (and the blanks around them) collapsed to one space, at most
+    :data:`MAX_LINE` characters (a longer one is cut in the middle)."""
+    text = _BREAKS.sub(" ", text).strip()
+    if len(text) > MAX_LINE:
+        cut = len(text) - MAX_LINE
+        text = f"{text[: MAX_LINE // 2]} [... {cut} characters ...] {text[-MAX_LINE // 2 :]}"
+    return text
 
 
 class InputError(Exception):

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from dm2_backend.errors import InputError
+from dm2_backend.input_files import TEXT_MAX_BYTES, check_kind
 from dm2_backend.trajectory import Trajectory, validate_poses, validate_timestamps
 
 log = logging.getLogger(__name__)
@@ -21,11 +22,16 @@ QUAT_NORM_TOL = 1e-2
 
 
 def open_text(path: Path) -> list[str]:
-    """All lines of a text file; :class:`InputError` for a missing, unreadable or binary file."""
-    if not path.exists():
+    """All lines of a text file; :class:`InputError` for a missing, unreadable, binary or oversized file, or
+    for something that is not a regular file (a FIFO, a device)."""
+    st = check_kind(path)
+    if st is None:
         raise InputError(path, "no such file")
-    if path.is_dir():
+    if Path(path).is_dir():
         raise InputError(path, "is a folder, expected a text file")
+    if st.st_size > TEXT_MAX_BYTES:
+        raise InputError(path, f"{st.st_size} bytes, larger than any trajectory text dm2 reads "
+                               f"({TEXT_MAX_BYTES >> 20} MiB)")
     try:
         return path.read_text(encoding="utf-8").splitlines()
     except UnicodeDecodeError as exc:
@@ -187,6 +193,7 @@ def fmt_row(values: np.ndarray) -> str:
 def sniff_rows(path: Path, columns: int, max_lines: int = 20, comment: str = "#") -> np.ndarray | None:
     """The first data lines (up to ``max_lines``) as floats when all have ``columns`` numeric fields."""
     rows = []
+    check_kind(path)
     with open(path, encoding="utf-8") as fh:
         for number, line in enumerate(fh):
             if number > 10 * max_lines or len(rows) >= max_lines:

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from dm2_backend.errors import InputError
+from dm2_backend.input_files import check_kind
 
 SUFFIXES = (".clf", ".log", ".clf.gz", ".log.gz", ".clf.bz2", ".log.bz2")
 POSE_KINDS = ("FLASER", "ROBOTLASER1")
@@ -245,6 +246,7 @@ def parse_line(line: str, lineno: int | None = None, source: str | Path | None =
 def read_text(path: str | Path) -> str:
     """The log's text (gzip / bzip2 detected from the magic bytes), decoded as latin-1 (byte-preserving)."""
     path = Path(path)
+    check_kind(path)
     try:
         with open(path, "rb") as fh:
             magic = fh.read(3)

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from dm2_backend.errors import InputError
+from dm2_backend.input_files import check_kind
 from dm2_backend.scans import LASER_2D, LIDAR, ScanSequence
 from dm2_backend.trajectory import Trajectory, validate_poses, validate_timestamps
 
@@ -105,7 +106,7 @@ def _suffix_matches(path: Path, suffixes: tuple[str, ...]) -> bool:
 
 
 def _detect(path: Path, table: dict, kind: str) -> str:
-    if not path.exists():
+    if check_kind(path) is None:  # a FIFO, a device or a symlink loop: one line, never opened
         raise InputError(path, "no such file or folder")
     by_suffix = [f for f in table.values() if _suffix_matches(path, f.suffixes)]
     if len(by_suffix) == 1 and by_suffix[0].sniff is None:
@@ -144,7 +145,7 @@ def _lookup(table: dict, name: str, kind: str, path: Path):
 
 def read_trajectory(path: str | Path, fmt: str | None = None, options: ReadOptions | None = None) -> Trajectory:
     path = Path(path)
-    if not path.exists():
+    if check_kind(path) is None:  # a FIFO, a device or a symlink loop: one line, never opened
         raise InputError(path, "no such file or folder")
     name = fmt or detect_trajectory_format(path)
     traj = _lookup(TRAJECTORY_FORMATS, name, "trajectory", path).read(path, options or ReadOptions())
@@ -217,7 +218,7 @@ def read_spec(fmt: str, path: Path, options: ReadOptions, effective: dict | None
 
 def open_scans(path: str | Path, fmt: str | None = None, options: ReadOptions | None = None) -> ScanSequence:
     path = Path(path)
-    if not path.exists():
+    if check_kind(path) is None:  # a FIFO, a device or a symlink loop: one line, never opened
         raise InputError(path, "no such file or folder")
     name = fmt or detect_scan_source(path)
     options = options or ReadOptions()

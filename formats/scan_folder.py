@@ -27,6 +27,7 @@ from dm2_backend.formats import ply
 from dm2_backend.formats._npy import load_npy, load_npz
 from dm2_backend.formats.pcd import read_pcd, write_pcd
 from dm2_backend.formats.registry import ReadOptions, ScanSource, scan_source
+from dm2_backend.input_files import check_kind
 from dm2_backend.scans import Scan, ScanSequence
 
 SCAN_SUFFIXES = (".bin", ".pcd", ".ply", ".npy", ".npz")
@@ -192,6 +193,7 @@ def _int_seconds(value: int) -> float:
 def read_times(path: Path) -> tuple[np.ndarray, list[int]]:
     """One time (seconds) per line; blank and ``#`` lines skipped. Returns values and line numbers."""
     values, lines = [], []
+    check_kind(path, folder_ok=False)
     with open(path, encoding="utf-8", errors="replace") as fh:
         for no, line in enumerate(fh, 1):
             text = line.strip()

@@ -10,7 +10,10 @@ import gzip
 import io
 import os
 import pickle
+import resource
 import struct
+import subprocess
+import sys
 from pathlib import Path
 
 import fuzzing
@@ -516,3 +519,91 @@ def test_absurd_numbers_are_refused_not_printed_as_inf(tmp_path):
     log = tmp_path / "angles.log"
     log.write_text("ROBOTLASER1 0 -1.5708 3.1416 1e308 20.0 0.1 0 2 1.0 2.0 0 0 0 0 0 0 0 0 0 0 0 0 1.0 h 0.1\n")
     _info_fails_cleanly(log)
+
+
+# ------------------------------------------------ hostile files: FIFOs, devices, symlink loops, YAML aliases
+#: a real dm2 process under a memory cap (a read without a bound fails fast instead of eating the machine) and a
+#: timeout (a read that blocks fails the test instead of hanging the suite)
+MEMORY_CAP = 3 << 30
+
+
+def _capped_dm2(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    def cap():
+        resource.setrlimit(resource.RLIMIT_AS, (MEMORY_CAP, MEMORY_CAP))
+
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    return subprocess.run([sys.executable, "-m", "dm2_backend", *args], capture_output=True, text=True,
+                          timeout=timeout, preexec_fn=cap, env=env)
+
+
+def _one_capped_line(done: subprocess.CompletedProcess, *words: str) -> None:
+    assert done.returncode == 2, done.stderr[-2000:]
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("dm2: error:"), done.stderr[-2000:]
+    for word in words:
+        assert word in lines[0], lines[0]
+
+
+@pytest.fixture(scope="module")
+def small_scans(tmp_path_factory) -> Path:
+    from dm2_backend.simulate.sequence import write_sequence
+
+    rng = np.random.default_rng(0)
+    poses = se3.identity(4)
+    poses[:, 0, 3] = np.arange(4) * 0.1
+    scans = [rng.normal(size=(64, 3)).astype(np.float32) for _ in range(4)]
+    root = tmp_path_factory.mktemp("hostile")
+    write_sequence(root, scans, poses, poses, 10.0)
+    return root
+
+
+def _refine(root: Path, out: Path, *extra: str) -> list[str]:
+    return ["refine", "--scans", str(root / "velodyne"), "--out", str(out), "-q", "--no-cache", *extra]
+
+
+@pytest.mark.parametrize("option", ["--poses", "--config"])
+def test_dev_zero_is_refused_not_read(small_scans, tmp_path, option):
+    """`-p /dev/zero --poses-format tum` and `--config /dev/zero` grew to 22 GB before the kernel killed them."""
+    extra = [option, "/dev/zero", *(["--poses-format", "tum"] if option == "--poses" else [])]
+    _one_capped_line(_capped_dm2(*_refine(small_scans, tmp_path / "run", *extra)), "/dev/zero", "character device")
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_fifo_is_refused_not_waited_on(small_scans, tmp_path):
+    """`--times FIFO` blocked forever in open(); `dm2 info FIFO` too."""
+    fifo = tmp_path / "times.txt"
+    os.mkfifo(fifo)
+    _one_capped_line(_capped_dm2(*_refine(small_scans, tmp_path / "run", "--poses",
+                                          str(small_scans / "warm_start.txt"), "--times", str(fifo))), "FIFO")
+    _one_capped_line(_capped_dm2("info", str(fifo)), "FIFO")
+
+
+def test_a_yaml_alias_bomb_is_refused(small_scans, tmp_path):
+    """Nested anchors under `seed:` expand to 9**9 values: building the error message never ended."""
+    levels = "abcdefghi"
+    rows = ["seed:", "  - &a [lol, lol, lol, lol, lol, lol, lol, lol, lol]"]
+    rows += [f"  - &{b} [{', '.join([f'*{a}'] * 9)}]" for a, b in zip(levels, levels[1:], strict=False)]
+    bomb = tmp_path / "bomb.yaml"
+    bomb.write_text("\n".join(rows) + "\n")
+    _one_capped_line(_capped_dm2(*_refine(small_scans, tmp_path / "run", "--poses",
+                                          str(small_scans / "warm_start.txt"), "-c", str(bomb))),
+                     str(bomb), "aliases")
+
+
+def test_an_oversized_config_is_refused_by_its_size(tmp_path):
+    from dm2_backend import config
+
+    big = tmp_path / "big.yaml"
+    with open(big, "wb") as fh:
+        fh.truncate(64 << 20)  # sparse: no disk used
+    with pytest.raises(InputError, match="larger than"):
+        config.load(big)
+
+
+def test_symlink_loops_are_one_line(small_scans, tmp_path):
+    """A symlink loop as the scan folder, as a scan and as the trajectory: ELOOP tracebacks in info/refine."""
+    loop = tmp_path / "loop"
+    loop.symlink_to(loop)
+    _one_capped_line(_capped_dm2("info", str(loop)), str(loop), "symbolic links")
+    _one_capped_line(_capped_dm2(*_refine(small_scans, tmp_path / "run", "--poses", str(loop))), str(loop))
+    _one_capped_line(_capped_dm2("refine", "--scans", str(loop), "--out", str(tmp_path / "run"), "-q"), str(loop))

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import click
 
+from dm2_backend.atomic import clean_stale, is_temporary
 from dm2_backend.prepare.steps import default_cache_dir
 
 path_type = click.Path(path_type=Path)
@@ -57,6 +58,10 @@ def info(cache_dir: Path | None) -> None:
     found = entries(root) if root.is_dir() else []
     click.echo(f"cache      {root}")
     click.echo(f"entries    {len(found)}, {sum(e[1] for e in found) / 2**20:.1f} MiB")
+    partial = [p for p in root.iterdir() if is_temporary(p.name)] if root.is_dir() else []
+    if partial:
+        click.echo(f"partial    {len(partial)} entries being written (or left by a killed run: `dm2 cache clear` "
+                   "removes those)")
     kinds: dict[str, list] = {}
     for folder, size, age in found:
         kinds.setdefault(folder.name.split("-")[0], []).append((size, age))
@@ -74,6 +79,9 @@ def clear(cache_dir: Path | None, older_than: str | None) -> None:
     root = cache_dir or default_cache_dir()
     limit = _parse_age(older_than) if older_than else -1.0
     removed = freed = 0
+    if root.is_dir():  # partial entries of killed runs, whatever their age
+        for path in clean_stale(root):
+            click.echo(f"removed a partial entry left by a killed run: {path.name}")
     for folder, size, age in (entries(root) if root.is_dir() else []):
         if age > limit:
             shutil.rmtree(folder, ignore_errors=True)

@@ -25,6 +25,7 @@ from dm2_backend.formats import (
     open_scans,
     read_trajectory,
 )
+from dm2_backend.input_files import check_kind
 from dm2_backend.scans import ScanSequence
 from dm2_backend.trajectory import Trajectory
 
@@ -119,7 +120,7 @@ def _try(detect, path: Path) -> str | None:
 
 def describe(path: Path, fmt: str | None, options: ReadOptions) -> list[tuple[str, str]]:
     """Rows of facts about ``path``; raises :class:`InputError` when nothing can read it."""
-    if not path.exists():
+    if check_kind(path) is None:  # a FIFO, a device or a symlink loop: one line, never opened
         raise InputError(path, "no such file or folder")
     if fmt == "relations" or (fmt is None and path.name.lower().endswith(".relations")):
         return relation_rows(path)

@@ -21,6 +21,7 @@ from dm2_backend.cli.options import (
 from dm2_backend.errors import InputError
 from dm2_backend.formats import detect_trajectory_format
 from dm2_backend.formats.kitti import find_calib, looks_camera_frame
+from dm2_backend.input_files import check_kind
 from dm2_backend.pipeline.inputs import load_inputs
 from dm2_backend.pipeline.run_folder import digest, fingerprint, run_folder
 from dm2_backend.pipeline.run_report import RunReport
@@ -82,6 +83,9 @@ def default_to_icp(cfg: dict, inputs, asked: bool) -> bool:
 
 def prepare_run(kw: dict, overrides: dict):
     """Read the inputs and the effective config of a run from the shared options."""
+    for name in ("scans", "poses", "gt", "relations", "times", "calib", "config_path"):
+        if kw.get(name) is not None:
+            check_kind(kw[name])  # a FIFO or a device is refused before anything opens it
     calib = kw["calib"] or kitti_calibration(kw)
     options = read_options(kw["topic"], kw["times"], calib, kw["intrinsics"], kw["depth_scale"],
                            kw["duplicate_times"])

@@ -11,6 +11,7 @@ no M-Net map or mesh is made from it.
 
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,8 +35,10 @@ def save_mnet(path: Path, field: GridOccupancy, world_from_field: np.ndarray, tr
         "world_from_field": np.asarray(world_from_field, dtype=np.float64).tolist(),
         "trained": bool(trained),
     }
+    buffer = io.BytesIO()  # serialised first: a full disk is then an OSError of the write, not torch's
+    torch.save(state, buffer)
     with atomic_write(path, "wb") as fh:
-        torch.save(state, fh)
+        fh.write(buffer.getbuffer())
 
 
 @dataclass

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import math
 import pickle
 import time
@@ -342,8 +343,10 @@ class Optimiser:
         save_mnet(path, self.field, gauge, trained=bool(self.derived["use_bce"]))
 
     def _save(self, path: Path, state: dict) -> None:
+        buffer = io.BytesIO()  # serialised first: a full disk is then an OSError of the write, not torch's
+        torch.save(state, buffer)
         with atomic_write(path, "wb") as fh:
-            torch.save(state, fh)
+            fh.write(buffer.getbuffer())
 
     def run(self, checkpoint_dir: Path | None = None, resume: bool = False) -> OptimResult:
         """Train; with several ranks only rank 0 reads and writes the checkpoint, shows progress and
@@ -362,11 +365,15 @@ class Optimiser:
         if resume and dist.enabled:
             state = distributed.broadcast(state)
         if state is not None:
-            self.model.load_state_dict(state["model"])
-            self.field.load_state_dict(state["field"])
-            self.optim.load_state_dict(state["optim"])
-            self.sched.load_state_dict(state["sched"])
-            best, history, start = state["best"], state["history"], state["epoch"] + 1
+            try:
+                self.model.load_state_dict(state["model"])
+                self.field.load_state_dict(state["field"])
+                self.optim.load_state_dict(state["optim"])
+                self.sched.load_state_dict(state["sched"])
+                best, history, start = state["best"], state["history"], state["epoch"] + 1
+            except (KeyError, RuntimeError, ValueError, TypeError) as exc:  # e.g. a 3D run's state into a 2D one
+                raise InputError(ckpt, "--resume: this checkpoint is of another kind of run and does not fit this "
+                                       f"one ({one_line(str(exc))[:160]}); run without --resume") from None
         ddp = distributed.data_parallel(self) if dist.enabled else None
         stopped = None
         # convergence (loss and, with a metric, accuracy against the steps): a few points per epoch

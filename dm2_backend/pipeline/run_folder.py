@@ -2,15 +2,25 @@
 
 - An existing non-empty folder is refused in one line unless ``--force`` (or ``--resume`` for a refine).
 - ``--force`` removes the files a previous dm2 run listed in its marker (``.dm2-run.json``) and nothing else.
+  The marker is input: it may list only plain names of entries inside the folder (no ``/``, ``..``, absolute
+  paths); one that lists anything else is refused whole, and nothing is removed.
+- The marker lists each output before it is written (through :mod:`dm2_backend.atomic`), so a run killed at
+  any point leaves a marker that names everything it wrote.
+- A file that no dm2 run listed (yours) is never replaced, even with ``--force``: a run that would write one
+  of its names is refused in one line before any work, and at the write itself.
 - A run holds a lock on the folder while it writes; a second run into it gets one line and exit 2.
 - ``--resume`` needs the folder's checkpoint and the same inputs, config and seed; what differs is named.
-- A run that fails removes what it created; an interrupted one keeps its checkpoint for ``--resume``.
+- A run that fails removes what it created; an interrupted one (Ctrl-C, SIGTERM, SIGHUP) keeps its checkpoint
+  for ``--resume``, or, without one (interrupted in preparation), removes what it created like a failed run,
+  so that the same command is accepted again (finished preparation steps come from the cache).
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
+import fnmatch
 import hashlib
 import json
 import os
@@ -19,6 +29,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from dm2_backend.atomic import is_temporary, watching_writes
 from dm2_backend.errors import InputError
 
 MARKER = ".dm2-run.json"
@@ -28,6 +39,22 @@ CHECKPOINT = "checkpoint.pt"
 RESUMABLE = {"optimiser.epochs", "optimiser.max_steps", "device", "nproc"}
 #: the order in which differing inputs are named
 INPUT_ORDER = ["command", "scans", "frames", "poses", "poses_content"]
+#: top-level names that dm2 runs write (refine, baseline, simulate, demo, map, view): a file of yours with one of
+#: these names in --out is refused before any work, since the run would replace it
+OUTPUT_NAMES = ("config.yaml", "resolved.yaml", "report.json", "warm_start.*", "topology.*", "trajectory.png",
+                "errors.png", "epochs.png", "map.*", "mnet*", "octomap.bt", "maps.json", "prior", CHECKPOINT,
+                "poses*", "*_lidar_*", "graph.g2o", "velodyne", "times.txt", "info.json", "README.txt", "*.rrd")
+#: a marker larger than this is not one dm2 wrote
+MARKER_MAX_BYTES = 1 << 20
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C, SIGTERM or SIGHUP during a run: ``next_step`` says what to run next."""
+
+    def __init__(self, next_step: str, resume: bool) -> None:
+        super().__init__(next_step)
+        self.next_step = next_step
+        self.resume = resume
 
 
 @dataclass
@@ -41,14 +68,41 @@ class RunFolder:
     before: frozenset[str] = frozenset()
     #: files of the run a resume continues (kept in the marker)
     inherited: tuple[str, ...] = ()
+    #: names this run announced before writing them (see :meth:`announce`)
+    written: set[str] = field(default_factory=set)
     _lock: object | None = None
 
+    @property
+    def users(self) -> frozenset[str]:
+        """Entries that were here before the run and that no dm2 run listed: never replaced."""
+        return frozenset(name for name in self.before - set(self.inherited) - {LOCK, MARKER}
+                         if not is_temporary(name))
+
     def record(self, files: list[str] | None = None) -> None:
-        """Write the marker: the command, its fingerprint and every file now in the folder that was not
-        there before (what ``--force`` may remove later)."""
+        """Write the marker: the command, its fingerprint and every file of this run (what ``--force`` may
+        remove later): those it announced, those now in the folder that were not there before, and those of
+        the run it resumes."""
         if files is None:
-            files = sorted((set(_entries(self.path)) - self.before - {LOCK, MARKER}) | set(self.inherited))
+            new = {name for name in _entries(self.path) - self.before - {LOCK, MARKER} if not is_temporary(name)}
+            files = sorted(new | self.written | set(self.inherited))
         _write_marker(self.path, {"command": self.command, "fingerprint": self.fingerprint, "files": files})
+
+    def announce(self, path: Path) -> None:
+        """Called by :mod:`dm2_backend.atomic` before it writes ``path``: a path inside this folder is listed in
+        the marker first (a run killed while writing still names it); one that would replace a file of the
+        user's is refused."""
+        try:
+            rel = Path(os.path.abspath(path)).relative_to(os.path.abspath(self.path))
+        except ValueError:
+            return  # not in this folder (the cache, another output)
+        if not rel.parts:
+            return
+        name = rel.parts[0]
+        if name in self.users:
+            raise InputError(self.path / name, _NOT_OURS)
+        if name not in self.written and name not in self.inherited:
+            self.written.add(name)
+            self.record(sorted(self.written | set(self.inherited)))
 
     def discard(self) -> None:
         """Remove what this run created (the folder itself if it made it)."""
@@ -57,6 +111,8 @@ class RunFolder:
             return
         for name in set(_entries(self.path)) - self.before - {LOCK}:
             _remove(self.path / name)
+        if MARKER not in self.before:  # the marker this run started
+            _remove(self.path / MARKER)
 
     def release(self) -> None:
         if self._lock is not None:
@@ -95,20 +151,28 @@ def open_folder(out: Path, command: str, *, force: bool = False, resume: bool = 
     except OSError as exc:
         raise InputError(out, f"cannot create the folder: {exc.strerror}") from exc
     folder = RunFolder(out, command, fp or {}, created)
-    folder._lock = _take_lock(out)
+    try:
+        folder._lock = _take_lock(out)
+    except InputError:
+        if created:  # rmdir: only while empty (a concurrent run that holds the folder has its lock in it)
+            with contextlib.suppress(OSError):
+                out.rmdir()
+        raise
     try:
         previous = _read_marker(out)
+        listed = _listed_names(out, previous)
         if resume:
             _check_resume(out, previous, folder.fingerprint)
-            folder.inherited = tuple(previous.get("files", []))
-        elif _entries(out) - {LOCK}:
+            folder.inherited = tuple(sorted({*listed, CHECKPOINT}))
+        elif _occupied(out, listed):
             if not force:
                 raise InputError(out, "folder is not empty: give --force to replace a previous run's files"
                                       + (", or --resume to continue it" if command == "refine" else ""))
             if previous is not None:  # a killed run may not have listed its checkpoint
-                for name in [*previous.get("files", []), CHECKPOINT, MARKER]:
+                for name in [*listed, CHECKPOINT, MARKER]:
                     _remove(out / name)
         folder.before = frozenset(_entries(out))
+        _check_no_collision(out, folder.users)
         folder.record(files=list(folder.inherited))  # from now on a killed run can be resumed or replaced
     except BaseException:
         folder.release()
@@ -125,11 +189,17 @@ def run_folder(out: Path, command: str, *, force: bool = False, resume: bool = F
     run created is removed; on Ctrl-C the folder is kept (its checkpoint serves ``--resume``)."""
     folder = open_folder(out, command, force=force, resume=resume, fp=fp)
     try:
-        yield folder
+        with watching_writes(folder.announce):
+            yield folder
         folder.record()
-    except KeyboardInterrupt:
-        folder.record()
-        raise
+    except KeyboardInterrupt as exc:
+        if (folder.path / CHECKPOINT).is_file():
+            folder.record()
+            raise Interrupted(f"{folder.path} keeps the checkpoint: add --resume to the same command to "
+                              "continue from it", resume=True) from exc
+        folder.discard()
+        raise Interrupted(f"nothing was kept in {folder.path}: run the same command again (finished "
+                          "preparation steps come from the cache)", resume=False) from exc
     except BaseException:
         folder.discard()
         raise
@@ -145,14 +215,70 @@ def adding_to(out: Path) -> Iterator[None]:
     lock = _take_lock(out)
     before = _entries(out)
     try:
-        yield
+        listed = set(_listed_names(out, _read_marker(out)))
+        users = {name for name in before - listed - {LOCK, MARKER} if not is_temporary(name)}
+
+        def refuse_users(path: Path) -> None:
+            with contextlib.suppress(ValueError):
+                rel = Path(os.path.abspath(path)).relative_to(os.path.abspath(out))
+                if rel.parts and rel.parts[0] in users:
+                    raise InputError(out / rel.parts[0], _NOT_OURS.replace("choose another --out", "remove it first"))
+
+        with watching_writes(refuse_users):
+            yield
     finally:
         previous = _read_marker(out)
         if previous is not None:
-            new = _entries(out) - before - {LOCK, MARKER}
-            _write_marker(out, {**previous, "files": sorted(set(previous.get("files", [])) | new)})
+            new = {name for name in _entries(out) - before - {LOCK, MARKER} if not is_temporary(name)}
+            _write_marker(out, {**previous, "files": sorted(set(_listed_names(out, previous)) | new)})
         (out / LOCK).unlink(missing_ok=True)
         lock.close()
+
+
+_NOT_OURS = ("is not listed in this folder's .dm2-run.json (not a dm2 run's output), and this run writes a file of "
+             "that name: dm2 never replaces your files, even with --force; move it or choose another --out")
+
+
+def _check_no_collision(out: Path, users: frozenset[str]) -> None:
+    """Before any work: a file of the user's that has the name of a dm2 output is refused, not replaced."""
+    clash = sorted(name for name in users if any(fnmatch.fnmatchcase(name, p) for p in OUTPUT_NAMES))
+    if clash:
+        raise InputError(out / clash[0], _NOT_OURS)
+
+
+def _occupied(out: Path, listed: list[str]) -> bool:
+    """Whether ``out`` holds anything besides our lock, a marker that lists nothing there (a run killed before
+    it wrote anything) and the temporaries of dead dm2 processes."""
+    rest = {name for name in _entries(out) - {LOCK} if not is_temporary(name)}
+    if rest == {MARKER} and not any((out / name).exists() or (out / name).is_symlink() for name in listed):
+        return False
+    return bool(rest)
+
+
+def _listed_names(out: Path, marker: dict | None) -> list[str]:
+    """The ``files`` of a marker, each checked to be a plain name inside ``out``; a marker that lists
+    anything else was not written by dm2 and is refused whole (before anything is removed)."""
+    if marker is None:
+        return []
+    files = marker.get("files", [])
+    if not isinstance(files, list):
+        raise InputError(out / MARKER, "not a dm2 run marker ('files' is not a list); nothing was removed")
+    for name in files:
+        if not _plain_name(name):
+            raise InputError(out / MARKER, f"lists {_short_repr(name)}, which is not a plain name inside the "
+                                           "folder: dm2 never writes such a marker; nothing was removed (remove "
+                                           "the marker, or the folder, yourself)")
+    return list(files)
+
+
+def _plain_name(name) -> bool:
+    return (isinstance(name, str) and name not in ("", ".", "..") and "/" not in name and "\\" not in name
+            and "\0" not in name and name not in (LOCK, MARKER) and len(name) <= 255)
+
+
+def _short_repr(value, limit: int = 80) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _take_lock(out: Path):
@@ -167,11 +293,23 @@ def _take_lock(out: Path):
         holder = fh.read().strip() or "?"
         fh.close()
         raise InputError(out, f"another dm2 run (pid {holder}) is writing this folder") from exc
-    fh.seek(0)
-    fh.truncate()
-    fh.write(str(os.getpid()))
-    fh.flush()
+    try:
+        fh.seek(0)
+        fh.truncate()
+        fh.write(str(os.getpid()))
+        fh.flush()
+    except OSError as exc:
+        with contextlib.suppress(OSError):  # closing flushes the same unwritten bytes again
+            fh.close()
+        (out / LOCK).unlink(missing_ok=True)
+        raise InputError(out, f"cannot write in this folder: {_no_space(exc)}") from None
     return fh
+
+
+def _no_space(exc: OSError) -> str:
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return "no space left on the device"
+    return exc.strerror or str(exc)
 
 
 def _check_resume(out: Path, previous: dict | None, fp: dict) -> None:
@@ -224,15 +362,24 @@ def digest(path: Path | None) -> str | None:
 
 def _write_marker(out: Path, doc: dict) -> None:
     tmp = out / f".tmp-{os.getpid()}-{MARKER}"
-    tmp.write_text(json.dumps(doc, indent=2, default=str))
-    os.replace(tmp, out / MARKER)
+    try:
+        tmp.write_text(json.dumps(doc, indent=2, default=str))
+        os.replace(tmp, out / MARKER)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise InputError(out, f"cannot write {MARKER}: {_no_space(exc)}") from None
 
 
 def _read_marker(out: Path) -> dict | None:
+    """The marker of ``out`` (a regular file of bounded size holding a JSON object), or None."""
+    path = out / MARKER
     try:
-        return json.loads((out / MARKER).read_text())
+        if not path.is_file() or path.is_symlink() or path.stat().st_size > MARKER_MAX_BYTES:
+            return None
+        doc = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
+    return doc if isinstance(doc, dict) else None
 
 
 def _entries(out: Path) -> set[str]:

@@ -3,8 +3,9 @@
 A step's key hashes the key of the step before it, the step's plugin name and options, and the *code* that
 computes it (the plugin's module and every dm2 module it reaches, by source text). The first step's key also
 hashes the input itself: the scan source's read spec (format, path and every read option) and, for every file
-the reading depends on (the source, ``--times``, ``--calib``), its size and modification time, file by file
-through folders (overwriting scans in place does not change a folder's own mtime).
+the reading depends on (the source, ``--times``, ``--calib``), its size, modification time, inode change time
+and a digest of its first and last 4 KiB, file by file through folders (overwriting scans in place does not
+change a folder's own mtime; ``touch -r`` can set an mtime back, but not the change time, nor the content).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import hashlib
 import inspect
 import json
 import os
+import stat
 import sys
 import types
 from pathlib import Path
@@ -31,15 +33,38 @@ def step_key(*parts) -> str:
     return hashlib.sha1(blob).hexdigest()[:16]
 
 
+#: bytes read from each end of a file for its content digest
+EDGE_BYTES = 4096
+
+
+def _edges(path: str, size: int) -> str:
+    """A short digest of the first and last :data:`EDGE_BYTES` of a regular file ('' if unreadable)."""
+    h = hashlib.sha1()
+    try:
+        with open(path, "rb") as fh:
+            h.update(fh.read(EDGE_BYTES))
+            if size > EDGE_BYTES:
+                fh.seek(max(EDGE_BYTES, size - EDGE_BYTES))
+                h.update(fh.read(EDGE_BYTES))
+    except OSError:
+        return ""
+    return h.hexdigest()[:16]
+
+
+def _stat_line(full: str, st: os.stat_result) -> str:
+    edges = _edges(full, st.st_size) if stat.S_ISREG(st.st_mode) else ""
+    return f"{st.st_size}\0{st.st_mtime_ns}\0{st.st_ctime_ns}\0{edges}"
+
+
 def file_fingerprint(path: str | Path | None) -> list:
-    """``[size, mtime_ns]`` of a file; of a folder, a hash of every file under it (relative name, size,
-    mtime); ``[]`` when there is no such path."""
+    """``[size, mtime_ns, ctime_ns, edge digest]`` of a file; of a folder, a hash of the same for every file
+    under it (with its relative name); ``[]`` when there is no such path."""
     if not path:
         return []
     path = Path(path)
     if path.is_file():
         st = path.stat()
-        return [st.st_size, st.st_mtime_ns]
+        return [st.st_size, st.st_mtime_ns, st.st_ctime_ns, _edges(str(path), st.st_size)]
     if not path.is_dir():
         return []
     h = hashlib.sha1()
@@ -51,7 +76,7 @@ def file_fingerprint(path: str | Path | None) -> list:
                 st = os.stat(full)
             except OSError:
                 continue
-            h.update(f"{os.path.relpath(full, path)}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+            h.update(f"{os.path.relpath(full, path)}\0{_stat_line(full, st)}\n".encode())
     return [h.hexdigest()]
 
 

@@ -50,13 +50,13 @@ def _save_pieces(path: Path, pieces: list[np.ndarray]) -> None:
     if rows == 0:
         np.save(path, np.concatenate(pieces) if pieces else np.zeros((0, 3), np.float32), allow_pickle=False)
         return
-    out = np.lib.format.open_memmap(path, mode="w+", dtype=pieces[0].dtype, shape=(rows, *pieces[0].shape[1:]))
-    start = 0
-    for p in pieces:
-        out[start : start + len(p)] = p
-        start += len(p)
-    out.flush()
-    del out
+    dtype = pieces[0].dtype
+    header = {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False,
+              "shape": (rows, *pieces[0].shape[1:])}
+    with open(path, "wb") as fh:  # written, not memory-mapped: a full disk is an error here, not a bus error
+        np.lib.format.write_array_header_1_0(fh, header)
+        for p in pieces:
+            fh.write(np.ascontiguousarray(p, dtype=dtype).tobytes())
 
 
 def _load(path: Path) -> np.ndarray:
