@@ -42,8 +42,9 @@ INPUT_ORDER = ["command", "scans", "frames", "poses", "poses_content"]
 #: top-level names that dm2 runs write (refine, baseline, simulate, demo, map, view): a file of yours with one of
 #: these names in --out is refused before any work, since the run would replace it
 OUTPUT_NAMES = ("config.yaml", "resolved.yaml", "report.json", "warm_start.*", "topology.*", "trajectory.png",
-                "errors.png", "epochs.png", "map.*", "mnet*", "octomap.bt", "maps.json", "prior", CHECKPOINT,
-                "poses*", "*_lidar_*", "graph.g2o", "velodyne", "times.txt", "info.json", "README.txt", "*.rrd")
+                "errors.png", "epochs.png", "consistency.*", "map.*", "mnet*", "octomap.bt", "maps.json", "prior",
+                CHECKPOINT, "poses*", "*_lidar_*", "graph.g2o", "velodyne", "times.txt", "info.json", "README.txt",
+                "*.rrd")
 #: a marker larger than this is not one dm2 wrote
 MARKER_MAX_BYTES = 1 << 20
 
