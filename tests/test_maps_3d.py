@@ -10,7 +10,8 @@ from optim_cases import one_thread
 from scipy.spatial import cKDTree
 
 from dm2_backend.geometry import se3
-from dm2_backend.maps import mnet_export, octomap_export, run_maps
+from dm2_backend.maps import octomap_export, run_maps
+from dm2_backend.optim import mnet_file
 
 WALL = 0.2  # thickness of the simulated walls, floor and ceiling
 
@@ -27,7 +28,7 @@ def run_dir(tmp_path_factory):
     r = room(planar=False)
     G = se3.from_xyz_euler(np.array([[0.5, -1.0, 0.2, 0.0, 0.0, 0.4]]))[0]
     field = train_field(r, G, cell=0.15, steps=150, levels=5, max_cells=2**16, lr=3e-2)
-    mnet_export.save_mnet(out / mnet_export.MNET, field, G)
+    mnet_file.save_mnet(out / mnet_file.MNET, field, G)
     files = run_maps.write_run_maps(out, r.sequence(), r.poses, strict=True, progress=False)
     return out, files, r
 
@@ -40,7 +41,7 @@ def test_mesh_on_the_surfaces(run_dir):
     mesh = o3d.io.read_triangle_mesh(str(out / "mnet_mesh.ply"))
     v, faces = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
     assert len(faces) > 1000 and mesh.has_vertex_normals()
-    step = mnet_export.load_mnet(out / mnet_export.MNET).finest_cell  # the marching-cubes lattice step
+    step = mnet_file.load_mnet(out / mnet_file.MNET).finest_cell  # the marching-cubes lattice step
     assert run_maps.read_summary(out)["skipped"] == {}
     inside = (np.abs(v[:, 0]) < HALF[0]) & (np.abs(v[:, 1]) < HALF[1]) & (v[:, 2] > 0) & (v[:, 2] < HEIGHT)
     assert inside.mean() > 0.6

@@ -13,7 +13,8 @@ from click.testing import CliRunner
 from optim_cases import one_thread, planar_case
 
 from dm2_backend.cli.main import cli
-from dm2_backend.maps import mnet_export, occupancy_grid, run_maps
+from dm2_backend.maps import occupancy_grid, run_maps
+from dm2_backend.optim import mnet_file
 from dm2_backend.simulate.sequence import write_sequence
 
 SMALL = {"seed": 3, "frames": {"max_points": 256},
@@ -69,7 +70,7 @@ def test_refine_writes_the_maps(run):
         for dc in (-1, 0, 1):
             near |= classes[np.clip(rows + dr, 0, h - 1), np.clip(cols + dc, 0, w - 1)] == 1
     assert near.mean() > 0.9
-    state = mnet_export.load_mnet(run / mnet_export.MNET)
+    state = mnet_file.load_mnet(run / mnet_file.MNET)
     assert state.trained and state.dim == 2
     summary = run_maps.read_summary(run)
     assert summary["scans"]["source"] == str((Path(summary["scans"]["source"])).resolve())

@@ -10,7 +10,8 @@ from maps_cases import HALF, PILLAR, distance, room, train_field, wall_samples
 from optim_cases import one_thread
 
 from dm2_backend.geometry import se3
-from dm2_backend.maps import mnet_export, occupancy_grid, run_maps
+from dm2_backend.maps import occupancy_grid, run_maps
+from dm2_backend.optim import mnet_file
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -24,7 +25,7 @@ def run_dir(tmp_path_factory):
     out = tmp_path_factory.mktemp("room2d")
     r = room(planar=True)
     G = se3.from_xy_yaw(np.array([[1.0, -2.0, 0.7]]))[0]
-    mnet_export.save_mnet(out / mnet_export.MNET, train_field(r, G, cell=0.05, steps=200), G)
+    mnet_file.save_mnet(out / mnet_file.MNET, train_field(r, G, cell=0.05, steps=200), G)
     files = run_maps.write_run_maps(out, r.sequence(), r.poses, strict=True, progress=False)
     return out, files
 
@@ -132,9 +133,9 @@ def test_mnet_file_loads_weights_only(run_dir):
     out, _ = run_dir
     import torch
 
-    state = torch.load(out / mnet_export.MNET, weights_only=True)
-    assert state["format"] == mnet_export.FORMAT and state["dim"] == 2 and state["trained"] is True
-    mnet = mnet_export.load_mnet(out / mnet_export.MNET)
+    state = torch.load(out / mnet_file.MNET, weights_only=True)
+    assert state["format"] == mnet_file.FORMAT and state["dim"] == 2 and state["trained"] is True
+    mnet = mnet_file.load_mnet(out / mnet_file.MNET)
     G = np.asarray(state["world_from_field"])
     np.testing.assert_allclose(mnet.world_from_field, G)
     p = np.array([[0.3, -0.2], [4.0, 1.0]])  # the same logits through the transform and directly

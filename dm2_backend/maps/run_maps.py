@@ -31,6 +31,7 @@ import numpy as np
 from dm2_backend.atomic import atomic_write
 from dm2_backend.maps import mnet_export, occupancy_grid
 from dm2_backend.maps.octomap_export import MissingExtra, write_octomap
+from dm2_backend.optim import mnet_file
 from dm2_backend.scans import ScanSequence
 
 log = logging.getLogger(__name__)
@@ -153,12 +154,12 @@ def _json_default(v):
     return str(v)
 
 
-def _load_mnet(out: Path, summary: dict) -> mnet_export.MNet | None:
-    path = out / mnet_export.MNET
+def _load_mnet(out: Path, summary: dict) -> mnet_file.MNet | None:
+    path = out / mnet_file.MNET
     if not path.exists():
-        summary["skipped"]["mnet"] = f"no {mnet_export.MNET} in the run folder (only dm2 refine trains an M-Net)"
+        summary["skipped"]["mnet"] = f"no {mnet_file.MNET} in the run folder (only dm2 refine trains an M-Net)"
         return None
-    mnet = mnet_export.load_mnet(path)
+    mnet = mnet_file.load_mnet(path)
     if not mnet.trained:
         summary["skipped"]["mnet"] = "the run did not train the M-Net (optimiser use_bce off)"
         return None

@@ -31,7 +31,7 @@ class GridOccupancy(nn.Module):
         super().__init__()
         lo = np.asarray(lo, dtype=np.float64)
         hi = np.asarray(hi, dtype=np.float64)
-        #: what rebuilds this module around a saved state_dict (dm2_backend.maps.mnet_export)
+        #: what rebuilds this module around a saved state_dict (dm2_backend.optim.mnet_file)
         self.init_args = {"lo": lo.tolist(), "hi": hi.tolist(), "finest_cell": float(finest_cell), "levels": levels,
                           "features": features, "max_cells": max_cells, "hidden": hidden, "coarsest": coarsest}
         self.dim = len(lo)

@@ -17,10 +17,10 @@ from scipy.spatial import cKDTree
 from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError, one_line
 from dm2_backend.geometry import se3_torch
-from dm2_backend.maps.mnet_export import MNET, save_mnet
 from dm2_backend.optim import distributed, losses
 from dm2_backend.optim.batching import make_groups
 from dm2_backend.optim.config import OptimConfig, derive, loss_regime, pose_regime, sampled_points
+from dm2_backend.optim.mnet_file import MNET, save_mnet
 from dm2_backend.optim.occupancy import GridOccupancy
 from dm2_backend.optim.pose_model import PoseModel
 from dm2_backend.optim.regime import disagreement, locally_accurate
