@@ -67,7 +67,7 @@ def command(method, graph_path, information, robust, robust_k, max_iterations, r
                             robust_k=robust_k)
     options.check()
     if graph_path is not None:
-        from dm2_backend.baselines.run import optimise_file
+        from dm2_backend.pipeline.baseline import optimise_file
 
         if method not in GRAPH_METHODS:
             raise click.UsageError(f"--graph works with {' and '.join(GRAPH_METHODS)}, not {method}")
@@ -90,7 +90,7 @@ def command(method, graph_path, information, robust, robust_k, max_iterations, r
         return
     if kw["scans"] is None:
         raise click.UsageError("Missing option '--scans' / '-s' (or --graph).")
-    from dm2_backend.baselines.run import baseline
+    from dm2_backend.pipeline.baseline import baseline
 
     overrides: dict = {}
     if method == "icp" and not kw["warm_start"]:
