@@ -9,7 +9,7 @@ from typing import Protocol
 
 import numpy as np
 
-from dm2_backend.prepare.types import Frames, Pairwise, Topology
+from dm2_backend.stages import Frames, Pairwise, Topology
 from dm2_backend.trajectory import Trajectory
 
 

@@ -13,7 +13,7 @@ from dm2_backend.algorithms.common import Cloud, Match, lengths, project_planar
 from dm2_backend.algorithms.gates import coverage
 from dm2_backend.algorithms.pairwise import PairwiseRegistration
 from dm2_backend.errors import InputError
-from dm2_backend.prepare.types import Frames
+from dm2_backend.stages import Frames
 
 TYPES = ("GICP", "VGICP", "ICP", "PLANE_ICP")
 

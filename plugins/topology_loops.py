@@ -50,8 +50,8 @@ from dm2_backend.algorithms.loop_graph import Closure, KeyframeGraph, between, c
 from dm2_backend.algorithms.topology import check_k, check_poses
 from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
-from dm2_backend.prepare.types import Frames, Topology
 from dm2_backend.progress import progress
+from dm2_backend.stages import Frames, Topology
 
 
 @dataclass

@@ -46,8 +46,8 @@ from dm2_backend.algorithms.loop_graph3d import Closure3, FrameGraph
 from dm2_backend.algorithms.topology import check_k, check_poses
 from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
-from dm2_backend.prepare.types import Frames, Topology
 from dm2_backend.progress import progress
+from dm2_backend.stages import Frames, Topology
 
 
 @dataclass

@@ -53,8 +53,8 @@ from dm2_backend.algorithms.drift_windows import OdometryNoise, WindowVerdict, a
 from dm2_backend.algorithms.icp import information_2d, register, slide_loss
 from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
-from dm2_backend.prepare.types import Frames
 from dm2_backend.progress import progress
+from dm2_backend.stages import Frames
 from dm2_backend.trajectory import Trajectory
 
 

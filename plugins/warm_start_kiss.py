@@ -10,8 +10,8 @@ import numpy as np
 
 from dm2_backend.algorithms.common import lengths, project_planar
 from dm2_backend.errors import InputError
-from dm2_backend.prepare.types import Frames
 from dm2_backend.progress import progress
+from dm2_backend.stages import Frames
 from dm2_backend.trajectory import Trajectory
 
 

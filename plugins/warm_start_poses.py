@@ -9,7 +9,7 @@ import numpy as np
 
 from dm2_backend.algorithms.common import project_planar
 from dm2_backend.errors import InputError
-from dm2_backend.prepare.types import Frames
+from dm2_backend.stages import Frames
 from dm2_backend.trajectory import Trajectory
 
 

@@ -21,7 +21,7 @@ from dm2_backend.errors import InputError
 from dm2_backend.formats.g2o import read_g2o, write_g2o
 from dm2_backend.geometry import se3
 from dm2_backend.pose_graph import PoseGraph
-from dm2_backend.prepare.types import Frames, Pairwise, Topology
+from dm2_backend.stages import Frames, Pairwise, Topology
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 GRAPHS = DATA / "posegraphs"

@@ -26,7 +26,7 @@ from dm2_backend.formats.tum import read_tum
 from dm2_backend.pipeline.inputs import load_inputs
 from dm2_backend.plugins.topology_poses import GpsTopology
 from dm2_backend.plugins.topology_radius import RadiusTopology
-from dm2_backend.prepare.types import Frames
+from dm2_backend.stages import Frames
 
 
 def _import_pykitti():

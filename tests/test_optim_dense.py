@@ -175,7 +175,7 @@ def _prepared_3d(frames: int = 12):
     from optim_cases import frames_of
 
     from dm2_backend.prepare.steps import Prepared
-    from dm2_backend.prepare.types import Pairwise, Topology
+    from dm2_backend.stages import Pairwise, Topology
 
     scans, gt, warm = simulate(SimSettings(frames=frames, seed=5, extent=10.0, laps=0.5), progress=False)
     fr = frames_of(scans, planar=False)

@@ -14,7 +14,7 @@ from dm2_backend.optim.occupancy import GridOccupancy
 from dm2_backend.optim.pose_model import PoseModel
 from dm2_backend.optim.trainer import Optimiser, sample_points
 from dm2_backend.plugins.topology_radius import RadiusTopology
-from dm2_backend.prepare.types import Topology
+from dm2_backend.stages import Topology
 
 
 @pytest.fixture(autouse=True, scope="module")

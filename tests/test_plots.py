@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from dm2_backend.evaluation import plots
 from dm2_backend.geometry import se3
 from dm2_backend.pipeline import outputs
-from dm2_backend.prepare.types import Topology
+from dm2_backend.stages import Topology
 from dm2_backend.trajectory import Trajectory
 
 

@@ -118,7 +118,7 @@ def test_loops_closes_a_large_drift_loop(floor):
 def test_loops_on_a_short_sequence_without_revisits(floor):
     """Fewer frames than a loop needs: no candidates, no loop-closed poses, groups still filled."""
     frames, truth = floor
-    from dm2_backend.prepare.types import Frames
+    from dm2_backend.stages import Frames
 
     few = Frames(frames.points[:5], None, True, frames.scale)
     topo = load("dm2.place_recognition", "loops")(progress=False, k=3).run(few, truth[:5])

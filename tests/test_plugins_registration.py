@@ -17,7 +17,7 @@ from dm2_backend.geometry import se3
 from dm2_backend.plugins.registration_icp import GicpRegistration, IcpRegistration
 from dm2_backend.plugins.registration_small_gicp import SmallGicpRegistration
 from dm2_backend.plugins.registry import GROUPS, discover
-from dm2_backend.prepare.types import Topology
+from dm2_backend.stages import Topology
 
 EXPECTED = {
     "dm2.warm_start": {"poses", "icp", "kiss-icp"},

@@ -16,8 +16,8 @@ from dm2_backend.plugins.topology_descriptor import DescriptorTopology
 from dm2_backend.plugins.topology_external import ExternalTopology
 from dm2_backend.plugins.topology_poses import GpsTopology, PosesTopology
 from dm2_backend.plugins.topology_radius import RadiusTopology
-from dm2_backend.prepare.types import Frames
 from dm2_backend.simulate.path import drifting_odometry
+from dm2_backend.stages import Frames
 from dm2_backend.trajectory import Trajectory
 
 

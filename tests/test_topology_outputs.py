@@ -14,7 +14,7 @@ from dm2_backend.evaluation.topology_log import DROPPED, candidates, document, p
 from dm2_backend.geometry import se3
 from dm2_backend.pipeline import outputs
 from dm2_backend.plugins.registry import load
-from dm2_backend.prepare.types import Topology
+from dm2_backend.stages import Topology
 
 
 def fake_topology() -> Topology:

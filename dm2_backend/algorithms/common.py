@@ -12,8 +12,8 @@ from scipy.spatial import cKDTree
 
 from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
-from dm2_backend.prepare.frames import point_spacing
-from dm2_backend.prepare.types import Frames, Topology
+from dm2_backend.scan_scale import point_spacing
+from dm2_backend.stages import Frames, Topology
 
 #: ICP variants; "auto" is GICP for 3D clouds (sparse down-sampled scans suit its covariances better than
 #: point-to-plane's normals) and 2D point-to-line for planar scans

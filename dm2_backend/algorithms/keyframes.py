@@ -11,7 +11,7 @@ import numpy as np
 
 from dm2_backend.algorithms.common import path_length
 from dm2_backend.geometry import se3
-from dm2_backend.prepare.types import Frames
+from dm2_backend.stages import Frames
 
 
 def select(poses: np.ndarray, spacing: float, angle: float) -> np.ndarray:

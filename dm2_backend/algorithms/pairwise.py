@@ -33,8 +33,8 @@ from dm2_backend.algorithms.common import (
 from dm2_backend.algorithms.gates import check_alignment
 from dm2_backend.algorithms.icp import register
 from dm2_backend.geometry import se3
-from dm2_backend.prepare.types import Frames, Pairwise, Topology
 from dm2_backend.progress import progress
+from dm2_backend.stages import Frames, Pairwise, Topology
 
 
 @dataclass

@@ -6,7 +6,7 @@ import numpy as np
 
 from dm2_backend.algorithms.common import lengths
 from dm2_backend.errors import InputError
-from dm2_backend.prepare.types import Frames
+from dm2_backend.stages import Frames
 
 
 def default_radius(frames: Frames) -> float:

@@ -28,7 +28,7 @@ import numpy as np
 from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
 from dm2_backend.pose_graph import PoseGraph
-from dm2_backend.prepare.types import Frames, Pairwise, Topology
+from dm2_backend.stages import Frames, Pairwise, Topology
 
 MODEL_TEXT = "sigma_t = max(rmse, floor) / sqrt(fitness * points), sigma_r = sigma_t / lever arm"
 

@@ -20,7 +20,7 @@ from dm2_backend.baselines.graph import valid_pairs
 from dm2_backend.baselines.options import GraphResult, SolverOptions
 from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
-from dm2_backend.prepare.types import Frames, Pairwise, Topology
+from dm2_backend.stages import Frames, Pairwise, Topology
 
 reg = o3d.pipelines.registration
 

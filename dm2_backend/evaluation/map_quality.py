@@ -23,8 +23,8 @@ from scipy.spatial import cKDTree
 
 from dm2_backend.errors import InputError
 from dm2_backend.geometry.voxels import group_rows
-from dm2_backend.prepare.frames import point_spacing
 from dm2_backend.progress import progress as progress_of
+from dm2_backend.scan_scale import point_spacing
 from dm2_backend.scans import ScanSequence
 from dm2_backend.threads import ordered_map
 from dm2_backend.trajectory import Trajectory, associate_by_time

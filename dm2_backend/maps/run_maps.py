@@ -77,7 +77,7 @@ def resolution(scale: dict, planar: bool) -> tuple[float, str]:
 def gather(scans: ScanSequence, poses: np.ndarray, planar: bool, max_frames: int = MAX_FRAMES,
            max_points: int | None = None) -> MapData:
     """Load the scans (a subset for huge runs) and put them at ``poses`` (the sensor's poses)."""
-    from dm2_backend.prepare.frames import derive_scale
+    from dm2_backend.scan_scale import derive_scale
 
     if len(scans) != len(poses):
         raise ValueError(f"{len(scans)} scans for {len(poses)} poses")

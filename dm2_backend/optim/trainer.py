@@ -24,8 +24,8 @@ from dm2_backend.optim.mnet_file import MNET, save_mnet
 from dm2_backend.optim.occupancy import GridOccupancy
 from dm2_backend.optim.pose_model import PoseModel
 from dm2_backend.optim.regime import disagreement, locally_accurate
-from dm2_backend.prepare.types import Frames, Pairwise, Topology
 from dm2_backend.progress import progress
+from dm2_backend.stages import Frames, Pairwise, Topology
 from dm2_backend.threads import ordered_map
 
 CHECKPOINT = "checkpoint.pt"

@@ -18,7 +18,7 @@ from dm2_backend.evaluation import plots, topology_log
 from dm2_backend.formats import TRAJECTORY_FORMATS, write_trajectory
 from dm2_backend.formats.dm2_priors import write_priors
 from dm2_backend.formats.kitti import lidar_to_camera, read_calib_tr
-from dm2_backend.prepare.types import Frames, Pairwise, Topology
+from dm2_backend.stages import Frames, Pairwise, Topology
 from dm2_backend.trajectory import Trajectory
 
 log = logging.getLogger(__name__)

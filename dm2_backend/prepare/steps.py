@@ -24,8 +24,8 @@ from dm2_backend.errors import InputError
 from dm2_backend.plugins.registry import load as load_plugin
 from dm2_backend.prepare import store
 from dm2_backend.prepare.cache_keys import code_fingerprint, source_key, step_key
-from dm2_backend.prepare.types import Frames, Pairwise, Topology
 from dm2_backend.scans import DEPTH_CAMERA, ScanSequence
+from dm2_backend.stages import Frames, Pairwise, Topology
 from dm2_backend.trajectory import Trajectory
 
 log = logging.getLogger(__name__)

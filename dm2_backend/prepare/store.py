@@ -18,7 +18,7 @@ import numpy as np
 
 from dm2_backend.atomic import atomic_path
 from dm2_backend.errors import InputError
-from dm2_backend.prepare.types import Frames, Pairwise, Topology
+from dm2_backend.stages import Frames, Pairwise, Topology
 
 log = logging.getLogger(__name__)
 
