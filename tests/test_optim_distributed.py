@@ -138,7 +138,7 @@ def job(seq: Path, cache: Path, out: Path, scratch: Path, resume: bool, metric, 
     cfg = config.load(seq / "config.yaml", {"nproc": 2, **(overrides or {})})
     inputs = load_inputs(seq / "velodyne", None, seq / "warm_start.txt", None, read_options())
     ocfg = OptimConfig.from_dict(cfg["optimiser"])
-    sess = parallel.Session(Dist(0, 2), "spawn", cache, scratch)
+    sess = parallel.Session(Dist(0, 2), parallel.Mode.SPAWN, cache, scratch)
     prep, samples = parallel.prepare_once(inputs, cfg, ocfg, sess, progress=False)
     assert all(prep.cached.values())
     sampler = map_sampler(inputs)

@@ -11,6 +11,7 @@ Only rank 0 (or the parent of spawned ranks) writes the run folder.
 from __future__ import annotations
 
 import contextlib
+import enum
 import os
 import pickle
 import resource
@@ -37,14 +38,22 @@ from dm2_backend.prepare.cache_keys import code_fingerprint, step_key
 from dm2_backend.prepare.steps import Prepared, load_prepared, prepare
 
 
+class Mode(enum.Enum):
+    """How a run uses processes: one, a parent spawning ``--nproc`` ranks, or one rank started by torchrun."""
+
+    SINGLE = "single"
+    SPAWN = "spawn"
+    TORCHRUN = "torchrun"
+
+
 @dataclass
 class Session:
-    """How this process takes part in a run: ``mode`` single, spawn (the parent of ``dist.world`` ranks) or
-    torchrun (rank ``dist.rank``); ``cache`` the preparation cache of the run (a temporary folder when the run
-    has none but several processes)."""
+    """How this process takes part in a run: its :class:`Mode` (with spawn the parent of ``dist.world`` ranks,
+    with torchrun rank ``dist.rank``); ``cache`` the preparation cache of the run (a temporary folder when the
+    run has none but several processes)."""
 
     dist: Dist
-    mode: str
+    mode: Mode
     cache: Path | None
     scratch: Path | None = None
     group: object = None  # torchrun: a gloo group with a long timeout, for waiting on single-rank work
@@ -60,7 +69,7 @@ def session(nproc: int, cache_dir: Path | None, device: str) -> Iterator[Session
         launch = f"{os.environ.get('TORCHELASTIC_RUN_ID', '')}-{os.environ.get('MASTER_PORT', '')}"
         cache = cache_dir or Path(tempfile.gettempdir()) / f"dm2-torchrun-{launch}"  # one per node
         try:
-            yield Session(env, "torchrun", cache, group=group)
+            yield Session(env, Mode.TORCHRUN, cache, group=group)
             td.barrier(group=group)  # the other ranks wait for rank 0's outputs
         finally:
             if cache_dir is None and env.local_rank == 0:
@@ -71,17 +80,17 @@ def session(nproc: int, cache_dir: Path | None, device: str) -> Iterator[Session
             raise InputError(None, f"--nproc {nproc} with --device cuda needs {nproc} GPUs; "
                                    f"{torch.cuda.device_count()} visible")
         with tempfile.TemporaryDirectory(prefix="dm2-nproc-") as tmp:
-            yield Session(Dist(0, nproc), "spawn", cache_dir or Path(tmp) / "cache", Path(tmp))
+            yield Session(Dist(0, nproc), Mode.SPAWN, cache_dir or Path(tmp) / "cache", Path(tmp))
     else:
-        yield Session(Dist(), "single", cache_dir)
+        yield Session(Dist(), Mode.SINGLE, cache_dir)
 
 
 def prepare_once(inputs, cfg: dict, ocfg: OptimConfig, sess: Session, progress: bool) -> tuple[Prepared, str | None]:
     """The prepared data, and with several processes the cache entry of the points sampled for the optimiser
     (written once, memory-mapped by every rank)."""
-    if sess.mode != "torchrun":
+    if sess.mode is not Mode.TORCHRUN:
         prep = prepare(inputs.scans, inputs.given, cfg, sess.cache, progress)
-        return prep, samples_entry(sess.cache, prep, ocfg, cfg["seed"]) if sess.mode == "spawn" else None
+        return prep, samples_entry(sess.cache, prep, ocfg, cfg["seed"]) if sess.mode is Mode.SPAWN else None
     d = sess.dist
     prep, name = None, None
     for turn in (d.rank == 0, d.local_rank == 0 and d.rank != 0, d.local_rank != 0):

@@ -40,16 +40,16 @@ def refine(inputs: RunInputs, cfg: dict, out: Path, cache_dir: Path | None, resu
         t_dense = time.perf_counter()
         if lead:
             start = dense_start(inputs.scans, prep, start, ocfg, cfg["seed"], progress, metric)
-        if sess.mode == "torchrun":
+        if sess.mode is parallel.Mode.TORCHRUN:
             start = distributed.broadcast(start)
         t_dense = time.perf_counter() - t_dense
         watch = parallel.Watch(metric, map_entropy(sampler), metric) if lead else None
         extra = {}
-        if sess.mode == "single":
+        if sess.mode is parallel.Mode.SINGLE:
             opt = parallel.build(prep, start, ocfg, cfg, watch, progress)
             t_opt = time.perf_counter()
             result, device = opt.run(checkpoint_dir=out, resume=resume), str(opt.device)
-        elif sess.mode == "spawn":  # timed with starting the processes and building their optimisers
+        elif sess.mode is parallel.Mode.SPAWN:  # timed with starting the processes and building their optimisers
             t_opt = time.perf_counter()
             job = parallel.Job(sess.cache, prep.keys, start, samples, ocfg, cfg, out, resume, progress,
                                watch, sess.dist.world, sess.scratch)
