@@ -192,23 +192,23 @@ def test_a_dense_result_that_agrees_worse_is_not_kept(monkeypatch, scores):
     from dm2_backend.pipeline import start as start_module
 
     prep, seq, gt = _prepared_3d()
-    given = start_module.Start(gt, "graph", "the pose-graph solution")
+    given = start_module.Start(gt, start_module.StartKind.GRAPH, "the pose-graph solution")
     moved = gt.copy()
     moved[:, 0, 3] += 0.5
     monkeypatch.setattr(start_module, "refine_dense", lambda *a, **k: DenseResult(moved, [], 0.0, "test"))
     monkeypatch.setattr(start_module, "agreement_score", lambda *a, **k: dict(scores))
     out = start_module.dense_start(seq, prep, given, OptimConfig())
     np.testing.assert_array_equal(out.poses, gt)  # the start (graph) agreed best, or nothing could be judged
-    assert out.name == "graph" and not out.refined and out.dense["returned"] == "graph"
+    assert out.name is start_module.StartKind.GRAPH and not out.refined and out.dense["returned"] == "graph"
 
 
 def test_the_dense_stage_is_kept_when_it_agrees_best():
     prep, seq, gt = _prepared_3d()
-    from dm2_backend.pipeline.start import Start, dense_start
+    from dm2_backend.pipeline.start import Start, StartKind, dense_start
 
     noisy = gt.copy()
     noisy[:, :3, 3] += np.random.default_rng(0).normal(0, 0.05, (len(gt), 3))
-    out = dense_start(seq, prep, Start(noisy, "graph", "test"), OptimConfig())
+    out = dense_start(seq, prep, Start(noisy, StartKind.GRAPH, "test"), OptimConfig())
     assert out.refined and out.locally_accurate and out.dense["rounds"] >= 1
     assert out.dense["agreement_m2"]["dense"] < out.dense["agreement_m2"]["graph"]
 

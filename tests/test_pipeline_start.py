@@ -13,7 +13,7 @@ from dm2_backend.errors import InputError
 from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.optim.config import OptimConfig
 from dm2_backend.pipeline import start as start_module
-from dm2_backend.pipeline.start import GRAPH_SOLVER, choose_start
+from dm2_backend.pipeline.start import GRAPH_SOLVER, StartKind, choose_start
 from dm2_backend.prepare.steps import Prepared
 from dm2_backend.scans import Scan, ScanSequence
 
@@ -40,7 +40,7 @@ def test_graph_start_is_the_gtsam_baseline_when_sharper(prepared, sampler):
     start = choose_start(prepared, OptimConfig(start="graph"), sampler)
     graph = build_graph(prepared.frames, prepared.initial, prepared.topology, prepared.pairwise)
     np.testing.assert_allclose(start.poses, gtsam_backend.optimize(graph, GRAPH_SOLVER).poses)
-    assert start.name == "graph" and start.map_entropy["graph"] < start.map_entropy["prepared"]
+    assert start.name is StartKind.GRAPH and start.map_entropy["graph"] < start.map_entropy["prepared"]
     assert sampler.entropy(start.poses) == pytest.approx(start.map_entropy["graph"])
 
 
@@ -50,13 +50,13 @@ def test_a_blurrier_graph_solution_is_not_taken(prepared, sampler, monkeypatch):
 
     monkeypatch.setattr(start_module.gtsam_backend, "optimize", bent)
     start = choose_start(prepared, OptimConfig(start="graph"), sampler)
-    assert start.name == "prepared" and "blurrier" in start.why
+    assert start.name is StartKind.PREPARED and "blurrier" in start.why
     np.testing.assert_array_equal(start.poses, prepared.initial)
 
 
 def test_prepared_and_auto_on_planar_data(prepared, sampler):
     for name in ("prepared", "auto"):
         start = choose_start(prepared, OptimConfig(start=name), sampler)
-        assert start.name == "prepared" and start.poses is prepared.initial
+        assert start.name is StartKind.PREPARED and start.poses is prepared.initial
     with pytest.raises(InputError, match="optimiser.start"):
         choose_start(prepared, OptimConfig(start="gtsam"), sampler)

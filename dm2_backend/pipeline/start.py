@@ -10,6 +10,7 @@ entropy, no ground truth), so a graph bent by a wrong registration does not star
 
 from __future__ import annotations
 
+import enum
 import logging
 import time
 from collections.abc import Callable
@@ -34,13 +35,20 @@ log = logging.getLogger(__name__)
 GRAPH_SOLVER = SolverOptions(robust="cauchy")
 
 
+class StartKind(str, enum.Enum):
+    """Where the optimiser starts: the pose-graph solution or the prepared (loop-closed or warm-start) poses."""
+
+    GRAPH = "graph"
+    PREPARED = "prepared"
+
+
 @dataclass
 class Start:
-    """The optimiser's start: ``name`` "graph" or "prepared", and why; ``dense`` what the dense stage did from
+    """The optimiser's start: its :class:`StartKind` ``name`` and why; ``dense`` what the dense stage did from
     there (empty when it did not run; ``poses`` are then its result)."""
 
     poses: np.ndarray
-    name: str
+    name: StartKind
     why: str
     map_entropy: dict[str, float] = field(default_factory=dict)  # candidate -> mean map entropy
     dense: dict = field(default_factory=dict)
@@ -53,10 +61,10 @@ class Start:
     @property
     def locally_accurate(self) -> bool:
         """The pose-graph solution, or the dense stage's result: both agree with the registrations."""
-        return self.name == "graph" or self.refined
+        return self.name is StartKind.GRAPH or self.refined
 
     def summary(self) -> dict:
-        return {"name": self.name, "why": self.why, "map_entropy": self.map_entropy, "dense": self.dense}
+        return {"name": self.name.value, "why": self.why, "map_entropy": self.map_entropy, "dense": self.dense}
 
 
 def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None) -> Start:
@@ -69,23 +77,23 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None) -
         raise InputError(None, f"optimiser.start must be auto, graph or prepared, got {cfg.start!r}")
     prepared = prep.initial
     if cfg.start == "prepared":
-        return Start(prepared, "prepared", "optimiser.start: prepared")
+        return Start(prepared, StartKind.PREPARED, "optimiser.start: prepared")
     if cfg.start == "auto" and prep.frames.planar:
-        return Start(prepared, "prepared", "optimiser.start auto: planar data start from the prepared poses")
+        return Start(prepared, StartKind.PREPARED, "optimiser.start auto: planar data start from the prepared poses")
     graph = build_graph(prep.frames, prepared, prep.topology, prep.pairwise)
     if graph.meta["loop_edges"] == 0:  # the odometry edges are the prepared poses' own steps
-        return Start(prepared, "prepared", "no registration edges beyond the odometry: the graph is the start")
+        return Start(prepared, StartKind.PREPARED, "no registration edges beyond the odometry: the graph is the start")
     try:
         solved = gtsam_backend.optimize(graph, GRAPH_SOLVER).poses
     except InputError as exc:
         log.warning("pose-graph start failed (%s); starting from the prepared poses", exc.message)
-        return Start(prepared, "prepared", f"the pose graph could not be solved: {exc.message}")
+        return Start(prepared, StartKind.PREPARED, f"the pose graph could not be solved: {exc.message}")
     if sampler is None:
-        return Start(solved, "graph", "pose-graph solution (no map to compare)")
+        return Start(solved, StartKind.GRAPH, "pose-graph solution (no map to compare)")
     scores = {"prepared": sampler.evaluate(prepared).entropy, "graph": sampler.evaluate(solved).entropy}
     if scores["graph"] <= scores["prepared"]:
-        return Start(solved, "graph", "the pose-graph solution makes the sharper map", scores)
-    return Start(prepared, "prepared", "the pose-graph solution makes a blurrier map", scores)
+        return Start(solved, StartKind.GRAPH, "the pose-graph solution makes the sharper map", scores)
+    return Start(prepared, StartKind.PREPARED, "the pose-graph solution makes a blurrier map", scores)
 
 
 def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimConfig, seed: int = 0,
@@ -103,11 +111,11 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise)
     result = refine_dense(cells, graph, start.poses, voxel, cfg.dense_rounds, progress=progress, trace=trace)
     # never worse than where it started, judged without ground truth: each frame against the map the others make
-    candidates = {"warm start": prep.warm_start, start.name: start.poses, "dense": result.poses}
-    agreement = agreement_score(cells, candidates, voxel, judges=(start.name, "dense"))
+    candidates = {"warm start": prep.warm_start, start.name.value: start.poses, "dense": result.poses}
+    agreement = agreement_score(cells, candidates, voxel, judges=(start.name.value, "dense"))
     finite = {name: score for name, score in agreement.items() if np.isfinite(score)}
     # no plane seen by two frames (too few or too sparse scans): nothing to judge by, the start stands
-    chosen = min(finite, key=finite.get) if len(finite) == len(agreement) else start.name
+    chosen = min(finite, key=finite.get) if len(finite) == len(agreement) else start.name.value
     summary = {"voxel_m": voxel, "cells": len(cells), "cells_seconds": t_cells, "seconds": result.seconds,
                "rounds": len(result.history), "stopped": result.stopped, "history": result.history,
                "agreement_m2": agreement, "returned": chosen}
@@ -115,7 +123,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
              len(cells), voxel / 4.0, result.stopped, chosen,
              ", ".join(f"{k} {v:.3g} m2" for k, v in agreement.items()))
     if chosen != "dense":
-        return Start(candidates[chosen], start.name if chosen == start.name else "prepared",
+        return Start(candidates[chosen], start.name if chosen == start.name.value else StartKind.PREPARED,
                      f"{start.why}; the dense stage's result was not kept ({chosen} agrees better)",
                      start.map_entropy, summary)
     return Start(result.poses, start.name, start.why, start.map_entropy, summary)
