@@ -28,7 +28,8 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def cases() -> dict[str, HospitalTraits]:
-    """The clean rewrite, each trait alone and all together (the laser's mount stays 0: see the module)."""
+    """The clean rewrite, each trait alone and all together (the laser's mount stays 0: see the module;
+    ``original``, not here, is the source log as it is)."""
     full = dataclasses.replace(HospitalTraits(), laser_offset=0.0)
     plain = full.plain()
     return {"clean": plain, "interlaced": dataclasses.replace(plain, interlaced=True),
@@ -38,12 +39,8 @@ def cases() -> dict[str, HospitalTraits]:
             "pauses": dataclasses.replace(plain, gaps=full.gaps), "all": full}
 
 
-def measure(log: Path, relations: Path, out: Path, name: str, traits: HospitalTraits, count: int | None = None,
-            windows: str = "auto") -> dict:
-    """Rewrite, read, warm-start; the odometry's and the warm start's relation errors (m) and the warm start's time."""
-    info = write_rewritten(out, log, relations, traits, name, count=count)
-    seq = open_carmen_scans(out / f"{name}.clf")
-    rel = load_relations(out / f"{name}.relations")
+def warm_start_errors(seq, rel, windows: str = "auto") -> dict:
+    """The odometry's and the fused warm start's mean relation errors (m), the warm start's time and windows."""
     odometry = seq.trajectories["odometry"]
     t0 = time.perf_counter()
     ws = IcpWarmStart(progress=False, windows=windows)
@@ -54,9 +51,21 @@ def measure(log: Path, relations: Path, out: Path, name: str, traits: HospitalTr
         return relations_error(Trajectory(p, seq.timestamps, planar=True), rel).stats["trans_mean"]
 
     from_odometry = [v for v in ws.verdicts if v.source == "odometry"]
-    return {"scans": info["scans"], "relations": info["relations"], "odometry": error(odometry.poses),
-            "warm_start": error(poses), "seconds": round(seconds, 1), "windows": len(ws.verdicts),
-            "windows_from_odometry": len(from_odometry)}
+    return {"scans": len(seq), "relations": len(rel), "odometry": error(odometry.poses), "warm_start": error(poses),
+            "seconds": round(seconds, 1), "windows": len(ws.verdicts), "windows_from_odometry": len(from_odometry)}
+
+
+def measure(log: Path, relations: Path, out: Path, name: str, traits: HospitalTraits | None, count: int | None = None,
+            windows: str = "auto") -> dict:
+    """Rewrite (``traits``; None: the original log as it is), read, warm-start: :func:`warm_start_errors`."""
+    if traits is None:
+        seq = open_carmen_scans(log)
+        if count is not None:
+            raise ValueError("the original log is measured whole")
+        return warm_start_errors(seq, load_relations(relations), windows)
+    write_rewritten(out, log, relations, traits, name, count=count)
+    return warm_start_errors(open_carmen_scans(out / f"{name}.clf"), load_relations(out / f"{name}.relations"),
+                             windows)
 
 
 def table(results: dict) -> str:
@@ -74,18 +83,24 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--logs", nargs="+", default=["aces", "intel"])
+    parser.add_argument("--cases", nargs="+", default=["original", *cases()],
+                        help="original (the FLASER log as it is) and the rewrites; measured rows replace the results "
+                             "file's, the others stay")
     parser.add_argument("--count", type=int, default=None, help="only the first COUNT scans of each log")
     args = parser.parse_args()
-    results: dict = {}
-    for log in args.logs:
-        results[log] = {}
-        for case, traits in cases().items():
-            results[log][case] = r = measure(DATA / f"{log}.clf.bz2", DATA / f"{log}.relations", args.out / log,
-                                             case.replace(" ", "-"), traits, args.count)
-            print(log, case, r, flush=True)
-    RESULTS.mkdir(exist_ok=True)
     stem = "hospital-real-logs" + (f"-{args.count}" if args.count else "")
-    (RESULTS / f"{stem}.json").write_text(json.dumps(results, indent=2) + "\n")
+    path = RESULTS / f"{stem}.json"
+    results: dict = json.loads(path.read_text()) if path.exists() else {}
+    order = ["original", *cases()]
+    for log in args.logs:
+        for case in args.cases:
+            r = measure(DATA / f"{log}.clf.bz2", DATA / f"{log}.relations", args.out / log, case.replace(" ", "-"),
+                        cases().get(case), args.count)
+            results.setdefault(log, {})[case] = r
+            results[log] = {c: results[log][c] for c in order if c in results[log]}
+            print(log, case, r, flush=True)
+            RESULTS.mkdir(exist_ok=True)
+            path.write_text(json.dumps(results, indent=2) + "\n")
     (RESULTS / f"{stem}.md").write_text(
         f"# ACES and Intel rewritten hospital-like (issue 27)\n\nGenerated by `python benchmarks/hospital_real_logs.py"
         f"{f' --count {args.count}' if args.count else ''}`: mean translational relation error against each log's "
