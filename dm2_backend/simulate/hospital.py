@@ -85,7 +85,7 @@ class HospitalLog:
     settings: HospitalSettings
 
 
-def _beam_angles(k: int, interlaced: bool) -> tuple[float, np.ndarray]:
+def beam_angles(k: int, interlaced: bool) -> tuple[float, np.ndarray]:
     """Start angle and beam angles (rad) of message ``k``: 1 deg beams, starting at -90, -89.75, -89.5 or -89.25 deg
     in turn when interlaced (181 beams from -90, else 180), 181 beams from -90 deg otherwise."""
     quarter = k % 4 if interlaced else 0
@@ -94,12 +94,32 @@ def _beam_angles(k: int, interlaced: bool) -> tuple[float, np.ndarray]:
     return start, start + np.radians(1.0) * np.arange(n)
 
 
+def pauses(n: int, gaps: tuple[int, float, float], rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Where the log pauses and for how long: indices ``i`` of the intervals (scan ``i`` to ``i + 1``, never the
+    first or last) and their lengths (s); none when ``gaps`` counts none or the log is too short for them."""
+    count, lo, hi = gaps
+    if not count or n <= 2 * count + 2:
+        return np.zeros(0, int), np.zeros(0)
+    at = rng.choice(np.arange(1, n - 1), size=count, replace=False)
+    return at, rng.uniform(lo, hi, count)
+
+
+def returns_with_traits(r: np.ndarray, t: HospitalTraits, rng: np.random.Generator) -> np.ndarray:
+    """A scan's ranges (m) as the hospital's scanner writes them: no return (not finite, or at least the code) as
+    the max-range code, a ``long_share`` of the near returns (< 10 m) as isolated long returns of 30-50 m, and a
+    ``code_share`` of all beams as the code; ``r`` is changed in place and returned."""
+    r[~np.isfinite(r) | (r >= MAX_RANGE_CODE)] = MAX_RANGE_CODE
+    near = r < 10.0
+    long = near & (rng.uniform(size=len(r)) < t.long_share)
+    r[long] = rng.uniform(30.0, 50.0, int(long.sum()))
+    r[rng.uniform(size=len(r)) < t.code_share] = MAX_RANGE_CODE
+    return r
+
+
 def _stamps(n: int, rate_hz: float, gaps: tuple[int, float, float], rng: np.random.Generator) -> np.ndarray:
     dt = rng.uniform(0.8, 1.2, n - 1) / rate_hz
-    count, lo, hi = gaps
-    if count and n > 2 * count + 2:
-        at = rng.choice(np.arange(1, n - 1), size=count, replace=False)
-        dt[at] = rng.uniform(lo, hi, count)
+    at, length = pauses(n, gaps, rng)
+    dt[at] = length
     return 1_000_000_000.0 + np.concatenate([[0.0], np.cumsum(dt)])
 
 
@@ -122,7 +142,7 @@ def simulate_hospital(s: HospitalSettings) -> HospitalLog:
     lines = []
     for k in range(s.frames):
         laser = truth[k] @ mount
-        start, angles = _beam_angles(k, t.interlaced)
+        start, angles = beam_angles(k, t.interlaced)
         yaw = se3.to_xy_yaw(laser)[2] + angles
         rays = np.zeros((len(angles), 6), np.float32)
         rays[:, :2] = laser[:2, 3]
@@ -130,11 +150,7 @@ def simulate_hospital(s: HospitalSettings) -> HospitalLog:
         rays[:, 3], rays[:, 4] = np.cos(yaw), np.sin(yaw)
         r = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
         r = r + rng.normal(0.0, s.range_noise, len(r))
-        r[~np.isfinite(r) | (r >= MAX_RANGE_CODE)] = MAX_RANGE_CODE
-        near = r < 10.0
-        long = near & (rng.uniform(size=len(r)) < t.long_share)
-        r[long] = rng.uniform(30.0, 50.0, int(long.sum()))
-        r[rng.uniform(size=len(r)) < t.code_share] = MAX_RANGE_CODE
+        r = returns_with_traits(r, t, rng)
         robot = se3.to_xy_yaw(odometry[k])
         lines.append(robotlaser1_line(r, start, math.radians(1.0), t.declared_max_range,
                                       se3.to_xy_yaw(odometry[k] @ mount), robot, stamps[k], host="hospital-sim"))
