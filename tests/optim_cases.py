@@ -5,9 +5,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 import torch
+import yaml
 
 from dm2_backend.geometry import se3
 from dm2_backend.optim.config import OptimConfig
@@ -15,7 +17,7 @@ from dm2_backend.plugins.registration_icp import IcpRegistration
 from dm2_backend.plugins.topology_radius import RadiusTopology
 from dm2_backend.prepare.frames import load_frames
 from dm2_backend.scans import Scan, ScanSequence
-from dm2_backend.simulate.sequence import SimSettings, simulate
+from dm2_backend.simulate.sequence import SimSettings, simulate, write_sequence
 from dm2_backend.stages import Frames, Pairwise, Topology
 
 FRAMES = 60
@@ -57,6 +59,15 @@ def planar_case(frames: int = FRAMES, seed: int = 0) -> Case:
     topo = RadiusTopology().run(fr, warm)
     pair = IcpRegistration(progress=False).run(fr, warm, topo)
     return Case(scans, gt, warm, fr, topo, pair)
+
+
+def write_planar_sequence(root: Path, config: dict) -> Path:
+    """The planar case written as the CLI tests read it (``velodyne/``, ``poses.txt`` ground truth, ``times.txt``,
+    ``warm_start.txt``) with ``config`` as ``config.yaml``."""
+    case = planar_case()
+    write_sequence(root, case.scans, case.gt, case.warm, 10.0)
+    (root / "config.yaml").write_text(yaml.safe_dump(config))
+    return root
 
 
 def small_config(**kw) -> OptimConfig:

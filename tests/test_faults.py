@@ -15,14 +15,12 @@ from pathlib import Path
 
 import pytest
 import torch
-import yaml
 from click.testing import CliRunner
-from optim_cases import one_thread, planar_case
+from optim_cases import one_thread, write_planar_sequence
 
 from dm2_backend.cli.main import cli
 from dm2_backend.pipeline.run_folder import CHECKPOINT, LOCK, MARKER
 from dm2_backend.prepare.cache_keys import file_fingerprint
-from dm2_backend.simulate.sequence import write_sequence
 
 SMALL = {"seed": 3, "frames": {"max_points": 128},
          "optimiser": {"points_per_frame": 32, "bce_points_per_frame": 16, "batch_groups": 16,
@@ -56,11 +54,7 @@ def _single_thread():
 
 @pytest.fixture(scope="module")
 def seq(tmp_path_factory) -> Path:
-    case = planar_case()
-    root = tmp_path_factory.mktemp("seq")
-    write_sequence(root, case.scans, case.gt, case.warm, 10.0)
-    (root / "config.yaml").write_text(yaml.safe_dump(SMALL))
-    return root
+    return write_planar_sequence(tmp_path_factory.mktemp("seq"), SMALL)
 
 
 def refine_args(seq: Path, out: Path, *extra: str) -> list[str]:

@@ -8,14 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 from click.testing import CliRunner
-from optim_cases import one_thread, planar_case
+from optim_cases import one_thread, planar_case, write_planar_sequence
 
 from dm2_backend.cli.main import cli
 from dm2_backend.maps import occupancy_grid, run_maps
 from dm2_backend.optim import mnet_file
-from dm2_backend.simulate.sequence import write_sequence
 
 SMALL = {"seed": 3, "frames": {"max_points": 256},
          "optimiser": {"points_per_frame": 64, "bce_points_per_frame": 32, "batch_groups": 16,
@@ -35,11 +33,7 @@ def invoke(*args: str):
 
 @pytest.fixture(scope="module")
 def seq(tmp_path_factory) -> Path:
-    case = planar_case()
-    root = tmp_path_factory.mktemp("seq")
-    write_sequence(root, case.scans, case.gt, case.warm, 10.0)
-    (root / "config.yaml").write_text(yaml.safe_dump(SMALL))
-    return root
+    return write_planar_sequence(tmp_path_factory.mktemp("seq"), SMALL)
 
 
 @pytest.fixture(scope="module")

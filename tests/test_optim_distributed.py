@@ -13,8 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-import yaml
-from optim_cases import one_thread, planar_case
+from optim_cases import one_thread, planar_case, write_planar_sequence
 from shared_helpers import run as dm2
 
 from dm2_backend import config
@@ -28,7 +27,6 @@ from dm2_backend.pipeline.run_writer import map_entropy, map_sampler
 from dm2_backend.pipeline.start import choose_start
 from dm2_backend.prepare import store
 from dm2_backend.prepare.steps import load_prepared
-from dm2_backend.simulate.sequence import write_sequence
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -52,11 +50,7 @@ TOLERANCE_M = 0.01
 
 @pytest.fixture(scope="module")
 def seq(tmp_path_factory) -> Path:
-    case = planar_case()
-    root = tmp_path_factory.mktemp("seq")
-    write_sequence(root, case.scans, case.gt, case.warm, 10.0)
-    (root / "config.yaml").write_text(yaml.safe_dump(SMALL))
-    return root
+    return write_planar_sequence(tmp_path_factory.mktemp("seq"), SMALL)
 
 
 def refine(seq: Path, out: Path, cache: Path, *extra: str):

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import yaml
 from click.testing import CliRunner
-from optim_cases import one_thread, planar_case
+from optim_cases import one_thread, planar_case, write_planar_sequence
 
 from dm2_backend.cli.main import cli
 from dm2_backend.errors import InputError
@@ -32,11 +32,7 @@ def _single_thread():
 
 @pytest.fixture(scope="module")
 def seq(tmp_path_factory) -> Path:
-    case = planar_case()
-    root = tmp_path_factory.mktemp("seq")
-    write_sequence(root, case.scans, case.gt, case.warm, 10.0)
-    (root / "config.yaml").write_text(yaml.safe_dump(SMALL))
-    return root
+    return write_planar_sequence(tmp_path_factory.mktemp("seq"), SMALL)
 
 
 def dm2(*args: str):
