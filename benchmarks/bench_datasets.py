@@ -129,16 +129,22 @@ def carmen_degraded(name: str) -> Callable[[Env], Inputs]:
     return load
 
 
+def simulated_scene(env: Env, scene: str, frames: int) -> tuple[Path, dict]:
+    """``dm2 simulate --scene SCENE -n FRAMES`` into the cache (once per simulator version); its folder and
+    ``info.json``."""
+    out = env.cache / f"{scene}-{frames}-{simulator_hash()}"
+    if not (out / "info.json").is_file():
+        cmd = [sys.executable, "-m", "dm2_backend", "simulate", "--scene", scene, "-n", str(frames),
+               "--out", str(out), "--force", "-q"]
+        subprocess.run(cmd, check=True, capture_output=env.quiet)
+    return out, json.loads((out / "info.json").read_text())
+
+
 def corridors(frames: int) -> Callable[[Env], Inputs]:
     """``dm2 simulate --scene corridors -n FRAMES`` into the cache; refined from its drifting odometry with the
     icp warm start (``--poses warm_start.txt --warm-start icp``)."""
     def load(env: Env) -> Inputs:
-        out = env.cache / f"corridors-{frames}-{simulator_hash()}"
-        if not (out / "info.json").is_file():
-            cmd = [sys.executable, "-m", "dm2_backend", "simulate", "--scene", "corridors", "-n", str(frames),
-                   "--out", str(out), "--force", "-q"]
-            subprocess.run(cmd, check=True, capture_output=env.quiet)
-        info = json.loads((out / "info.json").read_text())
+        out, info = simulated_scene(env, "corridors", frames)
         return Inputs(["-s", str(out / "velodyne"), "-p", str(out / "warm_start.txt"), "--warm-start", "icp",
                        "--gt", str(out / "poses.txt")], frames,
                       {"simulated": True, "folder": str(out), "odometry_max_error_m":
@@ -150,12 +156,7 @@ def hospital(frames: int) -> Callable[[Env], Inputs]:
     """``dm2 simulate --scene hospital -n FRAMES`` into the cache (issue 27); run as a user would run the log:
     ``dm2 refine --scans hospital.clf --relations hospital.relations`` (the warm start fuses its odometry)."""
     def load(env: Env) -> Inputs:
-        out = env.cache / f"hospital-{frames}-{simulator_hash()}"
-        if not (out / "info.json").is_file():
-            cmd = [sys.executable, "-m", "dm2_backend", "simulate", "--scene", "hospital", "-n", str(frames),
-                   "--out", str(out), "--force", "-q"]
-            subprocess.run(cmd, check=True, capture_output=env.quiet)
-        info = json.loads((out / "info.json").read_text())
+        out, info = simulated_scene(env, "hospital", frames)
         return Inputs(["-s", str(out / "hospital.clf"), "--relations", str(out / "hospital.relations")], frames,
                       {"simulated": True, "folder": str(out), "truth": str(out / "truth.tum"),
                        "odometry_max_error_m": info["odometry"]["max_position_error_m"]})
