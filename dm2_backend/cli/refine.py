@@ -233,5 +233,6 @@ def print_summary(report: RunReport, out: Path) -> None:
     for stage, profile in (report.details.get("consistency") or {}).items():
         stretches = ", ".join(f"{s['first']}-{s['last']}" for s in profile["segments"]) or "none"
         level = "no frame scored" if profile["level_m"] is None else f"frames agree to {profile['level_m']:.3g} m"
-        click.echo(f"consistency of the {stage}: {level}; flagged frames: {stretches}")
+        caution = " (planar scans: the profile is validated on 3D data only)" if report.planar else ""
+        click.echo(f"consistency of the {stage}: {level}; flagged frames: {stretches}{caution}")
     click.echo(f"wrote {out}")
