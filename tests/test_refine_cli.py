@@ -127,6 +127,7 @@ def test_consistency_profile_before_and_after(run):
     out, result, report = run
     assert "consistency of the warm start: frames agree to" in result.output
     assert "consistency of the dm2 refine: frames agree to" in result.output
+    assert "validated on 3D data only" in result.output  # the planar sequence: its flags are not to be trusted
     profiles = report["consistency"]
     assert set(profiles) == {"warm start", "dm2 refine"}
     for summary in profiles.values():
