@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
 import time
 import types
 from pathlib import Path
@@ -245,3 +246,13 @@ def test_a_failed_rank_that_cannot_exit_does_not_hang_the_run(tmp_path, monkeypa
     with pytest.raises(RuntimeError, match="rank 0 failed:(.|\n)*rank 0 broke"):
         parallel.spawn(fake, stuck_worker)
     assert time.monotonic() - t0 < 60
+
+
+def test_a_rank_stopped_while_writing_its_error_does_not_hide_the_others(tmp_path):
+    """A rank terminated while it writes its error file leaves it empty: the first rank's error still comes back."""
+    first, second = tmp_path / "0.pickle", tmp_path / "1.pickle"
+    first.write_bytes(pickle.dumps("Traceback ...\nRuntimeError: interrupted"))
+    second.write_bytes(b"")
+    text = parallel._failures(types.SimpleNamespace(error_files=[str(first), str(second)]))
+    assert "rank 0 failed:\nTraceback ...\nRuntimeError: interrupted" in text
+    assert "rank 1 failed (stopped while it wrote its error)" in text

@@ -219,7 +219,10 @@ def _failures(ctx) -> str:
     errors = []
     for rank, path in enumerate(ctx.error_files):
         if os.path.exists(path):
-            with open(path, "rb") as fh:
-                errors.append(f"rank {rank} failed:\n{pickle.load(fh)}")
+            try:
+                with open(path, "rb") as fh:
+                    errors.append(f"rank {rank} failed:\n{pickle.load(fh)}")
+            except (EOFError, pickle.UnpicklingError):  # stopped (by another rank's failure) while writing it
+                errors.append(f"rank {rank} failed (stopped while it wrote its error)")
             os.unlink(path)
     return "\n".join(errors)
