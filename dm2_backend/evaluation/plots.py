@@ -299,7 +299,7 @@ def consistency_figure(positions: np.ndarray, profiles: dict[str, object], title
     view of ``positions`` (the last profile's poses) coloured by its per-frame score with flagged frames
     ringed, and every profile's score over the frames with its threshold (dashed) and flagged segments shaded."""
     top, _ = view_axes(positions)
-    fig = Figure(figsize=(13, 5.5))
+    fig = Figure(figsize=(13, 5.5), layout="constrained")  # the colour bar beside the top view, clear of the series
     ax = fig.add_subplot(1, 2, 1)
     last_label, last = list(profiles.items())[-1]
     score = last.score_m
