@@ -17,9 +17,8 @@ from dm2_backend.optim.dense import refine_dense
 from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.pose_graph import PoseGraph
 from dm2_backend.scans import Scan, ScanSequence
-from dm2_backend.simulate.broken import bump, wrong_closure
+from dm2_backend.simulate.broken import bump, closure_graph, wrong_closure
 from dm2_backend.simulate.sequence import SimSettings, simulate
-from dm2_backend.trajectory import Trajectory
 
 VOXEL = 1.5
 
@@ -148,15 +147,7 @@ def test_a_wrong_closure_forced_into_the_graph_is_overruled_by_the_planes():
     without ground truth, prefers its result."""
     cells, gt = street()
     bent = wrong_closure(gt, 2, 53, bump(1.0, 5.0), radius=3.0)
-    pos = gt[:, :3, 3]
-    dist = np.linalg.norm(pos[:, None] - pos[None], axis=2)
-    pairs = [(a, b) for a in range(len(gt)) for b in range(a + 2, len(gt)) if dist[a, b] < 3.0]
-    graph = PoseGraph.from_trajectory(Trajectory(gt))
-    graph.edges = np.vstack([graph.edges, np.array(pairs + [(2, 53)])])
-    graph.relative = np.concatenate([graph.relative, [se3.relative(gt[a], gt[b]) for a, b in pairs],
-                                     [se3.relative(gt[2], gt[53]) @ bump(1.0, 5.0)]])
-    info = np.diag([1e4] * 3 + [1e6] * 3)
-    graph.information = np.concatenate([np.tile(info, (len(graph.edges) - 1, 1, 1)), [10 * info]])
+    graph = closure_graph(gt, 2, 53, bump(1.0, 5.0), radius=3.0, information=np.diag([1e4] * 3 + [1e6] * 3))
     assert ate_rmse(gt, bent) > 0.05
     result = refine_dense(cells, graph, bent, VOXEL)
     assert ate_rmse(gt, result.poses) < 0.002

@@ -181,11 +181,13 @@ def chunks(n: int) -> list[slice]:
     return [slice(i, min(i + CHUNK, n)) for i in range(0, n, CHUNK)]
 
 
-def _placed_sum(a: Assignment, poses: np.ndarray) -> np.ndarray:
-    """Each voxel's moment in the world (about its centre): the sum of its pairs' (V,4,4), in chunks."""
+def _placed_sum(a: Assignment, poses: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
+    """Each voxel's moment in the world (about its centre): the sum of its pairs' (V,4,4), in chunks; ``keep``
+    (bool per pair): only those pairs."""
     M = np.zeros((a.voxels, 4, 4))
     for c in chunks(len(a.frame)):
-        M += _sum(a.voxel[c], _about(poses, a.frame[c], a.centre[a.voxel[c]], a.moment[c]), a.voxels)
+        placed = _about(poses, a.frame[c], a.centre[a.voxel[c]], a.moment[c])
+        M += _sum(a.voxel[c], placed if keep is None else placed * keep[c, None, None], a.voxels)
     return M
 
 
@@ -408,10 +410,7 @@ def disagreement(a: Assignment, poses: np.ndarray, cap: float = KERNEL,
     robust-weighted squared distances over all the frame's points (each point adds at most the kernel's
     width squared), instead of the weighted mean (where far points hardly count)."""
     ref_pair = np.ones(len(a.frame), bool) if reference is None else reference[a.frame]
-    total = np.zeros((a.voxels, 4, 4))
-    for c in chunks(len(a.frame)):
-        placed = _about(poses, a.frame[c], a.centre[a.voxel[c]], a.moment[c]) * ref_pair[c, None, None]
-        total += _sum(a.voxel[c], placed, a.voxels)
+    total = _placed_sum(a, poses, None if reference is None else ref_pair)
     frames = int(poses.shape[0])
     sq_sum, own_sum = np.zeros(frames), np.zeros(frames)
     for c in chunks(len(a.frame)):

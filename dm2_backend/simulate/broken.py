@@ -40,10 +40,12 @@ def drifting(poses: np.ndarray, k: int, frames: int, metres: float = 0.3, degree
     return out
 
 
-def wrong_closure(poses: np.ndarray, i: int, j: int, error: np.ndarray, radius: float, weight: float = 10.0
-                  ) -> np.ndarray:
-    """``poses`` after gtsam solves their own graph (odometry and every pair within ``radius`` m, exact) with one
-    closure between ``i`` and ``j`` that is off by ``error`` and weighs ``weight`` times the others."""
+def closure_graph(poses: np.ndarray, i: int, j: int, error: np.ndarray, radius: float, weight: float = 10.0,
+                  information: np.ndarray | None = None) -> PoseGraph:
+    """The graph of ``poses`` (odometry and every pair within ``radius`` m, exact, each with ``information``,
+    default identity) with one closure between ``i`` and ``j`` that is off by ``error`` and weighs ``weight``
+    times the others."""
+    info = np.eye(6) if information is None else information
     pos = poses[:, :3, 3]
     dist = np.linalg.norm(pos[:, None] - pos[None], axis=2)
     pairs = [(a, b) for a in range(len(poses)) for b in range(a + 2, len(poses)) if dist[a, b] < radius]
@@ -52,9 +54,14 @@ def wrong_closure(poses: np.ndarray, i: int, j: int, error: np.ndarray, radius: 
     graph.relative = np.concatenate([graph.relative, np.array([se3.relative(poses[a], poses[b]) for a, b in pairs]
                                                               ).reshape(-1, 4, 4),
                                      [se3.relative(poses[i], poses[j]) @ error]])
-    graph.information = np.concatenate([graph.information, np.tile(np.eye(6), (len(pairs), 1, 1)),
-                                        [weight * np.eye(6)]])
-    return optimize(graph).poses
+    graph.information = np.concatenate([np.tile(info, (len(graph.edges) - 1, 1, 1)), [weight * info]])
+    return graph
+
+
+def wrong_closure(poses: np.ndarray, i: int, j: int, error: np.ndarray, radius: float, weight: float = 10.0
+                  ) -> np.ndarray:
+    """``poses`` after gtsam solves :func:`closure_graph` (the wrong closure bends them)."""
+    return optimize(closure_graph(poses, i, j, error, radius, weight)).poses
 
 
 def broken_frames(truth: np.ndarray, poses: np.ndarray, tol: float = 0.01, ahead: float = 10.0) -> np.ndarray:
