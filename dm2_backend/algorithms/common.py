@@ -86,6 +86,10 @@ class Match:
     T: np.ndarray
     fitness: float  # fraction of source points with a correspondence within the final distance
     rmse: float  # rms distance of those correspondences
+    #: 3D: the registration's Gauss-Newton information J^T J over those correspondences in point-to-plane form
+    #: (:func:`dm2_backend.algorithms.icp.point_to_plane_hessian`), for unit residual variance; None when the
+    #: registration does not give one
+    hessian: np.ndarray | None = None
 
 
 class Cloud:

@@ -57,7 +57,30 @@ def register(
         T = np.asarray(result.transformation)
     if result is None or len(result.correspondence_set) < 6:
         return Match(T, 0.0, float("inf"))
-    return Match(T.copy(), float(result.fitness), float(result.inlier_rmse))
+    pairs = np.asarray(result.correspondence_set)
+    normals = target_normals(target, pairs[:, 1], method)
+    hessian = point_to_plane_hessian(source.points[pairs[:, 0]], normals, T)
+    return Match(T.copy(), float(result.fitness), float(result.inlier_rmse), hessian)
+
+
+def target_normals(target: Cloud, index: np.ndarray, method: str) -> np.ndarray:
+    """Unit normals of the target points ``index``: the minor axis of their covariances where GICP built
+    them, else the cloud's normals."""
+    if method == "gicp":
+        _, vectors = np.linalg.eigh(np.asarray(target.pcd.covariances)[index])
+        return vectors[:, :, 0]
+    return target.normals[index]
+
+
+def point_to_plane_hessian(points: np.ndarray, normals: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """The Gauss-Newton information ``J^T J`` (6, 6) of the point-to-plane residuals ``n . (T p - q)`` of
+    source ``points`` (its frame) against target ``normals`` (the target's frame), on a right perturbation
+    ``T Exp(xi)`` in g2o's order ``[x y z rx ry rz]``: the tangent of a pose-graph edge T_b^a (GTSAM's
+    BetweenFactor). Each row is ``[m, p x m]`` with ``m = R^T n``; a direction the matched geometry does not
+    pin (along a corridor, across one wall) gets no information."""
+    m = np.asarray(normals, dtype=np.float64) @ np.asarray(T, dtype=np.float64)[:3, :3]
+    J = np.hstack([m, np.cross(np.asarray(points, dtype=np.float64), m)])
+    return J.T @ J
 
 
 def _icp_o3d_planar(source: Cloud, target: Cloud, init, distances, iterations) -> Match:

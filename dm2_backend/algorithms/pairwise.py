@@ -17,7 +17,7 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import numpy as np
 
@@ -72,6 +72,11 @@ class PairwiseRegistration:
     #: pairs per chunk (the clouds of at most two chunks are held at once: about 500 frames, 75 MB in 3D; a frame
     #: of 2,000 simulated 3D LiDAR frames was built 1.5 times on average instead of once)
     chunk: int = 1024
+    #: 3D: each registration's information for the pose graph: "hessian" (its own point-to-plane Gauss-Newton
+    #: Hessian over its correspondences, ``Pairwise.hessian``: a direction the matched geometry leaves free, along
+    #: a corridor or across the one wall a camera sees, gets no weight) or "isotropic" (from its rmse, overlap
+    #: and points alone, as before 2026-12-03; see ``baselines.graph``)
+    information: Literal["hessian", "isotropic"] = "hessian"
     #: start loop pairs from the transform the descriptor topology verified
     use_loops: bool = True
     #: threads over pairs; default: the CPU count for planar scans, 1 for 3D (open3d is multi-threaded)
@@ -110,6 +115,7 @@ class PairwiseRegistration:
             valid=np.zeros((n, k), bool),
             fitness=np.zeros((n, k)),
             rmse=np.full((n, k), np.inf),
+            hessian=None if frames.planar or self.information != "hessian" else np.zeros((n, k, 6, 6), np.float32),
         )
         by_pair: dict[tuple[int, int], tuple[np.ndarray, str, Match]] = {}
         for pair, (m, free) in zip(pairs, results, strict=True):
@@ -131,6 +137,8 @@ class PairwiseRegistration:
                 T, reason, m = by_pair[pair]
                 out.relative[i, col] = T if i < j else se3.inverse(T)
                 out.valid[i, col], out.fitness[i, col], out.rmse[i, col] = not reason, m.fitness, m.rmse
+                if out.hessian is not None and m.hessian is not None:
+                    out.hessian[i, col] = m.hessian
                 if reason:
                     out.reason[(i, j)] = reason
         return out

@@ -10,10 +10,15 @@ Edges (``(i, j)``, i < j, the pose of frame j in frame i):
   else the front end's;
 * loop: every other valid pairwise registration, once per unordered pair.
 
-Information model (documented in :func:`registration_information`): a registration with inlier rmse ``r``,
-overlap ``fitness`` of the neighbour's ``M`` points and lever arm ``L`` (rms range of the neighbour's points)
-gets isotropic ``sigma_t = max(r, floor) / sqrt(fitness * M)`` and ``sigma_r = sigma_t / L``. Front-end
-odometry edges get the median registration information times ``fallback_weight``.
+Information model: on 3D data a registration's information is its own Gauss-Newton Hessian in point-to-plane
+form over its correspondences divided by the residual variance, ``J^T J / max(r, floor)^2``
+(:func:`hessian_information`), so a direction the matched geometry does not pin (along a corridor, across the
+one wall a camera sees) carries no weight and stays where the odometry puts it.
+Otherwise (planar scans; a registration without a Hessian, e.g. ``registration.options.information:
+isotropic``; :func:`registration_information`) a registration with inlier rmse ``r``, overlap ``fitness`` of the
+neighbour's ``M`` points and lever arm ``L`` (rms range of the neighbour's points) gets isotropic
+``sigma_t = max(r, floor) / sqrt(fitness * M)`` and ``sigma_r = sigma_t / L``. Front-end odometry edges get
+the median isotropic registration information times ``fallback_weight``.
 
 Information matrices are tangent-space (GTSAM semantics, as ``gtsam.readG2o`` reads them) in g2o order:
 ``[x y z rx ry rz]`` (3D) or ``[x y theta]`` (planar data -> SE2 graph).
@@ -31,6 +36,10 @@ from dm2_backend.pose_graph import PoseGraph
 from dm2_backend.stages import Frames, Pairwise, Topology
 
 MODEL_TEXT = "sigma_t = max(rmse, floor) / sqrt(fitness * points), sigma_r = sigma_t / lever arm"
+HESSIAN_TEXT = "registration Hessian J^T J (point-to-plane) / max(rmse, floor)^2; odometry: " + MODEL_TEXT
+#: smallest eigenvalue of a Hessian information kept, relative to its largest (a direction the registration
+#: does not see keeps a negligible weight, so the matrix stays positive definite for GTSAM)
+EIGEN_FLOOR = 1e-6
 
 
 @dataclass
@@ -51,6 +60,7 @@ class PairEdge:
     fitness: float
     rmse: float
     points: int  # points of the registered (neighbour) frame
+    hessian: np.ndarray | None = None  # (6, 6) point-to-plane J^T J of this registration (g2o order), if any
 
 
 def valid_pairs(topology: Topology, pairwise: Pairwise, frames: Frames) -> dict[tuple[int, int], PairEdge]:
@@ -64,7 +74,9 @@ def valid_pairs(topology: Topology, pairwise: Pairwise, frames: Frames) -> dict[
             continue
         a, b = min(i, j), max(i, j)
         T = pairwise.relative[i, n] if i == a else se3.inverse(pairwise.relative[i, n])
-        edge = PairEdge(T, float(pairwise.fitness[i, n]), float(pairwise.rmse[i, n]), len(frames.points[j]))
+        H = None if pairwise.hessian is None else np.asarray(pairwise.hessian[i, n], dtype=np.float64)
+        edge = PairEdge(T, float(pairwise.fitness[i, n]), float(pairwise.rmse[i, n]), len(frames.points[j]),
+                        H if H is not None and np.any(H) else None)
         if (a, b) not in out or edge.rmse < out[(a, b)].rmse:
             out[(a, b)] = edge
     return out
@@ -97,6 +109,15 @@ def registration_information(rmse: float, fitness: float, points: int, lever: fl
     return np.diag(1.0 / np.square(sig))
 
 
+def hessian_information(hessian: np.ndarray, rmse: float, floor: float) -> np.ndarray:
+    """Information of one registration from its point-to-plane Hessian (unit residual variance):
+    ``hessian / max(rmse, floor)^2``, eigenvalues held at least :data:`EIGEN_FLOOR` of the largest."""
+    sigma = max(rmse if np.isfinite(rmse) else floor, floor)
+    w, v = np.linalg.eigh(0.5 * (hessian + hessian.T) / sigma**2)
+    w = np.maximum(w, EIGEN_FLOOR * max(float(w[-1]), 1e-300))
+    return (v * w) @ v.T
+
+
 def build_graph(frames: Frames, warm: np.ndarray, topology: Topology, pairwise: Pairwise,
                 model: InformationModel | None = None) -> PoseGraph:
     """The pose graph of module docstring; node ids 0..N-1, initial poses = warm start."""
@@ -108,10 +129,13 @@ def build_graph(frames: Frames, warm: np.ndarray, topology: Topology, pairwise: 
     poses = se3.from_xy_yaw(se3.to_xy_yaw(warm)) if planar else np.asarray(warm, dtype=np.float64)
     pairs = valid_pairs(topology, pairwise, frames)
     arms, floor = lever_arms(frames), rmse_floor(frames, model)
-    info = {p: registration_information(e.rmse, e.fitness, e.points, arms[p[1]], planar, floor)
-            for p, e in pairs.items()}
+    isotropic = {p: registration_information(e.rmse, e.fitness, e.points, arms[p[1]], planar, floor)
+                 for p, e in pairs.items()}
+    info = {p: hessian_information(e.hessian, e.rmse, floor) if e.hessian is not None and not planar
+            else isotropic[p] for p, e in pairs.items()}
+    hessians = sum(1 for e in pairs.values() if e.hessian is not None and not planar)
     if info:
-        fallback = np.median(np.stack(list(info.values())), axis=0) * model.fallback_weight
+        fallback = np.median(np.stack(list(isotropic.values())), axis=0) * model.fallback_weight
     else:
         sigma = max(frames.scale.get("voxel", 0.0), frames.scale.get("spacing", 0.0)) or 0.1
         fallback = registration_information(sigma, 1.0, 1, float(np.median(arms)), planar, floor)
@@ -140,5 +164,6 @@ def build_graph(frames: Frames, warm: np.ndarray, topology: Topology, pairwise: 
         ids=np.arange(n), poses=poses.reshape(-1, 4, 4), edges=np.asarray(edges, dtype=int).reshape(-1, 2),
         relative=relative, information=np.asarray(information).reshape(-1, dim, dim), planar=planar,
         meta={"odometry_edges": n - 1, "odometry_from_warm_start": warm_odometry, "loop_edges": len(loops),
-              "rmse_floor": floor, "information_model": MODEL_TEXT},
+              "rmse_floor": floor, "information_model": HESSIAN_TEXT if hessians else MODEL_TEXT,
+              "hessian_edges": hessians},
     )

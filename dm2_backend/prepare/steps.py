@@ -212,10 +212,10 @@ def prepare(
     cached["registration"] = hit is not None
     if hit is None:
         pair = _plugin("dm2.registration", reg, progress).run(frames, starting_poses(topo, warm), topo)
-        hit = cache.put(
-            name, {"relative": pair.relative, "valid": pair.valid, "fitness": pair.fitness, "rmse": pair.rmse},
-            {"reason": {f"{i},{j}": r for (i, j), r in pair.reason.items()}},
-        )
+        arrays = {"relative": pair.relative, "valid": pair.valid, "fitness": pair.fitness, "rmse": pair.rmse}
+        if pair.hessian is not None:
+            arrays["hessian"] = pair.hessian
+        hit = cache.put(name, arrays, {"reason": {f"{i},{j}": r for (i, j), r in pair.reason.items()}})
     pair = store.pairwise_from(hit) if hit is not None else pair
     timings["registration"] = time.perf_counter() - t
     resolved = {"warm_start": dict(ws), "place_recognition": dict(pr), "registration": dict(reg)}

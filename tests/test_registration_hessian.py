@@ -1,0 +1,100 @@
+"""The registration's own information (its point-to-plane Hessian) and what it does in the pose graph."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dm2_backend.algorithms.common import Cloud
+from dm2_backend.algorithms.icp import point_to_plane_hessian, register
+from dm2_backend.baselines import gtsam_backend
+from dm2_backend.baselines.graph import EIGEN_FLOOR, build_graph, hessian_information
+from dm2_backend.geometry import se3
+from dm2_backend.stages import Frames, Pairwise, Topology
+
+
+def _exp(xi: np.ndarray) -> np.ndarray:
+    """Exp of a g2o-order tangent [x y z rx ry rz] to first and second order (small steps only)."""
+    T = np.eye(4)
+    T[:3, :3] = se3.exp_so3(xi[3:])
+    T[:3, 3] = xi[:3]
+    return T
+
+
+def test_hessian_is_the_gauss_newton_system_of_a_right_perturbation():
+    rng = np.random.default_rng(0)
+    p = rng.uniform(-5, 5, (50, 3))
+    n = rng.normal(size=(50, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    T = se3.from_xyz_euler(np.array([[1.0, -2.0, 0.5, 0.2, -0.1, 0.7]]))[0]
+    q = se3.transform_points(T, p)
+
+    def residuals(xi: np.ndarray) -> np.ndarray:
+        return np.einsum("ij,ij->i", n, se3.transform_points(T @ _exp(xi), p) - q)
+
+    h = 1e-6
+    J = np.column_stack([(residuals(h * e) - residuals(-h * e)) / (2 * h) for e in np.eye(6)])
+    np.testing.assert_allclose(point_to_plane_hessian(p, n, T), J.T @ J, rtol=1e-5, atol=1e-6)
+
+
+def test_one_plane_pins_three_directions_only():
+    rng = np.random.default_rng(1)
+    p = np.column_stack([rng.uniform(-5, 5, (200, 2)), np.zeros(200)])  # the floor, normal z
+    H = point_to_plane_hessian(p, np.tile([0.0, 0.0, 1.0], (200, 1)), np.eye(4))
+    free = H[np.ix_([0, 1, 5], [0, 1, 5])]  # x, y, yaw
+    assert np.abs(free).max() < 1e-9 and H[2, 2] == 200 and H[3, 3] > 100 and H[4, 4] > 100
+
+
+def _corridor(rng: np.random.Generator, length: float = 40.0) -> np.ndarray:
+    """Two walls 3 m apart and a floor, along x: nothing fixes x."""
+    x = rng.uniform(-length / 2, length / 2, 6000)
+    walls = np.column_stack([x[:4000], np.where(np.arange(4000) % 2, 1.5, -1.5), rng.uniform(0, 2.5, 4000)])
+    floor = np.column_stack([x[4000:], rng.uniform(-1.5, 1.5, 2000), np.zeros(2000)])
+    return np.vstack([walls, floor]) + rng.normal(0, 0.005, (6000, 3))
+
+
+def test_open3d_registration_of_a_corridor_reports_the_free_direction():
+    rng = np.random.default_rng(2)
+    target = Cloud(_corridor(rng), planar=False, normal_radius=0.5)
+    source = Cloud(_corridor(rng), planar=False, normal_radius=0.5)
+    for method in ("gicp", "point-to-plane"):
+        m = register(source, target, np.eye(4), (0.3,), method)
+        assert m.fitness > 0.9 and m.hessian is not None
+        w, v = np.linalg.eigh(m.hessian[:3, :3])
+        assert w[0] < 0.01 * w[-1]  # the translation block is (up to the normals' noise) singular ...
+        assert abs(v[0, 0]) > 0.99  # ... along the corridor
+
+
+def test_hessian_information_keeps_a_slid_corridor_match_from_moving_the_graph():
+    """A corridor registration slid 1 m along the corridor (its degenerate direction) against exact odometry:
+    with the registration's Hessian the graph ignores the slide; with isotropic information it bends."""
+    rng = np.random.default_rng(3)
+    n = 6
+    gt = se3.from_xyz_euler(np.column_stack([np.arange(n) * 1.0, np.zeros((n, 5))]))
+    cloud = _corridor(rng).astype(np.float32)
+    frames = Frames([cloud] * n, None, planar=False, scale={"voxel": 0.1, "spacing": 0.1})
+    groups = np.array([[i + 3 if i + 3 < n else -1] for i in range(n)])
+    rel = np.tile(np.eye(4), (n, 1, 1, 1))
+    hess = np.zeros((n, 1, 6, 6), np.float32)
+    H = point_to_plane_hessian(cloud[:4000].astype(float), np.tile([0.0, 1.0, 0.0], (4000, 1)), np.eye(4))
+    H += point_to_plane_hessian(cloud[4000:].astype(float), np.tile([0.0, 0.0, 1.0], (2000, 1)), np.eye(4))
+    for i in range(n - 3):
+        rel[i, 0] = se3.relative(gt[i], gt[i + 3]) @ _exp(np.array([1.0, 0, 0, 0, 0, 0]))  # slid 1 m
+        hess[i, 0] = H
+    err = {}
+    for kind in ("hessian", "isotropic"):
+        pair = Pairwise(rel, groups >= 0, np.full((n, 1), 0.9), np.full((n, 1), 0.01),
+                        hessian=hess if kind == "hessian" else None)
+        graph = build_graph(frames, gt, Topology(groups), pair)
+        assert graph.meta["hessian_edges"] == (n - 3 if kind == "hessian" else 0)
+        solved = gtsam_backend.optimize(graph).poses
+        err[kind] = np.abs(solved[:, 0, 3] - gt[:, 0, 3]).max()
+    assert err["hessian"] < 0.01 < 0.2 < err["isotropic"]
+
+
+def test_hessian_information_is_positive_definite_and_scaled_by_the_residual():
+    H = np.diag([4.0, 4.0, 0.0, 9.0, 9.0, 1.0])
+    info = hessian_information(H, rmse=0.02, floor=0.01)
+    w = np.linalg.eigvalsh(info)
+    assert w.min() >= EIGEN_FLOOR * w.max() * 0.999
+    np.testing.assert_allclose(info[0, 0], 4.0 / 0.02**2)
+    np.testing.assert_allclose(hessian_information(H, rmse=0.001, floor=0.01)[0, 0], 4.0 / 0.01**2)
