@@ -64,3 +64,5 @@ class Pairwise:
     #: (``Match.hessian``) on T_max^min of the pair (min(i, j), max(i, j)) that was registered, g2o order; zero
     #: where a pair has none; None when the registration gives none (planar scans, ``small-gicp``)
     hessian: np.ndarray | None = None
+    #: (N, k) the rms of those point-to-plane residuals (m; ``Match.plane_rmse``), with ``hessian``
+    plane_rmse: np.ndarray | None = None

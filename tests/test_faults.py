@@ -19,6 +19,7 @@ from click.testing import CliRunner
 from optim_cases import one_thread, write_planar_sequence
 
 from dm2_backend.cli.main import cli
+from dm2_backend.optim.dense_checkpoint import DENSE_CHECKPOINT
 from dm2_backend.pipeline.run_folder import CHECKPOINT, LOCK, MARKER
 from dm2_backend.prepare.cache_keys import file_fingerprint
 
@@ -297,6 +298,25 @@ def test_a_signal_during_optimisation_keeps_the_checkpoint_and_names_resume(seq,
     assert CHECKPOINT in json.loads((out / MARKER).read_text())["files"]
     resumed = dm2(*args, "--resume")
     assert resumed.exit_code == 0, resumed.output
+
+
+def test_a_signal_during_the_dense_stage_resumes_it_where_it_stopped(tmp_path):
+    """3D scans: SIGTERM as the dense stage keeps its second round; --resume continues after the first (the
+    result equals an uninterrupted stage's: ``test_optim_dense``)."""
+    sim = tmp_path / "sim"
+    made = dm2("simulate", "-n", "24", "--beams", "16", "--columns", "360", "--seed", "2", "-o", str(sim), "-q")
+    assert made.exit_code == 0, made.output
+    out = tmp_path / "run"
+    args = ["refine", "--scans", str(sim / "velodyne"), "--poses", str(sim / "warm_start.txt"), "--no-cache",
+            "-q", "--out", str(out)]
+    stopped = child(args, pattern=DENSE_CHECKPOINT, signame="SIGTERM", nth=2)
+    assert stopped.returncode == 130, stopped.stderr[-2000:]
+    assert "--resume" in last_line(stopped.stderr) and not (out / "report.json").exists()
+    assert DENSE_CHECKPOINT in json.loads((out / MARKER).read_text())["files"]
+    resumed = dm2(*args, "--resume")
+    assert resumed.exit_code == 0, resumed.output
+    dense = json.loads((out / "report.json").read_text())["start"]["dense"]
+    assert dense["resumed_after_round"] == 1 and dense["rounds"] > 1  # signalled as round 2 was being kept
 
 
 def test_ctrl_c_during_preparation_leaves_a_folder_the_same_command_accepts(seq, tmp_path):

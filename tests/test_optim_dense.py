@@ -231,3 +231,38 @@ def test_eliminating_the_planes_gives_the_curvature_of_the_refitted_cost():
     reduced = H - flat @ lin.coupling(flat)
     assert reduced == pytest.approx(curvature, rel=0.05)
     assert reduced < 0.5 * H  # the planes follow a joint move: most of the held curvature is not there
+
+
+def test_an_interrupted_dense_stage_resumes_where_it_stopped(tmp_path):
+    """Interrupted after two rounds, resumed from its checkpoint: the same poses as a run never interrupted;
+    a finished stage is returned as it ended; a checkpoint of another start or a damaged one is one line."""
+    from dm2_backend.errors import InputError
+    from dm2_backend.optim import dense_checkpoint
+
+    cells, gt = street()
+    graph, dead = odometry_graph(gt, 0.01, 0.001, seed=2)
+    whole = refine_dense(cells, graph, dead, VOXEL)
+    assert len(whole.history) > 3
+    ckpt = tmp_path / dense_checkpoint.DENSE_CHECKPOINT
+    calls = []
+
+    def interrupt(_poses: np.ndarray) -> float:
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return 0.0
+
+    with pytest.raises(KeyboardInterrupt):
+        refine_dense(cells, graph, dead, VOXEL, trace=interrupt, checkpoint=ckpt)
+    assert dense_checkpoint.load(ckpt, dead, 30).rounds_done == 2
+    resumed = refine_dense(cells, graph, dead, VOXEL, checkpoint=ckpt, resume=True)
+    assert len(resumed.history) == len(whole.history) and resumed.stopped == whole.stopped
+    np.testing.assert_allclose(resumed.poses, whole.poses, atol=1e-9)
+    again = refine_dense(cells, graph, dead, VOXEL, checkpoint=ckpt, resume=True)  # the stage had ended
+    assert again.seconds == 0.0 and again.stopped == whole.stopped
+    np.testing.assert_array_equal(again.poses, resumed.poses)
+    with pytest.raises(InputError, match="other start poses"):
+        refine_dense(cells, graph, gt, VOXEL, checkpoint=ckpt, resume=True)
+    ckpt.write_bytes(ckpt.read_bytes()[:100])
+    with pytest.raises(InputError, match="damaged"):
+        refine_dense(cells, graph, dead, VOXEL, checkpoint=ckpt, resume=True)

@@ -59,8 +59,10 @@ def register(
         return Match(T, 0.0, float("inf"))
     pairs = np.asarray(result.correspondence_set)
     normals = target_normals(target, pairs[:, 1], method)
-    hessian = point_to_plane_hessian(source.points[pairs[:, 0]], normals, T)
-    return Match(T.copy(), float(result.fitness), float(result.inlier_rmse), hessian)
+    p = source.points[pairs[:, 0]]
+    residual = np.einsum("ij,ij->i", normals, se3.transform_points(T, p) - target.points[pairs[:, 1]])
+    return Match(T.copy(), float(result.fitness), float(result.inlier_rmse), point_to_plane_hessian(p, normals, T),
+                 float(np.sqrt(np.mean(residual**2))))
 
 
 def target_normals(target: Cloud, index: np.ndarray, method: str) -> np.ndarray:

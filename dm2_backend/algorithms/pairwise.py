@@ -115,8 +115,9 @@ class PairwiseRegistration:
             valid=np.zeros((n, k), bool),
             fitness=np.zeros((n, k)),
             rmse=np.full((n, k), np.inf),
-            hessian=None if frames.planar or self.information != "hessian" else np.zeros((n, k, 6, 6), np.float32),
         )
+        if not frames.planar and self.information == "hessian":
+            out.hessian, out.plane_rmse = np.zeros((n, k, 6, 6), np.float32), np.full((n, k), np.inf)
         by_pair: dict[tuple[int, int], tuple[np.ndarray, str, Match]] = {}
         for pair, (m, free) in zip(pairs, results, strict=True):
             reasons = []
@@ -138,7 +139,7 @@ class PairwiseRegistration:
                 out.relative[i, col] = T if i < j else se3.inverse(T)
                 out.valid[i, col], out.fitness[i, col], out.rmse[i, col] = not reason, m.fitness, m.rmse
                 if out.hessian is not None and m.hessian is not None:
-                    out.hessian[i, col] = m.hessian
+                    out.hessian[i, col], out.plane_rmse[i, col] = m.hessian, m.plane_rmse
                 if reason:
                     out.reason[(i, j)] = reason
         return out

@@ -11,7 +11,7 @@ Edges (``(i, j)``, i < j, the pose of frame j in frame i):
 * loop: every other valid pairwise registration, once per unordered pair.
 
 Information model: on 3D data a registration's information is its own Gauss-Newton Hessian in point-to-plane
-form over its correspondences divided by the residual variance, ``J^T J / max(r, floor)^2``
+form over its correspondences divided by the variance of those residuals, ``J^T J / max(r_plane, floor)^2``
 (:func:`hessian_information`), so a direction the matched geometry does not pin (along a corridor, across the
 one wall a camera sees) carries no weight and stays where the odometry puts it.
 Otherwise (planar scans; a registration without a Hessian, e.g. ``registration.options.information:
@@ -36,9 +36,9 @@ from dm2_backend.pose_graph import PoseGraph
 from dm2_backend.stages import Frames, Pairwise, Topology
 
 MODEL_TEXT = "sigma_t = max(rmse, floor) / sqrt(fitness * points), sigma_r = sigma_t / lever arm"
-HESSIAN_TEXT = "registration Hessian J^T J (point-to-plane) / max(rmse, floor)^2; odometry: " + MODEL_TEXT
-#: smallest eigenvalue of a Hessian information kept, relative to its largest (a direction the registration
-#: does not see keeps a negligible weight, so the matrix stays positive definite for GTSAM)
+HESSIAN_TEXT = "registration Hessian J^T J (point-to-plane) / max(plane rmse, floor)^2; odometry: " + MODEL_TEXT
+#: added to a Hessian information's diagonal, relative to the mean of its translation (rotation) diagonal (see
+#: :func:`hessian_information`)
 EIGEN_FLOOR = 1e-6
 
 
@@ -61,6 +61,7 @@ class PairEdge:
     rmse: float
     points: int  # points of the registered (neighbour) frame
     hessian: np.ndarray | None = None  # (6, 6) point-to-plane J^T J of this registration (g2o order), if any
+    plane_rmse: float = float("inf")  # rms of its point-to-plane residuals (m), with ``hessian``
 
 
 def valid_pairs(topology: Topology, pairwise: Pairwise, frames: Frames) -> dict[tuple[int, int], PairEdge]:
@@ -75,8 +76,9 @@ def valid_pairs(topology: Topology, pairwise: Pairwise, frames: Frames) -> dict[
         a, b = min(i, j), max(i, j)
         T = pairwise.relative[i, n] if i == a else se3.inverse(pairwise.relative[i, n])
         H = None if pairwise.hessian is None else np.asarray(pairwise.hessian[i, n], dtype=np.float64)
+        has = H is not None and bool(np.any(H))
         edge = PairEdge(T, float(pairwise.fitness[i, n]), float(pairwise.rmse[i, n]), len(frames.points[j]),
-                        H if H is not None and np.any(H) else None)
+                        H if has else None, float(pairwise.plane_rmse[i, n]) if has else float("inf"))
         if (a, b) not in out or edge.rmse < out[(a, b)].rmse:
             out[(a, b)] = edge
     return out
@@ -110,12 +112,14 @@ def registration_information(rmse: float, fitness: float, points: int, lever: fl
 
 
 def hessian_information(hessian: np.ndarray, rmse: float, floor: float) -> np.ndarray:
-    """Information of one registration from its point-to-plane Hessian (unit residual variance):
-    ``hessian / max(rmse, floor)^2``, eigenvalues held at least :data:`EIGEN_FLOOR` of the largest."""
+    """Information of one registration from its point-to-plane Hessian (unit residual variance) and the rms of
+    its point-to-plane residuals: ``hessian / max(rmse, floor)^2``, plus :data:`EIGEN_FLOOR` of the mean
+    translation (rotation) diagonal on the translation (rotation) diagonal, so a direction the registration
+    does not see keeps a negligible weight in its own units and GTSAM gets a positive definite matrix."""
     sigma = max(rmse if np.isfinite(rmse) else floor, floor)
-    w, v = np.linalg.eigh(0.5 * (hessian + hessian.T) / sigma**2)
-    w = np.maximum(w, EIGEN_FLOOR * max(float(w[-1]), 1e-300))
-    return (v * w) @ v.T
+    info = 0.5 * (hessian + hessian.T) / sigma**2
+    d = np.diag(info)
+    return info + np.diag(EIGEN_FLOOR * np.repeat([max(d[:3].mean(), 1e-300), max(d[3:].mean(), 1e-300)], 3))
 
 
 def build_graph(frames: Frames, warm: np.ndarray, topology: Topology, pairwise: Pairwise,
@@ -131,7 +135,7 @@ def build_graph(frames: Frames, warm: np.ndarray, topology: Topology, pairwise: 
     arms, floor = lever_arms(frames), rmse_floor(frames, model)
     isotropic = {p: registration_information(e.rmse, e.fitness, e.points, arms[p[1]], planar, floor)
                  for p, e in pairs.items()}
-    info = {p: hessian_information(e.hessian, e.rmse, floor) if e.hessian is not None and not planar
+    info = {p: hessian_information(e.hessian, e.plane_rmse, floor) if e.hessian is not None and not planar
             else isotropic[p] for p, e in pairs.items()}
     hessians = sum(1 for e in pairs.values() if e.hessian is not None and not planar)
     if info:

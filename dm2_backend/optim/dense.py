@@ -19,6 +19,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import gtsam
 import numpy as np
@@ -28,6 +29,7 @@ from scipy.sparse.linalg import LinearOperator, cg, splu
 from dm2_backend.baselines import gtsam_backend
 from dm2_backend.baselines.options import SolverOptions
 from dm2_backend.geometry import se3
+from dm2_backend.optim import dense_checkpoint
 from dm2_backend.optim import planes as plane_term
 from dm2_backend.optim.planes import Cells
 from dm2_backend.pose_graph import PoseGraph
@@ -49,6 +51,8 @@ class DenseResult:
     history: list[dict] = field(default_factory=list)
     seconds: float = 0.0
     stopped: str = ""
+    #: rounds a checkpoint had done before this run continued it (0: started afresh)
+    resumed_after: int = 0
 
 
 def _step(a: np.ndarray, b: np.ndarray) -> tuple[float, float, float]:
@@ -116,20 +120,35 @@ def _vector_values(ids: np.ndarray, step: np.ndarray) -> gtsam.VectorValues:
 
 def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float, rounds: int = 30,
                  tolerance: float = 0.05, progress: bool = False,
-                 trace: Callable[[np.ndarray], float] | None = None) -> DenseResult:
+                 trace: Callable[[np.ndarray], float] | None = None, checkpoint: Path | None = None,
+                 resume: bool = False) -> DenseResult:
     """Poses minimising plane term + graph factors from ``start``; stops when a round moves the poses by less
     than ``tolerance`` noise sigmas (root mean square: a cell changing voxel moves a frame or two a little every
     round), after ``rounds`` rounds, or when no step lowers the objective. ``trace``:
     accuracy against ground truth, recorded per round (never used to
-    decide)."""
+    decide). ``checkpoint``: the state is written there after every round; with ``resume`` the stage continues
+    from the state found there (:mod:`dm2_backend.optim.dense_checkpoint`), or returns it when it had ended."""
     t0 = time.perf_counter()
+    start = np.asarray(start, dtype=np.float64)
+    state = dense_checkpoint.DenseState(start.copy(), 0, 1e-4, [])
+    if resume and checkpoint is not None and checkpoint.is_file():
+        state = dense_checkpoint.load(checkpoint, start, rounds)
+        log.info("dense stage: resumed after round %d of %d%s", state.rounds_done, rounds,
+                 f" ({state.stopped})" if state.stopped else "")
+        if state.stopped:
+            return DenseResult(state.poses, state.history, 0.0, state.stopped, state.rounds_done)
     fg = gtsam_backend.factor_graph(graph, GRAPH_SOLVER)
     objective = _Objective(fg, graph)
-    poses = np.asarray(start, dtype=np.float64).copy()
+    poses, history, lam = state.poses, state.history, state.damping
     values = gtsam_backend.to_values(graph, poses)
-    history: list[dict] = []
-    lam, stopped = 1e-4, f"{rounds} rounds"
-    bar = progress_of(range(rounds), "dense", unit="round", enabled=progress)
+    stopped = f"{rounds} rounds"
+
+    def keep(rounds_done: int, end: str = "") -> None:
+        if checkpoint is not None:
+            dense_checkpoint.save(checkpoint, dense_checkpoint.DenseState(poses, rounds_done, lam, history, end),
+                                  start)
+
+    bar = progress_of(range(state.rounds_done, rounds), "dense", unit="round", enabled=progress)
     for r in bar:
         assignment = plane_term.assign(cells, poses, voxel)
         plane = plane_term.linearise(assignment, plane_term.fit(assignment, poses), poses)
@@ -152,6 +171,7 @@ def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float
             lam *= 10.0
         if best is None:
             stopped = f"round {r}: no step lowered the objective"
+            keep(r + 1, stopped)
             break
         value, plane_value, values, new_poses, scale = best
         step_rms, step_t, step_r = _step(poses, new_poses)
@@ -166,7 +186,9 @@ def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float
         bar.set_postfix(objective=f"{value:.6g}", sigma=f"{assignment.sigma:.3g}", step=f"{step_rms:.2g}")
         if step_rms < tolerance * assignment.sigma:
             stopped = f"converged in round {r} (rms step {step_rms:.2g} m)"
+            keep(r + 1, stopped)
             break
+        keep(r + 1, stopped if r + 1 == rounds else "")
         assignment = plane = None  # released before the next round builds its own
     log.debug("dense stage: %s, %.1f s", stopped, time.perf_counter() - t0)
-    return DenseResult(poses, history, time.perf_counter() - t0, stopped)
+    return DenseResult(poses, history, time.perf_counter() - t0, stopped, state.rounds_done)

@@ -39,7 +39,8 @@ def refine(inputs: RunInputs, cfg: dict, out: Path, cache_dir: Path | None, resu
         metric = live_metric(inputs, stamps) if lead else None
         t_dense = time.perf_counter()
         if lead:
-            start = dense_start(inputs.scans, prep, start, ocfg, cfg["seed"], progress, metric)
+            start = dense_start(inputs.scans, prep, start, ocfg, cfg["seed"], progress, metric,
+                                checkpoint_dir=out, resume=resume)
         if sess.mode is parallel.Mode.TORCHRUN:
             start = distributed.broadcast(start)
         t_dense = time.perf_counter() - t_dense

@@ -31,10 +31,13 @@ from pathlib import Path
 
 from dm2_backend.atomic import is_temporary, watching_writes
 from dm2_backend.errors import InputError
+from dm2_backend.optim.dense_checkpoint import DENSE_CHECKPOINT
 
 MARKER = ".dm2-run.json"
 LOCK = ".dm2-lock"
 CHECKPOINT = "checkpoint.pt"
+#: what ``--resume`` continues from: the optimiser's checkpoint, the dense stage's
+CHECKPOINTS = (CHECKPOINT, DENSE_CHECKPOINT)
 #: config keys a resume may change: how long and where to run, not what is optimised
 RESUMABLE = {"optimiser.epochs", "optimiser.max_steps", "device", "nproc"}
 #: the order in which differing inputs are named
@@ -43,7 +46,7 @@ INPUT_ORDER = ["command", "scans", "frames", "poses", "poses_content"]
 #: these names in --out is refused before any work, since the run would replace it
 OUTPUT_NAMES = ("config.yaml", "resolved.yaml", "report.json", "warm_start.*", "topology.*", "trajectory.png",
                 "errors.png", "epochs.png", "consistency.*", "map.*", "mnet*", "octomap.bt", "maps.json", "prior",
-                CHECKPOINT, "poses*", "*_lidar_*", "graph.g2o", "velodyne", "times.txt", "info.json", "README.txt",
+                *CHECKPOINTS, "poses*", "*_lidar_*", "graph.g2o", "velodyne", "times.txt", "info.json", "README.txt",
                 "*.rrd")
 #: a marker larger than this is not one dm2 wrote
 MARKER_MAX_BYTES = 1 << 20
@@ -164,13 +167,13 @@ def open_folder(out: Path, command: str, *, force: bool = False, resume: bool = 
         listed = _listed_names(out, previous)
         if resume:
             _check_resume(out, previous, folder.fingerprint)
-            folder.inherited = tuple(sorted({*listed, CHECKPOINT}))
+            folder.inherited = tuple(sorted({*listed, *CHECKPOINTS}))
         elif _occupied(out, listed):
             if not force:
                 raise InputError(out, "folder is not empty: give --force to replace a previous run's files"
                                       + (", or --resume to continue it" if command == "refine" else ""))
             if previous is not None:  # a killed run may not have listed its checkpoint
-                for name in [*listed, CHECKPOINT, MARKER]:
+                for name in [*listed, *CHECKPOINTS, MARKER]:
                     _remove(out / name)
         folder.before = frozenset(_entries(out))
         _check_no_collision(out, folder.users)
@@ -194,7 +197,7 @@ def run_folder(out: Path, command: str, *, force: bool = False, resume: bool = F
             yield folder
         folder.record()
     except KeyboardInterrupt as exc:
-        if (folder.path / CHECKPOINT).is_file():
+        if any((folder.path / name).is_file() for name in CHECKPOINTS):
             folder.record()
             raise Interrupted(f"{folder.path} keeps the checkpoint: add --resume to the same command to "
                               "continue from it", resume=True) from exc
@@ -314,8 +317,9 @@ def _no_space(exc: OSError) -> str:
 
 
 def _check_resume(out: Path, previous: dict | None, fp: dict) -> None:
-    if not (out / CHECKPOINT).exists():
-        raise InputError(out, f"--resume: no {CHECKPOINT} here to continue from (run without --resume)")
+    if not any((out / name).exists() for name in CHECKPOINTS):
+        raise InputError(out, f"--resume: no {CHECKPOINT} or {DENSE_CHECKPOINT} here to continue from (run "
+                              "without --resume)")
     if previous is None:
         raise InputError(out, f"--resume: no {MARKER} here, so the inputs and config of the checkpoint are unknown")
     diff = _differences(previous.get("fingerprint", {}), fp)

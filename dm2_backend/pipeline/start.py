@@ -15,6 +15,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -25,6 +26,7 @@ from dm2_backend.errors import InputError
 from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.optim.config import OptimConfig, dense_voxel
 from dm2_backend.optim.dense import refine_dense
+from dm2_backend.optim.dense_checkpoint import DENSE_CHECKPOINT
 from dm2_backend.optim.planes import agreement_score, cells_from_scans
 from dm2_backend.prepare.steps import Prepared
 from dm2_backend.scans import ScanSequence
@@ -97,9 +99,11 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None) -
 
 
 def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimConfig, seed: int = 0,
-                progress: bool = False, trace: Callable[[np.ndarray], float] | None = None) -> Start:
+                progress: bool = False, trace: Callable[[np.ndarray], float] | None = None,
+                checkpoint_dir: Path | None = None, resume: bool = False) -> Start:
     """``start`` refined by the dense stage (``cfg.dense``; None: 3D data only): every scan's points against the
-    planes many frames share, jointly with the pose graph's factors (:mod:`dm2_backend.optim.dense`)."""
+    planes many frames share, jointly with the pose graph's factors (:mod:`dm2_backend.optim.dense`); its
+    checkpoint in ``checkpoint_dir``, continued with ``resume``."""
     if prep.frames.planar or cfg.dense is False:
         if prep.frames.planar and cfg.dense:
             log.warning("optimiser.dense: planar scans have lines, not planes; the dense stage does not run")
@@ -109,7 +113,9 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     cells = cells_from_scans(scans, voxel / 4.0, cfg.dense_cells_per_frame, cfg.dense_max_cells, seed, progress)
     t_cells = time.perf_counter() - t
     graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise)
-    result = refine_dense(cells, graph, start.poses, voxel, cfg.dense_rounds, progress=progress, trace=trace)
+    checkpoint = checkpoint_dir / DENSE_CHECKPOINT if checkpoint_dir is not None else None
+    result = refine_dense(cells, graph, start.poses, voxel, cfg.dense_rounds, progress=progress, trace=trace,
+                          checkpoint=checkpoint, resume=resume)
     # never worse than where it started, judged without ground truth: each frame against the map the others make
     candidates = {"warm start": prep.warm_start, start.name.value: start.poses, "dense": result.poses}
     agreement = agreement_score(cells, candidates, voxel, judges=(start.name.value, "dense"))
@@ -118,6 +124,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     chosen = min(finite, key=finite.get) if len(finite) == len(agreement) else start.name.value
     summary = {"voxel_m": voxel, "cells": len(cells), "cells_seconds": t_cells, "seconds": result.seconds,
                "rounds": len(result.history), "stopped": result.stopped, "history": result.history,
+               "resumed_after_round": result.resumed_after,
                "agreement_m2": agreement, "returned": chosen}
     log.info("dense: %d cells of %.3g m, %s; returned %s (frames' disagreement with the others' planes: %s)",
              len(cells), voxel / 4.0, result.stopped, chosen,

@@ -214,7 +214,7 @@ def prepare(
         pair = _plugin("dm2.registration", reg, progress).run(frames, starting_poses(topo, warm), topo)
         arrays = {"relative": pair.relative, "valid": pair.valid, "fitness": pair.fitness, "rmse": pair.rmse}
         if pair.hessian is not None:
-            arrays["hessian"] = pair.hessian
+            arrays.update(hessian=pair.hessian, plane_rmse=pair.plane_rmse)
         hit = cache.put(name, arrays, {"reason": {f"{i},{j}": r for (i, j), r in pair.reason.items()}})
     pair = store.pairwise_from(hit) if hit is not None else pair
     timings["registration"] = time.perf_counter() - t

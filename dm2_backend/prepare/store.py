@@ -116,4 +116,4 @@ def pairwise_from(hit: tuple[dict, dict]) -> Pairwise:
     arrays, meta = hit
     reasons = {tuple(map(int, k.split(","))): v for k, v in meta["reason"].items()}
     return Pairwise(arrays["relative"], arrays["valid"], arrays["fitness"], arrays["rmse"], reasons,
-                    arrays.get("hessian"))
+                    arrays.get("hessian"), arrays.get("plane_rmse"))

@@ -1,0 +1,99 @@
+"""The dense stage's checkpoint: its poses after each round, so ``dm2 refine --resume`` continues where an
+interrupted run left off instead of starting the stage again (minutes at thousands of frames).
+
+The file is input when it is read back: an ``.npz`` without pickles, bounded in size, every array checked
+(shape, finite, rigid poses) and tied to the start it was made from (the start poses are kept in it: a run
+continues only from the start it was interrupted in, up to the rounding of a registration on another number
+of threads), so a checkpoint of another run or a damaged one is one line naming the file, never a silently
+different result.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dm2_backend.atomic import atomic_write
+from dm2_backend.errors import InputError
+
+DENSE_CHECKPOINT = "checkpoint-dense.npz"
+#: per frame two 4x4 poses of float64 plus the file's own overhead; anything larger is not a checkpoint of ours
+BYTES_PER_FRAME = 2 * 4 * 4 * 8
+FIXED_BYTES = 1 << 20
+#: largest difference of a pose entry (m, or rotation-matrix units) between the checkpoint's start and this run's
+#: (open3d's threads round a registration differently; measured differences are far below this)
+START_TOLERANCE = 1e-6
+
+
+@dataclass
+class DenseState:
+    """Where the dense stage stands: the poses after ``rounds_done`` rounds, the damping for the next round,
+    the rows of the rounds done, and ``stopped`` once the stage ended (empty while it runs)."""
+
+    poses: np.ndarray
+    rounds_done: int
+    damping: float
+    history: list[dict]
+    stopped: str = ""
+
+
+def save(path: Path, state: DenseState, start: np.ndarray) -> None:
+    """Write ``state`` to ``path`` under a temporary name and rename it."""
+    buf = io.BytesIO()
+    meta = {"rounds_done": state.rounds_done, "damping": state.damping, "stopped": state.stopped,
+            "history": state.history}
+    np.savez(buf, poses=np.asarray(state.poses, dtype=np.float64), start=np.asarray(start, dtype=np.float64),
+             meta=np.array(json.dumps(meta, default=float)))
+    with atomic_write(path, "wb") as fh:
+        fh.write(buf.getvalue())
+
+
+def load(path: Path, start: np.ndarray, rounds: int) -> DenseState:
+    """The state in ``path`` for a run from ``start`` of at most ``rounds`` rounds; :class:`InputError` (one
+    line naming the file) when it is not one."""
+    frames = len(start)
+    limit = FIXED_BYTES + BYTES_PER_FRAME * frames
+    try:
+        size = path.stat().st_size
+        if size > limit:
+            raise ValueError(f"{size} bytes, more than a checkpoint of {frames} frames can be ({limit})")
+        with np.load(path, allow_pickle=False) as data:
+            poses = np.array(data["poses"], dtype=np.float64)
+            made_from = np.array(data["start"], dtype=np.float64)
+            meta = json.loads(str(data["meta"]))
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        raise InputError(path, f"not a dm2 dense-stage checkpoint, or a damaged one ({str(exc)[:160]})") from None
+    try:
+        return _checked(poses, made_from, meta, start, rounds)
+    except (TypeError, ValueError, KeyError) as exc:
+        raise InputError(path, f"--resume: this dense-stage checkpoint does not fit this run: {exc}") from None
+
+
+def _checked(poses: np.ndarray, made_from: np.ndarray, meta: dict, start: np.ndarray, rounds: int) -> DenseState:
+    if not isinstance(meta, dict):
+        raise ValueError("its record is not a mapping")
+    for name, p in (("poses", poses), ("start poses", made_from)):
+        if p.shape != np.shape(start) or not np.all(np.isfinite(p)):
+            raise ValueError(f"{name} of shape {p.shape}, not {np.shape(start)} finite ones")
+    differ = float(np.abs(made_from - start).max(initial=0.0))
+    if differ > START_TOLERANCE:
+        raise ValueError(f"it was made from other start poses (differing by up to {differ:.3g})")
+    R = poses[:, :3, :3]
+    if not np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-6) or not np.allclose(
+            poses[:, 3], [0, 0, 0, 1]):
+        raise ValueError("its poses are not rigid motions")
+    done, damping, history, stopped = meta["rounds_done"], meta["damping"], meta["history"], meta["stopped"]
+    if not isinstance(done, int) or not 0 <= done <= rounds:
+        raise ValueError(f"rounds done {done!r}, not 0 to {rounds}")
+    if not isinstance(damping, float | int) or not np.isfinite(damping) or damping <= 0:
+        raise ValueError(f"damping {damping!r}")
+    if not isinstance(history, list) or len(history) > done or not all(isinstance(r, dict) for r in history):
+        raise ValueError("its round records do not match its rounds")
+    if not isinstance(stopped, str) or len(stopped) > 500:
+        raise ValueError("its end record is not a short text")
+    return DenseState(poses, done, float(damping), history, stopped)
