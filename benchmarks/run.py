@@ -36,8 +36,8 @@ ABLATIONS = ["no consistency", "temporal batches", "L-Net poses"]
 ABLATIONS_3D = ["graph start", "no dense", "dense + first-order", "dense + BCE", "dense + consistency",
                 "prepared start"]
 ALL = [m for m in METHODS if m not in ABLATIONS_3D and m not in ("+ BCE", "+ consistency", "point Chamfer",
-                                                                "paper losses", "isotropic refine",
-                                                                "isotropic gtsam")]
+                                                                "paper losses", "hessian refine",
+                                                                "hessian gtsam")]
 BASELINES = ["gtsam", "g2o", "multiway"]
 
 #: set -> (dataset -> methods), epochs (None: the default config), per-case timeout (s)
@@ -83,9 +83,9 @@ SETS: dict[str, dict] = {
         "epochs": None,
         "timeout": 3600,
     },
-    # the registrations' information for the pose graph: their own Hessian (default) against isotropic
+    # the registrations' information for the pose graph: isotropic (default) against their own Hessian
     "3d-information": {
-        "cases": {name: ["dm2 refine", "isotropic refine", "gtsam", "isotropic gtsam"]
+        "cases": {name: ["dm2 refine", "hessian refine", "gtsam", "hessian gtsam"]
                   for name in ("sim-3d-500", "sim-realmap", "redkitchen", "kitti00-6", "balm")},
         "epochs": None,
         "timeout": 3600,

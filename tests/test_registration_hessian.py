@@ -100,3 +100,19 @@ def test_hessian_information_is_positive_definite_and_scaled_by_the_residual():
     np.testing.assert_allclose(info[2, 2], EIGEN_FLOOR * 8.0 / 3 / 0.02**2)  # in the translations' own units
     np.testing.assert_allclose(info[0, 0], 4.0 / 0.02**2, rtol=1e-5)
     np.testing.assert_allclose(hessian_information(H, rmse=0.001, floor=0.01)[0, 0], 4.0 / 0.01**2, rtol=1e-5)
+
+
+def test_the_registration_plugin_keeps_the_hessians_when_asked():
+    from dm2_backend.plugins.registration_icp import IcpRegistration
+
+    rng = np.random.default_rng(4)
+    clouds = [_corridor(rng).astype(np.float32) for _ in range(3)]
+    scale = {"voxel": 0.1, "spacing": 0.1, "spacing_raw": 0.1, "range_median": 5.0, "range_p90": 15.0}
+    frames = Frames(clouds, None, planar=False, scale=scale)
+    topology = Topology(np.array([[1, 2], [0, 2], [0, 1]]))
+    plain = IcpRegistration(progress=False).run(frames, np.tile(np.eye(4), (3, 1, 1)), topology)
+    assert plain.valid.all() and plain.hessian is None and plain.plane_rmse is None
+    kept = IcpRegistration(information="hessian", progress=False).run(frames, np.tile(np.eye(4), (3, 1, 1)), topology)
+    assert kept.hessian.shape == (3, 2, 6, 6) and np.all(kept.hessian[:, :, 2, 2] > 0)
+    assert np.all(kept.plane_rmse < kept.rmse)
+    np.testing.assert_array_equal(kept.hessian[0, 0], kept.hessian[1, 0])  # one registration of the pair (0, 1)

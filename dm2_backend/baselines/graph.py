@@ -10,15 +10,15 @@ Edges (``(i, j)``, i < j, the pose of frame j in frame i):
   else the front end's;
 * loop: every other valid pairwise registration, once per unordered pair.
 
-Information model: on 3D data a registration's information is its own Gauss-Newton Hessian in point-to-plane
-form over its correspondences divided by the variance of those residuals, ``J^T J / max(r_plane, floor)^2``
-(:func:`hessian_information`), so a direction the matched geometry does not pin (along a corridor, across the
-one wall a camera sees) carries no weight and stays where the odometry puts it.
-Otherwise (planar scans; a registration without a Hessian, e.g. ``registration.options.information:
-isotropic``; :func:`registration_information`) a registration with inlier rmse ``r``, overlap ``fitness`` of the
-neighbour's ``M`` points and lever arm ``L`` (rms range of the neighbour's points) gets isotropic
-``sigma_t = max(r, floor) / sqrt(fitness * M)`` and ``sigma_r = sigma_t / L``. Front-end odometry edges get
-the median isotropic registration information times ``fallback_weight``.
+Information model (default; planar scans; a registration without a Hessian; :func:`registration_information`):
+a registration with inlier rmse ``r``, overlap ``fitness`` of the neighbour's ``M`` points and lever arm ``L``
+(rms range of the neighbour's points) gets isotropic ``sigma_t = max(r, floor) / sqrt(fitness * M)`` and
+``sigma_r = sigma_t / L``. On 3D data with ``registration.options.information: hessian``, a registration's
+information is its own Gauss-Newton Hessian in point-to-plane form over its correspondences divided by the
+variance of those residuals, ``J^T J / max(r_plane, floor)^2`` (:func:`hessian_information`), so a direction the
+matched geometry does not pin (along a corridor, across the one wall a camera sees) carries no weight and stays
+where the odometry puts it. Front-end odometry edges get the median isotropic registration information times
+``fallback_weight``.
 
 Information matrices are tangent-space (GTSAM semantics, as ``gtsam.readG2o`` reads them) in g2o order:
 ``[x y z rx ry rz]`` (3D) or ``[x y theta]`` (planar data -> SE2 graph).
