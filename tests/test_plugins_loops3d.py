@@ -8,11 +8,14 @@ import pytest
 from plugins_scenes import room_3d
 
 from dm2_backend.algorithms.loop_graph3d import Closure3, FrameGraph
+from dm2_backend.config_schema import PluginSection
 from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
 from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.plugins.registry import load
 from dm2_backend.prepare.steps import resolve_auto
+
+AUTO = PluginSection(name="auto")
 
 
 def drifted(truth: np.ndarray, yaw: float, roll: float, dz: float, scale: float) -> np.ndarray:
@@ -105,8 +108,8 @@ def test_loops3d_rejects_bad_options_and_planar_scans(two_laps):
 
 
 def test_auto_picks_loops3d_for_depth_cameras():
-    assert resolve_auto({"name": "auto"}, camera=True)["name"] == "loops3d"
-    assert resolve_auto({"name": "auto"}, camera=False)["name"] == "loops"
+    assert resolve_auto(AUTO, camera=True).name == "loops3d"
+    assert resolve_auto(AUTO, camera=False).name == "loops"
 
 
 def _path(tilt_deg: float, climb: float, n: int = 200) -> np.ndarray:
@@ -118,11 +121,12 @@ def _path(tilt_deg: float, climb: float, n: int = 200) -> np.ndarray:
 
 
 def test_auto_picks_by_the_motion():
-    assert resolve_auto({"name": "auto"}, False, _path(3.0, 0.0))["name"] == "loops"  # a car on a road
-    assert resolve_auto({"name": "auto"}, False, _path(35.0, 0.0))["name"] == "loops3d"  # hand-held
-    assert resolve_auto({"name": "auto"}, False, _path(3.0, 0.3))["name"] == "loops3d"  # a climbing drone
-    assert resolve_auto({"name": "auto"}, False, _path(35.0, 0.0), planar=True)["name"] == "loops"
-    assert resolve_auto({"name": "radius"}, False, _path(35.0, 0.0)) == {"name": "radius"}
+    assert resolve_auto(AUTO, False, _path(3.0, 0.0)).name == "loops"  # a car on a road
+    assert resolve_auto(AUTO, False, _path(35.0, 0.0)).name == "loops3d"  # hand-held
+    assert resolve_auto(AUTO, False, _path(3.0, 0.3)).name == "loops3d"  # a climbing drone
+    assert resolve_auto(AUTO, False, _path(35.0, 0.0), planar=True).name == "loops"
+    radius = PluginSection(name="radius")
+    assert resolve_auto(radius, False, _path(35.0, 0.0)) is radius
 
 
 def test_loops3d_repairs_a_failed_front_end_step(two_laps):

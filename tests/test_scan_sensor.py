@@ -7,6 +7,7 @@ import numpy as np
 from optim_cases import planar_case
 from shared_helpers import DATA, need
 
+from dm2_backend.config_schema import PluginSection
 from dm2_backend.formats import ReadOptions, open_scans
 from dm2_backend.pipeline.inputs import load_inputs
 from dm2_backend.prepare.steps import resolve_auto
@@ -36,4 +37,4 @@ def test_a_depth_sequence_is_a_depth_camera_and_auto_picks_loops3d():
     folder = need(DATA / "depth3d" / "redkitchen_000-499")
     scans = open_scans(folder)
     assert scans.sensor == DEPTH_CAMERA and scans.subset(np.arange(3)).sensor == DEPTH_CAMERA
-    assert resolve_auto({"name": "auto", "options": {}}, scans.sensor == DEPTH_CAMERA)["name"] == "loops3d"
+    assert resolve_auto(PluginSection(name="auto"), scans.sensor == DEPTH_CAMERA).name == "loops3d"

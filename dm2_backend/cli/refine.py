@@ -18,6 +18,7 @@ from dm2_backend.cli.options import (
     times_option,
     topic_option,
 )
+from dm2_backend.config_schema import PluginSection, RunConfig
 from dm2_backend.errors import InputError
 from dm2_backend.formats import detect_trajectory_format
 from dm2_backend.formats.kitti import find_calib, looks_camera_frame
@@ -71,11 +72,11 @@ def run_options(f=None, *, scans_required: bool = True):
     return f
 
 
-def default_to_icp(cfg: dict, inputs, asked: bool) -> bool:
+def default_to_icp(cfg: RunConfig, inputs, asked: bool) -> bool:
     """Whether the run starts from the ``icp`` warm start instead of the default ``poses``: when there is no
     trajectory to refine, or (unless a warm start was ``asked`` for on the command line or in the config) only
     the wheel odometry a 2D laser log carries, which the icp warm start fuses with scan matching."""
-    if cfg["warm_start"]["name"] != "poses":
+    if cfg.warm_start.name != "poses":
         return False
     carried_odometry = inputs.given is not None and inputs.given_path is None and inputs.scans.planar
     return inputs.given is None or (carried_odometry and not asked)
@@ -101,12 +102,12 @@ def prepare_run(kw: dict, overrides: dict):
         overrides["seed"] = kw["seed"]
     cfg = config.load(kw["config_path"], overrides)
     asked = bool(kw["warm_start"]) or config.sets(kw["config_path"], "warm_start")
-    if asked and cfg["warm_start"]["name"] == "poses" and inputs.given is None:
+    if asked and cfg.warm_start.name == "poses" and inputs.given is None:
         source, what = (None, "--warm-start poses") if kw["warm_start"] else (kw["config_path"], "warm_start poses")
         raise InputError(source, f"{what} starts from a given trajectory and there is none: give --poses FILE "
                                  "(or --warm-start icp to compute one from the scans)")
-    if default_to_icp(cfg, inputs, asked):
-        cfg["warm_start"] = {"name": "icp", "options": {}}
+    if default_to_icp(cfg, inputs, asked):  # a validated plugin section (icp takes no options here)
+        cfg = cfg.model_copy(update={"warm_start": PluginSection(name="icp")})
     cache = None if kw["no_cache"] else (kw["cache_dir"] or default_cache_dir())
     return inputs, cfg, cache
 
@@ -133,7 +134,7 @@ def command(epochs, device, resume, nproc, rerun_path, **kw) -> None:
     if nproc is not None:
         overrides["nproc"] = nproc
     inputs, cfg, cache = prepare_run(kw, overrides)
-    check_device(cfg["device"])
+    check_device(cfg.device)
     if rerun_path is not None:
         from dm2_backend.cli.view import check_rerun, recording
 
@@ -148,7 +149,7 @@ def command(epochs, device, resume, nproc, rerun_path, **kw) -> None:
             click.echo(f"wrote {rerun_path}")
 
 
-def output_folder(kw: dict, command: str, cfg: dict, inputs, resume: bool = False):
+def output_folder(kw: dict, command: str, cfg: RunConfig, inputs, resume: bool = False):
     """The run folder rule (``pipeline/run_folder.py``) for ``--out``; torchrun ranks other than 0 write
     nothing and skip it."""
     if int(os.environ.get("RANK", "0")) != 0:
