@@ -94,7 +94,7 @@ def test_loops3d_without_a_loop_keeps_the_start(two_laps):
     # no earlier keyframe lies far enough back along the path: nothing to close, the start is kept
     topo = load("dm2.place_recognition", "loops3d")(min_path_gap=1e3, progress=False).run(frames, warm)
     assert topo.poses is None and "loop" not in topo.edge_kind
-    assert topo.log[0]["closures"] == 0 and len(topo.log) == 1
+    assert topo.closures == topo.log[0]["closures"] == 0 and len(topo.log) == 1
 
 
 def test_loops3d_rejects_bad_options_and_planar_scans(two_laps):
@@ -136,7 +136,7 @@ def test_loops3d_repairs_a_failed_front_end_step(two_laps):
     warm[40:] = truth[39] @ jump @ se3.relative(truth[39], truth[40:])  # the front end failed on frame 40
     topo = load("dm2.place_recognition", "loops3d")(progress=False).run(frames, warm)
     assert topo.log[0]["repaired_steps"] == [39]
-    assert topo.loop_closed == (topo.log[0]["closures"] > 0)
+    assert topo.closures == topo.log[0]["closures"] and topo.loop_closed == (topo.closures > 0)
     assert np.allclose(topo.poses[:40], warm[:40], atol=0.02)  # before the failed step: as it was
     step = se3.relative(topo.poses[39], topo.poses[40])
     assert np.linalg.norm(step[:3, 3] - se3.relative(truth[39], truth[40])[:3, 3]) < 0.05

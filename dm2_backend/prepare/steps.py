@@ -203,7 +203,8 @@ def prepare(
         arrays = {"groups": topo.groups, "edges": topo.edges}
         if topo.poses is not None:
             arrays["poses"] = topo.poses
-        hit = cache.put(name, arrays, {"edge_kind": topo.edge_kind, "log": topo.log, "loop_closed": topo.loop_closed})
+        hit = cache.put(name, arrays, {"edge_kind": topo.edge_kind, "log": topo.log, "loop_closed": topo.loop_closed,
+                                          "closures": topo.closures})
     topo = store.topology_from(hit) if hit is not None else topo
     timings["place_recognition"] = time.perf_counter() - t
 
