@@ -245,14 +245,16 @@ class LoopsTopology:
                  "yaw_window_deg": round(float(np.degrees(yaw_window)), 1), "score": round(coarse.score, 4),
                  "ambiguity": round(coarse.runner_up / max(coarse.score, 1e-9), 4), "verified": False,
                  "accepted": False}
+        low_score = coarse.score < self.min_score
+        ambiguous = coarse.runner_up > self.max_ambiguity * coarse.score
         reasons = []
-        if coarse.score < self.min_score:
+        if low_score:
             reasons.append(f"score {coarse.score:.2f} < {self.min_score:.2f}")
-        if coarse.runner_up > self.max_ambiguity * coarse.score:
+        if ambiguous:
             reasons.append(f"ambiguous: a different alignment scores {entry['ambiguity']:.2f} of the best")
         # ambiguous only along one line (a corridor): certain across it and in yaw; the position along it is
         # the prediction's, and the graph settles it
-        across = self.across_corridors and coarse.axis is not None and len(reasons) == 1 and "ambiguous" in reasons[0]
+        across = self.across_corridors and coarse.axis is not None and ambiguous and not low_score
         if reasons and not across:
             entry["reason"] = "; ".join(reasons)
             return entry
