@@ -19,8 +19,9 @@ from shared_helpers import run as dm2
 
 from dm2_backend import config
 from dm2_backend.cli.options import read_options
+from dm2_backend.optim.checkpoint import CHECKPOINT
 from dm2_backend.optim.distributed import Dist, shard
-from dm2_backend.optim.trainer import CHECKPOINT, sample_points
+from dm2_backend.optim.trainer import sample_points
 from dm2_backend.pipeline import parallel
 from dm2_backend.pipeline.inputs import load_inputs
 from dm2_backend.pipeline.run_writer import map_entropy, map_sampler

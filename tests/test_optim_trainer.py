@@ -14,6 +14,7 @@ from optim_cases import Case, frames_of, one_thread, planar_case, small_config
 from dm2_backend.geometry import se3, se3_torch
 from dm2_backend.optim import losses
 from dm2_backend.optim.batching import make_groups, random_groups, temporal_groups
+from dm2_backend.optim.checkpoint import CHECKPOINT
 from dm2_backend.optim.config import (
     LossRegime,
     OptimConfig,
@@ -24,7 +25,7 @@ from dm2_backend.optim.config import (
     sampled_points,
 )
 from dm2_backend.optim.regime import disagreement, locally_accurate
-from dm2_backend.optim.trainer import CHECKPOINT, Optimiser, OptimResult
+from dm2_backend.optim.trainer import Optimiser, OptimResult
 from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.plugins.topology_radius import RadiusTopology
 from dm2_backend.simulate.lidar import LidarModel

@@ -1,10 +1,10 @@
-"""Training as optimisation: the DeepMapping2 loop over anchor groups, with checkpoints and resume."""
+"""Training as optimisation: the DeepMapping2 loop over anchor groups, with checkpoints and resume (the
+checkpoint file in :mod:`~dm2_backend.optim.checkpoint`, the choice of the returned poses in
+:mod:`~dm2_backend.optim.selection`)."""
 
 from __future__ import annotations
 
-import io
 import math
-import pickle
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
@@ -14,54 +14,20 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError, one_line
 from dm2_backend.geometry import se3_torch
 from dm2_backend.optim import distributed, losses
 from dm2_backend.optim.batching import make_groups
+from dm2_backend.optim.checkpoint import CHECKPOINT, load_checkpoint, plain_state, save_checkpoint
 from dm2_backend.optim.config import Derived, OptimConfig, derive, loss_regime, pose_regime, sampled_points
 from dm2_backend.optim.mnet_file import MNET, save_mnet
 from dm2_backend.optim.occupancy import GridOccupancy
 from dm2_backend.optim.pose_model import PoseModel
 from dm2_backend.optim.regime import disagreement, locally_accurate
+from dm2_backend.optim.selection import selection
 from dm2_backend.progress import progress
 from dm2_backend.stages import Frames, Pairwise, Topology
 from dm2_backend.threads import ordered_map
-
-CHECKPOINT = "checkpoint.pt"
-
-
-def plain_state(value):
-    """``value`` with numpy arrays as CPU tensors and numpy scalars / tuples as plain Python values: what
-    ``torch.load(weights_only=True)`` accepts."""
-    if isinstance(value, dict):
-        return {k: plain_state(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [plain_state(v) for v in value]
-    if isinstance(value, tuple):
-        return tuple(plain_state(v) for v in value)
-    if isinstance(value, np.ndarray):
-        return torch.from_numpy(np.ascontiguousarray(value))
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    return value
-
-
-def load_checkpoint(path: Path, device) -> dict:
-    """A checkpoint written by :meth:`Optimiser._save`, loaded with ``weights_only=True`` (a file handed to
-    ``--resume`` cannot run code); ``best["poses"]`` back as a numpy array. An unreadable or foreign file is an
-    :class:`InputError` naming it."""
-    try:
-        state = torch.load(path, map_location=device, weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError, AttributeError) as exc:
-        raise InputError(path, f"not a dm2 checkpoint, or a damaged one ({one_line(str(exc))[:200]})") from None
-    if not isinstance(state, dict) or not isinstance(state.get("best"), dict) or "poses" not in state["best"]:
-        raise InputError(path, "not a dm2 checkpoint (no best poses)")
-    poses = state["best"]["poses"]
-    state["best"]["poses"] = poses.cpu().numpy() if isinstance(poses, torch.Tensor) else np.asarray(poses)
-    return state
 
 
 @dataclass
@@ -337,12 +303,6 @@ class Optimiser:
         gauge = self.model.T0[0].cpu().numpy() @ np.linalg.inv(first)
         save_mnet(path, self.field, gauge, trained=bool(self.derived.use_bce))
 
-    def _save(self, path: Path, state: dict) -> None:
-        buffer = io.BytesIO()  # serialised first: a full disk is then an OSError of the write, not torch's
-        torch.save(state, buffer)
-        with atomic_write(path, "wb") as fh:
-            fh.write(buffer.getbuffer())
-
     def run(self, checkpoint_dir: Path | None = None, resume: bool = False) -> OptimResult:
         """Train; with several ranks only rank 0 reads and writes the checkpoint, shows progress and
         evaluates ``metric``, and every rank resumes from rank 0's checkpoint."""
@@ -450,7 +410,7 @@ class Optimiser:
                 row["converged"] = (f"stopped after epoch {epoch} of {self.epochs}: the loss changed by less than "
                                     f"{self.cfg.converge_tol:g} of itself and the map did not improve, twice")
             if ckpt is not None and lead:
-                self._save(ckpt, self._state(epoch, best, history))
+                save_checkpoint(ckpt, self._state(epoch, best, history))
             if "converged" in row:
                 break
         rejected = sum("rejected" in row for row in history)
@@ -460,19 +420,4 @@ class Optimiser:
         if ckpt is not None and lead:
             self._save_mnet(checkpoint_dir / MNET)
         return OptimResult(best["poses"], best["epoch"], history, self.derived, stopped,
-                           _selection(best, by_map, rejected, self.epochs))
-
-
-def _selection(best: dict, by_map: bool, rejected: int = 0, epochs: int = 1) -> str:
-    if epochs == 0:
-        return "the start: first-order epochs off (optimiser.first_order)"
-    note = f"; {rejected} diverged epochs rejected" if rejected else ""
-    return _chosen(best, by_map) + note
-
-
-def _chosen(best: dict, by_map: bool) -> str:
-    if not by_map:
-        return f"lowest epoch loss: epoch {best['epoch']}" if best["epoch"] >= 0 else "the start (no epoch ran)"
-    if best["epoch"] < 0:
-        return f"the start: no epoch made a sharper map (map entropy {best['start_map']:.4f})"
-    return f"sharpest map: epoch {best['epoch']} (map entropy {best['map']:.4f}, start {best['start_map']:.4f})"
+                           selection(best, by_map, rejected, self.epochs))
