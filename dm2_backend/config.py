@@ -1,32 +1,18 @@
-"""The YAML run configuration: defaults, loading, merging and dumping the effective config."""
+"""The YAML run configuration: defaults (``RunConfig()``), loading into one frozen :class:`RunConfig`, merging
+and dumping the effective config."""
 
 from __future__ import annotations
 
 import copy
-from dataclasses import asdict
 from pathlib import Path
 
 import yaml
 
 from dm2_backend import config_schema
 from dm2_backend.atomic import atomic_write
+from dm2_backend.config_schema import RunConfig
 from dm2_backend.errors import InputError, did_you_mean
 from dm2_backend.input_files import CONFIG_MAX_BYTES, read_text_bounded
-from dm2_backend.optim.config import OptimConfig
-
-DEFAULTS: dict = {
-    "seed": 0,
-    "device": "auto",
-    #: processes optimising together (torch.distributed; ``dm2 refine --nproc``); torchrun sets its own
-    "nproc": 1,
-    "frames": {"max_points": 1024, "voxel": None},
-    "warm_start": {"name": "poses", "options": {}},
-    #: "auto": loops for laser scans moving like a ground vehicle, loops3d for depth cameras and for scanners
-    #: that tilt or climb (prepare/steps.py resolve_auto)
-    "place_recognition": {"name": "auto", "options": {}},
-    "registration": {"name": "icp", "options": {}},
-    "optimiser": asdict(OptimConfig()),
-}
 
 
 def merge(base: dict, override: dict) -> dict:
@@ -68,30 +54,29 @@ def read_yaml(path: Path) -> object:
                          line=None if mark is None else mark.line + 1) from exc
 
 
-def load(path: str | Path | None, overrides: dict | None = None) -> dict:
-    """Defaults, then the YAML file (if any), then command-line overrides."""
-    cfg = copy.deepcopy(DEFAULTS)
+def load(path: str | Path | None, overrides: dict | None = None) -> RunConfig:
+    """Defaults, then the YAML file (if any), then command-line overrides, merged, then validated once."""
+    cfg = RunConfig().model_dump()
     if path is not None:
         path = Path(path)
         user = read_yaml(path) or {}
         if not isinstance(user, dict):
             raise InputError(path, "the config must be a mapping")
-        unknown = set(user) - set(DEFAULTS)
+        unknown = set(user) - set(RunConfig.model_fields)
         if unknown:
             first = sorted(map(str, unknown))[0]
             raise InputError(path, f"unknown config sections: {', '.join(sorted(map(str, unknown)))}"
-                                   f"{did_you_mean(first, DEFAULTS)}")
+                                   f"{did_you_mean(first, RunConfig.model_fields)}")
         cfg = merge(cfg, user)
     cfg = merge(cfg, overrides or {})
     try:
-        config_schema.validate(cfg)
+        return config_schema.validate(cfg)
     except config_schema.ConfigError as exc:
         raise InputError(path, str(exc)) from None
     except InputError as exc:  # e.g. an unknown plugin name: the error names the config it came from
         if exc.source is not None or path is None:
             raise
         raise InputError(path, exc.problem, line=exc.line) from None
-    return cfg
 
 
 def sets(path: str | Path | None, section: str) -> bool:
@@ -102,6 +87,7 @@ def sets(path: str | Path | None, section: str) -> bool:
     return isinstance(user, dict) and section in user
 
 
-def dump(cfg: dict, path: str | Path) -> None:
+def dump(cfg: RunConfig | dict, path: str | Path) -> None:
+    """The effective config (or a part of it, as plain values) as YAML (what ``dm2 refine -c`` reads back)."""
     with atomic_write(path) as fh:
-        yaml.safe_dump(cfg, fh, sort_keys=False)
+        yaml.safe_dump(cfg.model_dump() if isinstance(cfg, RunConfig) else cfg, fh, sort_keys=False)

@@ -1,9 +1,11 @@
-"""The run configuration's schema: every section validated at load, plugin options against the plugin's own
-dataclass fields, so that a wrong value is one line naming its field before any work starts.
+"""The run configuration's schema: one frozen :class:`RunConfig`, every section validated once at load, plugin
+options against the plugin's own dataclass fields, so that a wrong value is one line naming its field before any
+work starts.
 
-pydantic checks the types (``frames.max_points: many`` -> "frames.max_points: Input should be a valid
-integer"); the optimiser section keeps its own checks (:meth:`OptimConfig.from_dict`), and plugin options are
-checked against the fields of the plugin class the section names (``auto`` is checked once resolved).
+pydantic checks the types and choices (``frames.max_points: many`` -> "frames.max_points: Input should be a
+valid integer", ``optimiser.start: gtsam`` -> "optimiser.start: Input should be 'auto', 'graph' or 'prepared'");
+plugin options are checked against the fields of the plugin class the section names (``auto`` is checked once
+resolved).
 """
 
 from __future__ import annotations
@@ -23,8 +25,8 @@ from pydantic import (
     ValidationError,
 )
 
+from dm2_backend.config_optimiser import OptimConfig
 from dm2_backend.errors import did_you_mean
-from dm2_backend.optim.config import OptimConfig
 
 #: config section -> entry-point group of its plugins
 PLUGIN_GROUPS = {"warm_start": "dm2.warm_start", "place_recognition": "dm2.place_recognition",
@@ -32,7 +34,7 @@ PLUGIN_GROUPS = {"warm_start": "dm2.warm_start", "place_recognition": "dm2.place
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", frozen=True)
 
 
 class FramesSection(_Strict):
@@ -50,41 +52,59 @@ class PluginSection(_Strict):
 
 
 class RunConfig(_Strict):
-    """The whole run configuration (``dm2 refine -c``); see ``config.DEFAULTS`` for the defaults."""
+    """The whole run configuration (``dm2 refine -c``); ``RunConfig()`` is the default one."""
 
     #: numpy and torch seeds are unsigned 32-bit (checked here, not after the preparation)
     seed: int = Field(default=0, ge=0, lt=2**32)
+    #: torch device: auto, cpu, cuda or cuda:N
     device: Literal["auto", "cpu", "cuda"] | str = "auto"
+    #: processes optimising together (torch.distributed; ``dm2 refine --nproc``); torchrun sets its own
     nproc: PositiveInt = 1
-    frames: FramesSection
-    warm_start: PluginSection
-    place_recognition: PluginSection
-    registration: PluginSection
-    optimiser: dict[str, Any]
+    frames: FramesSection = FramesSection()
+    warm_start: PluginSection = PluginSection(name="poses")
+    #: "auto": loops for laser scans moving like a ground vehicle, loops3d for depth cameras and for scanners
+    #: that tilt or climb (prepare/steps.py resolve_auto)
+    place_recognition: PluginSection = PluginSection(name="auto")
+    registration: PluginSection = PluginSection(name="icp")
+    optimiser: OptimConfig = OptimConfig()
 
 
 class ConfigError(ValueError):
     """One line: the field path and what is wrong with it."""
 
 
-def validate(cfg: dict) -> None:
-    """Raise :class:`ConfigError` for the first wrong value of ``cfg`` (a merged config dict)."""
+def validate(cfg: dict) -> RunConfig:
+    """The :class:`RunConfig` of ``cfg`` (a merged config dict); :class:`ConfigError` for its first wrong value."""
     try:
         model = RunConfig.model_validate(cfg)
     except ValidationError as exc:
-        err = exc.errors()[0]
-        where = ".".join(str(p) for p in err["loc"]) or "config"
-        raise ConfigError(f"{where}: {err['msg']} (got {err.get('input')!r})") from None
+        raise ConfigError(one_line(exc)) from None
     if model.device not in ("auto", "cpu", "cuda") and not model.device.startswith("cuda:"):
         raise ConfigError(f"device: auto, cpu, cuda or cuda:N, not {model.device!r}")
-    try:
-        OptimConfig.from_dict(cfg["optimiser"])
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f"optimiser: {exc}") from None
     for section, group in PLUGIN_GROUPS.items():
         plugin = getattr(model, section)
         if plugin.name != "auto":
             check_plugin_options(section, group, plugin.name, plugin.options)
+    return model
+
+
+def one_line(exc: ValidationError) -> str:
+    """The first error: its field path, pydantic's message and the value; an unknown field with the nearest
+    known name."""
+    err = exc.errors()[0]
+    loc = [str(p) for p in err["loc"]]
+    where = ".".join(loc) or "config"
+    hint = ""
+    if err["type"] == "extra_forbidden":
+        model: type[BaseModel] = RunConfig
+        for part in loc[:-1]:
+            annotation = model.model_fields[part].annotation if part in model.model_fields else None
+            if not (isinstance(annotation, type) and issubclass(annotation, BaseModel)):
+                break
+            model = annotation
+        else:
+            hint = did_you_mean(loc[-1], model.model_fields)
+    return f"{where}: {err['msg']} (got {err.get('input')!r}){hint}"
 
 
 def check_plugin_options(section: str, group: str, name: str, options: dict) -> None:

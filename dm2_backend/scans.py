@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import enum
 import hashlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -29,9 +30,22 @@ class Scan:
         return len(self.points)
 
 
-#: the kinds of sensor a scan sequence comes from (``ScanSequence.sensor``)
-LASER_2D, LIDAR, DEPTH_CAMERA = "laser2d", "lidar", "depth"
-SENSORS = (LASER_2D, LIDAR, DEPTH_CAMERA)
+class SensorKind(str, enum.Enum):
+    """The kind of sensor a scan sequence comes from (``ScanSequence.sensor``): declared by its scan source
+    (``formats.registry.ScanSource.sensor``), or, where the source cannot tell (a folder of scan files, a bag),
+    decided once from the scans' geometry (:meth:`of_geometry`, by ``pipeline.inputs``)."""
+
+    LASER_2D = "laser2d"
+    LIDAR = "lidar"
+    DEPTH_CAMERA = "depth"
+
+    @classmethod
+    def of_geometry(cls, planar: bool) -> SensorKind:
+        """Scans in one plane come from a 2D laser, others from a LiDAR."""
+        return cls.LASER_2D if planar else cls.LIDAR
+
+
+LASER_2D, LIDAR, DEPTH_CAMERA = SensorKind.LASER_2D, SensorKind.LIDAR, SensorKind.DEPTH_CAMERA
 
 
 @dataclass
@@ -52,8 +66,9 @@ class ScanSequence:
     #: how the scans were read: format, resolved path and every read option (set by ``formats.open_scans``);
     #: with the files it names, it keys the preparation cache, so it must hold everything the reading used
     read_spec: dict = field(default_factory=dict)
-    #: the sensor kind, one of :data:`SENSORS` (set by the reader or ``formats.open_scans``; "" if unknown)
-    sensor: str = ""
+    #: the sensor kind: the source's (``formats.open_scans``), else decided from the scans by ``pipeline.inputs``;
+    #: None until then
+    sensor: SensorKind | None = None
 
     def __len__(self) -> int:
         return self.count

@@ -44,6 +44,8 @@ class Topology:
     #: ``poses`` closed at least one loop (not only repaired the start): the optimiser then treats them as
     #: accurate; set by the place recognition that made them
     loop_closed: bool = False
+    #: loop closures the place recognition kept (0 for one that closes no loops)
+    closures: int = 0
 
     @property
     def k(self) -> int:

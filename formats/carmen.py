@@ -95,7 +95,7 @@ from dm2_backend.formats.registry import (
     trajectory_format,
 )
 from dm2_backend.geometry import se3
-from dm2_backend.scans import Scan, ScanSequence
+from dm2_backend.scans import Scan, ScanSequence, SensorKind
 from dm2_backend.trajectory import Trajectory, validate_poses
 
 
@@ -534,6 +534,7 @@ trajectory_format(TrajectoryFormat(
 scan_source(ScanSource(
     name="carmen",
     description="CARMEN log 2D laser scans (FLASER / ROBOTLASER1 / RAWLASER), robot frame",
+    sensor=SensorKind.LASER_2D,
     open=open_carmen_scans,
     suffixes=SUFFIXES,
     sniff=sniff,

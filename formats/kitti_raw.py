@@ -37,7 +37,7 @@ from dm2_backend.formats.registry import (
 )
 from dm2_backend.formats.scan_folder import read_bin, scan_files
 from dm2_backend.geometry import se3
-from dm2_backend.scans import ScanSequence
+from dm2_backend.scans import ScanSequence, SensorKind
 from dm2_backend.trajectory import Trajectory
 
 EARTH_RADIUS = 6378137.0  # m, as in the devkit
@@ -223,5 +223,5 @@ FORMAT = trajectory_format(TrajectoryFormat(
 
 scan_source(ScanSource(
     name="kitti-raw", description=DESCRIPTION, open=open_drive, suffixes=("/",), sniff=_sniff("velodyne_points"),
-    describe=describe,
+    describe=describe, sensor=SensorKind.LIDAR,
 ))

@@ -38,7 +38,7 @@ from dm2_backend.formats.registry import (
     trajectory_format,
 )
 from dm2_backend.geometry import se3
-from dm2_backend.scans import Scan, ScanSequence
+from dm2_backend.scans import Scan, ScanSequence, SensorKind
 from dm2_backend.trajectory import Trajectory, validate_timestamps
 
 SCALE = 0.005  # m per count
@@ -347,5 +347,5 @@ trajectory_format(TrajectoryFormat(
 ))
 scan_source(ScanSource(
     name="nclt", description=DESCRIPTION, open=open_session, suffixes=("/",), sniff=sniff_scans,
-    describe=describe,
+    describe=describe, sensor=SensorKind.LIDAR,
 ))

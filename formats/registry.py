@@ -14,7 +14,7 @@ import numpy as np
 
 from dm2_backend.errors import InputError
 from dm2_backend.input_files import check_kind
-from dm2_backend.scans import LASER_2D, LIDAR, ScanSequence
+from dm2_backend.scans import ScanSequence, SensorKind
 from dm2_backend.trajectory import Trajectory, validate_poses, validate_timestamps
 
 
@@ -79,9 +79,10 @@ class ScanSource:
     suffixes: tuple[str, ...] = ()
     sniff: Callable[[Path], bool] | None = None
     describe: Callable[[Path], list[tuple[str, str]]] | None = None
-    #: the sensor its scans come from when the source knows (``ScanSequence.sensor``); None: decided from the
-    #: scans (``laser2d`` when planar, else ``lidar``)
-    sensor: str | None = None
+    #: the sensor its scans come from when the source knows (``ScanSequence.sensor``); None: the source cannot
+    #: tell (a folder of scan files, a bag of either message), ``pipeline.inputs`` decides once from the scans'
+    #: geometry (``SensorKind.of_geometry``)
+    sensor: SensorKind | None = None
 
 
 TRAJECTORY_FORMATS: dict[str, TrajectoryFormat] = {}
@@ -225,7 +226,7 @@ def open_scans(path: str | Path, fmt: str | None = None, options: ReadOptions | 
     spec = _lookup(SCAN_SOURCES, name, "scan source", path)
     seq = spec.open(path, options)
     seq.read_spec = read_spec(name, path, options, seq.meta)
-    seq.sensor = seq.sensor or spec.sensor or (LASER_2D if seq.planar else LIDAR)
+    seq.sensor = seq.sensor or spec.sensor
     if len(seq) == 0:
         raise InputError(seq.source or path, "holds no scans")
     seq.meta.setdefault("format", name)

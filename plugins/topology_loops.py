@@ -117,8 +117,8 @@ class LoopsTopology:
         self._check()
         self._setup(frames)
         log: list[dict] = [{"plugin": self.name, **self._lengths}]
-        corrected = self._close_loops(frames, poses, log)
-        return self._topology(frames, corrected, log)
+        corrected, closures = self._close_loops(frames, poses, log)
+        return self._topology(frames, corrected, log, closures)
 
     # ------------------------------------------------------------------ set-up
     def _check(self) -> None:
@@ -154,7 +154,7 @@ class LoopsTopology:
         self._grids: dict[tuple[int, float], cm.LikelihoodGrid] = {}
 
     # ------------------------------------------------------------------ loop closing
-    def _close_loops(self, frames: Frames, poses: np.ndarray, log: list) -> np.ndarray:
+    def _close_loops(self, frames: Frames, poses: np.ndarray, log: list) -> tuple[np.ndarray, int]:
         L = self._lengths
         keys = kf.select(poses, L["keyframe_distance"], np.radians(self.keyframe_angle))
         path = path_length(poses)
@@ -206,7 +206,7 @@ class LoopsTopology:
         log[0].update(keyframes=len(keys), closures=len(kept), dropped=len(dropped))
         for c in dropped:
             c.entry.update(accepted=False, dropped=True, reason="dropped by the final robust solve")
-        return correct(poses, keys, odo, key_poses)
+        return correct(poses, keys, odo, key_poses), len(kept)
 
     def _candidates(self, estimate: np.ndarray, kpath: np.ndarray, b: int, window: float) -> list[int]:
         """Earlier keyframes that may overlap keyframe b: one (the nearest) per earlier visit."""
@@ -245,14 +245,16 @@ class LoopsTopology:
                  "yaw_window_deg": round(float(np.degrees(yaw_window)), 1), "score": round(coarse.score, 4),
                  "ambiguity": round(coarse.runner_up / max(coarse.score, 1e-9), 4), "verified": False,
                  "accepted": False}
+        low_score = coarse.score < self.min_score
+        ambiguous = coarse.runner_up > self.max_ambiguity * coarse.score
         reasons = []
-        if coarse.score < self.min_score:
+        if low_score:
             reasons.append(f"score {coarse.score:.2f} < {self.min_score:.2f}")
-        if coarse.runner_up > self.max_ambiguity * coarse.score:
+        if ambiguous:
             reasons.append(f"ambiguous: a different alignment scores {entry['ambiguity']:.2f} of the best")
         # ambiguous only along one line (a corridor): certain across it and in yaw; the position along it is
         # the prediction's, and the graph settles it
-        across = self.across_corridors and coarse.axis is not None and len(reasons) == 1 and "ambiguous" in reasons[0]
+        across = self.across_corridors and coarse.axis is not None and ambiguous and not low_score
         if reasons and not across:
             entry["reason"] = "; ".join(reasons)
             return entry
@@ -352,12 +354,13 @@ class LoopsTopology:
         return agree
 
     # ------------------------------------------------------------------ topology
-    def _topology(self, frames: Frames, corrected: np.ndarray, log: list) -> Topology:
+    def _topology(self, frames: Frames, corrected: np.ndarray, log: list, closures: int) -> Topology:
         L = self._lengths
         limit = self.max_loops if self.max_loops is not None else self.k // 2
         rows = loop_rows(corrected[:, :3, 3], path_length(corrected), L["radius"], L["min_path_gap"], self.k, limit)
         topo = assemble(rows, self.k, self.temporal_fill, log)
-        topo.poses = corrected if log[0].get("closures") else None  # loop-closed only when a loop was closed
+        topo.closures = closures
+        topo.poses = corrected if closures else None  # loop-closed only when a loop was closed
         topo.loop_closed = topo.poses is not None
         return topo
 

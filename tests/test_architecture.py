@@ -7,8 +7,8 @@ from collections import defaultdict
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-#: the one seam left (issue 28): the run configuration (top-level config.py) builds on the optimiser's OptimConfig
-KNOWN_SEAMS = {frozenset({"dm2_backend", "optim"})}
+#: none left (issue 28): the run configuration's optimiser section is the data model's (config_optimiser.py)
+KNOWN_SEAMS: set[frozenset[str]] = set()
 
 
 def package_of(module: str) -> str | None:

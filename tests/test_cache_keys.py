@@ -16,6 +16,7 @@ from optim_cases import one_thread, planar_case
 
 from dm2_backend import config
 from dm2_backend.cli.main import cli
+from dm2_backend.config_schema import RunConfig
 from dm2_backend.formats import ReadOptions, open_scans, read_trajectory
 from dm2_backend.prepare.cache_keys import code_fingerprint, file_fingerprint, module_closure, source_key, step_key
 from dm2_backend.prepare.steps import prepare
@@ -94,7 +95,7 @@ def test_the_code_of_a_plugin_and_of_what_it_uses_is_in_the_key():
     assert code_fingerprint(LoopsTopology) != code_fingerprint(RadiusTopology)
 
 
-def run(seq: Path, cache: Path, cfg: dict):
+def run(seq: Path, cache: Path, cfg: RunConfig):
     scans = open_scans(seq / "velodyne", None, ReadOptions(times=seq / "times.txt"))
     given = read_trajectory(seq / "warm_start.txt", "kitti")
     return prepare(scans, given, cfg, cache, progress=False)
@@ -102,14 +103,15 @@ def run(seq: Path, cache: Path, cfg: dict):
 
 def test_a_changed_option_reruns_that_step_and_those_after_only(seq, tmp_path):
     cache = tmp_path / "cache"
-    cfg = config.load(None, {"frames": {"max_points": 128}, "place_recognition": {"name": "radius"}})
+    base = {"frames": {"max_points": 128}, "place_recognition": {"name": "radius"}}
+    cfg = config.load(None, base)
     first = run(seq, cache, cfg)
     assert first.cached == dict.fromkeys(STEPS, False)
     assert run(seq, cache, cfg).cached == dict.fromkeys(STEPS, True)
-    reg = config.merge(cfg, {"registration": {"options": {"max_distance": 0.7}}})
+    reg = config.load(None, config.merge(base, {"registration": {"options": {"max_distance": 0.7}}}))
     assert run(seq, cache, reg).cached == {"frames": True, "warm_start": True, "place_recognition": True,
                                            "registration": False}
-    pr = config.merge(cfg, {"place_recognition": {"options": {"radius": 3.0}}})
+    pr = config.load(None, config.merge(base, {"place_recognition": {"options": {"radius": 3.0}}}))
     assert run(seq, cache, pr).cached == {"frames": True, "warm_start": True, "place_recognition": False,
                                           "registration": False}
 
@@ -118,8 +120,8 @@ def test_prepare_leaves_the_callers_config_as_given(seq, tmp_path):
     cfg = config.load(None, {"frames": {"max_points": 128}})
     given = copy.deepcopy(cfg)
     prep = run(seq, tmp_path / "cache", cfg)
-    assert cfg == given and cfg["place_recognition"]["name"] == "auto"
-    assert prep.resolved["place_recognition"]["name"] == "loops"
+    assert cfg == given and cfg.place_recognition.name == "auto"
+    assert prep.resolved["place_recognition"].name == "loops"
 
 
 def test_a_damaged_entry_is_reported_and_rebuilt(seq, tmp_path, caplog):
@@ -155,5 +157,6 @@ def test_loop_closed_is_a_field_that_survives_the_cache(seq, tmp_path):
     cfg = config.load(None, {"frames": {"max_points": 128}, "place_recognition": {"name": "loops"}})
     fresh = run(seq, cache, cfg).topology
     cached = run(seq, cache, cfg).topology
-    assert fresh.loop_closed == (fresh.poses is not None and fresh.log[0]["closures"] > 0)
-    assert cached.loop_closed == fresh.loop_closed
+    assert fresh.closures == fresh.log[0]["closures"]
+    assert fresh.loop_closed == (fresh.poses is not None and fresh.closures > 0)
+    assert (cached.loop_closed, cached.closures) == (fresh.loop_closed, fresh.closures)

@@ -444,7 +444,7 @@ class _Payload:
 
 
 def test_checkpoint_loads_without_running_code(tmp_path, monkeypatch):
-    from dm2_backend.optim.trainer import load_checkpoint, plain_state
+    from dm2_backend.optim.checkpoint import load_checkpoint, plain_state
 
     monkeypatch.chdir(tmp_path)
     evil = tmp_path / "checkpoint.pt"

@@ -45,3 +45,13 @@ def test_the_depth_image_is_made_once_and_gives_what_a_fresh_cloud_gives():
     for _ in range(2):  # the second call uses the kept image
         assert free_space(Cloud(pts, False, 1.0), cloud, T, 0.3) == free_space(Cloud(pts, False, 1.0), fresh, T, 0.3)
     assert np.isfinite(image.depth).mean() > 0.5 and (image.near <= image.depth).all()
+
+
+def test_a_failed_gate_is_a_code_with_its_message():
+    """The reason a registration is refused is a :class:`Gate` with the value and limit; its text is the
+    report's (``fitness 0.20 < 0.50``), so the run folders read as before."""
+    from dm2_backend.algorithms.gates import Gate, GateFailure
+
+    assert str(GateFailure(Gate.FITNESS, 0.2, 0.5)) == "fitness 0.20 < 0.50"
+    assert str(GateFailure(Gate.RMSE, 0.1234, 0.1)) == "rmse 0.123 > 0.100"
+    assert Gate.FREE_SPACE.message(0.31, 0.25) == "free space 0.31 > 0.25"

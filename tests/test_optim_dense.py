@@ -158,7 +158,7 @@ def test_a_wrong_closure_forced_into_the_graph_is_overruled_by_the_planes():
 def test_dense_options_are_checked():
     for bad in ({"dense_rounds": 0}, {"dense_voxel": -1.0}, {"dense_cells_per_frame": 0}, {"dense_max_cells": 0}):
         with pytest.raises(ValueError, match="dense"):
-            OptimConfig.from_dict(bad)
+            OptimConfig(**bad)
 
 
 def _prepared_3d(frames: int = 12):

@@ -19,9 +19,9 @@ from shared_helpers import run as dm2
 
 from dm2_backend import config
 from dm2_backend.cli.options import read_options
-from dm2_backend.optim.config import OptimConfig
+from dm2_backend.optim.checkpoint import CHECKPOINT
 from dm2_backend.optim.distributed import Dist, shard
-from dm2_backend.optim.trainer import CHECKPOINT, sample_points
+from dm2_backend.optim.trainer import sample_points
 from dm2_backend.pipeline import parallel
 from dm2_backend.pipeline.inputs import load_inputs
 from dm2_backend.pipeline.run_writer import map_entropy, map_sampler
@@ -132,14 +132,13 @@ def job(seq: Path, cache: Path, out: Path, scratch: Path, resume: bool, metric, 
     """The job ``dm2 refine --nproc 2`` would give its ranks for ``seq``'s config."""
     cfg = config.load(seq / "config.yaml", {"nproc": 2, **(overrides or {})})
     inputs = load_inputs(seq / "velodyne", None, seq / "warm_start.txt", None, read_options())
-    ocfg = OptimConfig.from_dict(cfg["optimiser"])
     sess = parallel.Session(Dist(0, 2), parallel.Mode.SPAWN, cache, scratch)
-    prep, samples = parallel.prepare_once(inputs, cfg, ocfg, sess, progress=False)
+    prep, samples = parallel.prepare_once(inputs, cfg, sess, progress=False)
     assert all(prep.cached.values())
     sampler = map_sampler(inputs)
-    start = choose_start(prep, ocfg, sampler)
+    start = choose_start(prep, cfg.optimiser, sampler)
     watch = parallel.Watch(metric, map_entropy(sampler))
-    return parallel.Job(cache, prep.keys, start, samples, ocfg, cfg, out, resume, False, watch, 2, scratch)
+    return parallel.Job(cache, prep.keys, start, samples, cfg, out, resume, False, watch, 2, scratch)
 
 
 def test_resume_of_a_distributed_run(seq, runs, tmp_path):
@@ -224,7 +223,7 @@ def test_nproc_must_be_positive(tmp_path):
 
     with pytest.raises(InputError, match="nproc"):
         config.load(None, {"nproc": 0})
-    assert config.load(None)["nproc"] == 1
+    assert config.load(None).nproc == 1
 
 
 def stuck_worker(rank: int, job) -> None:

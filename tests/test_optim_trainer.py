@@ -4,6 +4,8 @@ non-finite loss stops the run with the best poses kept."""
 
 from __future__ import annotations
 
+from dataclasses import asdict
+
 import numpy as np
 import pytest
 import torch
@@ -12,9 +14,18 @@ from optim_cases import Case, frames_of, one_thread, planar_case, small_config
 from dm2_backend.geometry import se3, se3_torch
 from dm2_backend.optim import losses
 from dm2_backend.optim.batching import make_groups, random_groups, temporal_groups
-from dm2_backend.optim.config import OptimConfig, derive, loss_regime, pose_regime, sampled_points
+from dm2_backend.optim.checkpoint import CHECKPOINT
+from dm2_backend.optim.config import (
+    LossRegime,
+    OptimConfig,
+    PoseRegime,
+    derive,
+    loss_regime,
+    pose_regime,
+    sampled_points,
+)
 from dm2_backend.optim.regime import disagreement, locally_accurate
-from dm2_backend.optim.trainer import CHECKPOINT, Optimiser, OptimResult
+from dm2_backend.optim.trainer import Optimiser, OptimResult
 from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.plugins.topology_radius import RadiusTopology
 from dm2_backend.simulate.lidar import LidarModel
@@ -78,17 +89,17 @@ def test_refine_lowers_ate_with_icp_pairwise(case, full_run):
     np.testing.assert_array_equal(result.poses, rec.poses[result.best_epoch])
     np.testing.assert_allclose(result.poses[0], case.warm[0], atol=1e-9)  # the gauge: frame 0 stays put
     assert (folder / CHECKPOINT).is_file()
-    assert set(result.derived) == {"unit", "finest_cell", "free_margin", "chamfer_truncate",
+    assert set(asdict(result.derived)) == {"unit", "finest_cell", "free_margin", "chamfer_truncate",
                                    "step_translation", "step_rotation", "epochs", "first_order", "drift", "lr_pose",
                                    "start_disagreement", "locally_accurate_start", "use_bce", "use_consistency",
                                    "chamfer_metric", "pose_warmup", "pose_warmup_steps", "polish",
                                    "points_per_frame", "max_disagreement"}
     assert result.selection == f"lowest epoch loss: epoch {result.best_epoch}"  # no map metric given
-    assert result.derived["epochs"] == EPOCHS
+    assert result.derived.epochs == EPOCHS
     # a drifting warm start (not loop-closed, registrations disagree with it): drift terms, full pose steps
-    assert result.derived["start_disagreement"] > OptimConfig().accurate_below * result.derived["unit"]
-    assert result.derived["locally_accurate_start"] is False
-    assert result.derived["drift"] is True and result.derived["lr_pose"] == 1.0
+    assert result.derived.start_disagreement > OptimConfig().accurate_below * result.derived.unit
+    assert result.derived.locally_accurate_start is False
+    assert result.derived.drift is True and result.derived.lr_pose == 1.0
 
 
 def test_refine_lowers_ate_with_ground_truth_pairwise(case):
@@ -121,10 +132,12 @@ def test_ablation_switches_run(case, switches, absent):
 def test_unknown_choices_are_errors(case):
     with pytest.raises(ValueError, match="batching"):
         optimiser(case, batching="spatial")
-    with pytest.raises(ValueError, match="pose model"):
+    with pytest.raises(ValueError, match="pose_model"):
         optimiser(case, pose_model="mlp")
-    with pytest.raises(ValueError, match="unknown optimiser options: bogus"):
-        OptimConfig.from_dict({"epochs": 2, "bogus": 1})
+    with pytest.raises(ValueError, match="bogus"):
+        OptimConfig.model_validate({"epochs": 2, "bogus": 1})
+    with pytest.raises(ValueError, match="frozen"):  # validated once: never changed afterwards
+        OptimConfig().epochs = 3  # type: ignore[misc]
 
 
 def test_deterministic_under_a_seed(case, full_run):
@@ -208,20 +221,19 @@ def test_batching_groups():
 
 def test_derived_lengths_follow_the_data():
     d = derive(OptimConfig(), {"spacing": 0.2, "voxel": 0.0, "range_median": 10.0})
-    assert d["unit"] == pytest.approx(0.4) and d["finest_cell"] == d["free_margin"] == d["unit"]
-    assert d["chamfer_truncate"] == pytest.approx(4.0) and d["step_translation"] == pytest.approx(0.04)
-    assert d["step_rotation"] == pytest.approx(0.004)
+    assert d.unit == pytest.approx(0.4) and d.finest_cell == d.free_margin == d.unit
+    assert d.chamfer_truncate == pytest.approx(4.0) and d.step_translation == pytest.approx(0.04)
+    assert d.step_rotation == pytest.approx(0.004)
     d = derive(OptimConfig(unit=1.0, step_rotation=0.5), {"spacing": 0.2, "voxel": 0.5})
-    assert d["unit"] == 1.0 and d["step_rotation"] == 0.5 and d["step_translation"] == pytest.approx(0.1)
-    assert derive(OptimConfig(), {"spacing": 0.1, "voxel": 0.3})["unit"] == pytest.approx(0.6)
+    assert d.unit == 1.0 and d.step_rotation == 0.5 and d.step_translation == pytest.approx(0.1)
+    assert derive(OptimConfig(), {"spacing": 0.1, "voxel": 0.3}).unit == pytest.approx(0.6)
 
 
 def test_pose_regime_follows_start_accuracy():
     drifting, closed = pose_regime(OptimConfig(), False), pose_regime(OptimConfig(), True)
-    assert (drifting["drift"], drifting["lr_pose"]) == (True, 1.0)
-    assert (closed["drift"], closed["lr_pose"]) == (False, 0.05)
-    forced = pose_regime(OptimConfig(drift=True, lr_pose=0.3), True)
-    assert (forced["drift"], forced["lr_pose"]) == (True, 0.3)
+    assert drifting == PoseRegime(drift=True, lr_pose=1.0)
+    assert closed == PoseRegime(drift=False, lr_pose=0.05)
+    assert pose_regime(OptimConfig(drift=True, lr_pose=0.3), True) == PoseRegime(drift=True, lr_pose=0.3)
     # the measured disagreement: zero where the registrations equal the poses' relative poses
     poses = se3.from_xy_yaw(np.column_stack([np.arange(4.0), np.zeros(4), 0.1 * np.arange(4)]))
     groups = np.array([[1], [2], [3], [-1]])
@@ -301,20 +313,20 @@ def test_select_by_map_never_returns_a_blurrier_map_than_the_start(case):
 def test_loss_regime_from_the_pose_graph_start():
     cfg = OptimConfig()
     graph3d = loss_regime(cfg, planar=False, polish=True)
-    assert graph3d == {"use_bce": False, "use_consistency": False, "chamfer_metric": "plane", "pose_warmup": 1.0}
-    assert loss_regime(cfg, planar=True, polish=False) == {
-        "use_bce": True, "use_consistency": True, "chamfer_metric": "point", "pose_warmup": 0.0}
+    assert graph3d == LossRegime(use_bce=False, use_consistency=False, chamfer_metric="plane", pose_warmup=1.0)
+    assert loss_regime(cfg, planar=True, polish=False) == LossRegime(
+        use_bce=True, use_consistency=True, chamfer_metric="point", pose_warmup=0.0)
     explicit = OptimConfig(use_bce=True, use_consistency=True, chamfer_metric="point", pose_warmup=0.5)
-    assert loss_regime(explicit, planar=False, polish=True) == {
-        "use_bce": True, "use_consistency": True, "chamfer_metric": "point", "pose_warmup": 0.5}
+    assert loss_regime(explicit, planar=False, polish=True) == LossRegime(
+        use_bce=True, use_consistency=True, chamfer_metric="point", pose_warmup=0.5)
     assert sampled_points(cfg, 1024, planar=False) == 512 and sampled_points(cfg, 1024, planar=True) == 256
     assert sampled_points(cfg, 300, planar=False) == 300
     assert sampled_points(OptimConfig(start="prepared"), 1024, planar=False) == 256
     # 3D: the unit follows the raw scans' spacing (the frames are a subsample), planar data the frames'
     scale = {"spacing": 0.4, "spacing_raw": 0.15, "voxel": 0.1, "range_median": 8.0}
-    assert derive(cfg, scale, planar=False)["unit"] == pytest.approx(0.3)
-    assert derive(cfg, scale, planar=True)["unit"] == pytest.approx(0.8)
-    assert derive(cfg, scale, planar=False)["chamfer_truncate"] == pytest.approx(3.0)
+    assert derive(cfg, scale, planar=False).unit == pytest.approx(0.3)
+    assert derive(cfg, scale, planar=True).unit == pytest.approx(0.8)
+    assert derive(cfg, scale, planar=False).chamfer_truncate == pytest.approx(3.0)
 
 
 def test_plane_chamfer_is_lowest_at_ground_truth():
@@ -325,8 +337,8 @@ def test_plane_chamfer_is_lowest_at_ground_truth():
     assert opt.normals is not None
     # a locally accurate 3D start is polished: Chamfer along the normals only, truncated at one unit
     d = opt.derived
-    assert d["polish"] and not d["use_bce"] and not d["use_consistency"] and d["pose_warmup"] == 1.0
-    assert d["chamfer_truncate"] == d["unit"]
+    assert d.polish and not d.use_bce and not d.use_consistency and d.pose_warmup == 1.0
+    assert d.chamfer_truncate == d.unit
     np.testing.assert_allclose(np.linalg.norm(opt.normals.numpy(), axis=-1), 1.0, atol=1e-5)
 
     def chamfer(poses):
@@ -358,7 +370,7 @@ def test_a_diverging_run_returns_its_start_not_a_scattered_map(case, select):
                     map_metric=None if sampler is None else sampler.entropy)
     result = opt.run()
     assert all("rejected" in row for row in result.history)
-    assert min(row["disagreement"] for row in result.history) > 10 * opt.derived["start_disagreement"]
+    assert min(row["disagreement"] for row in result.history) > 10 * opt.derived.start_disagreement
     assert result.best_epoch == -1 and "diverged" in result.stopped
     np.testing.assert_allclose(result.poses, case.warm, atol=1e-9)
 
@@ -398,7 +410,7 @@ def test_chamfer_matches_brute_force_nearest_points(case):
     idx = np.arange(opt.n)
     world = se3_torch.transform(T.float(), opt.points)
     got = float(opt._chamfer(idx, opt.groups, idx, T, world, torch.from_numpy(idx)))
-    cut, total = opt.derived["chamfer_truncate"], {0: [], 1: []}
+    cut, total = opt.derived.chamfer_truncate, {0: [], 1: []}
     for a, row in zip(idx, opt.groups, strict=True):
         for j in row:
             if j < 0 or j == a:

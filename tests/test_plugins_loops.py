@@ -94,7 +94,7 @@ def test_loops_closes_a_large_drift_loop(floor):
     topo = load("dm2.place_recognition", "loops")(progress=False).run(frames, drifted)
     assert topo.poses is not None and topo.poses.shape == truth.shape
     summary = topo.log[0]
-    assert summary["closures"] >= 1
+    assert summary["closures"] >= 1 and topo.closures == summary["closures"] and topo.loop_closed
     # every accepted closure is a true revisit: its measured pose agrees with the truth
     accepted = [e for e in topo.log[1:] if e.get("accepted")]
     assert accepted
@@ -123,7 +123,7 @@ def test_loops_on_a_short_sequence_without_revisits(floor):
     few = Frames(frames.points[:5], None, True, frames.scale)
     topo = load("dm2.place_recognition", "loops")(progress=False, k=3).run(few, truth[:5])
     assert topo.poses is None  # nothing was loop-closed: the optimiser judges the warm start itself
-    assert topo.log[0]["closures"] == 0 and (topo.groups >= 0).all()
+    assert topo.closures == topo.log[0]["closures"] == 0 and (topo.groups >= 0).all()
 
 
 def test_correlative_runner_up_sees_a_repeat_inside_the_best_block():

@@ -8,11 +8,14 @@ import pytest
 from plugins_scenes import room_3d
 
 from dm2_backend.algorithms.loop_graph3d import Closure3, FrameGraph
+from dm2_backend.config_schema import PluginSection
 from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
 from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.plugins.registry import load
 from dm2_backend.prepare.steps import resolve_auto
+
+AUTO = PluginSection(name="auto")
 
 
 def drifted(truth: np.ndarray, yaw: float, roll: float, dz: float, scale: float) -> np.ndarray:
@@ -91,7 +94,7 @@ def test_loops3d_without_a_loop_keeps_the_start(two_laps):
     # no earlier keyframe lies far enough back along the path: nothing to close, the start is kept
     topo = load("dm2.place_recognition", "loops3d")(min_path_gap=1e3, progress=False).run(frames, warm)
     assert topo.poses is None and "loop" not in topo.edge_kind
-    assert topo.log[0]["closures"] == 0 and len(topo.log) == 1
+    assert topo.closures == topo.log[0]["closures"] == 0 and len(topo.log) == 1
 
 
 def test_loops3d_rejects_bad_options_and_planar_scans(two_laps):
@@ -105,8 +108,8 @@ def test_loops3d_rejects_bad_options_and_planar_scans(two_laps):
 
 
 def test_auto_picks_loops3d_for_depth_cameras():
-    assert resolve_auto({"name": "auto"}, camera=True)["name"] == "loops3d"
-    assert resolve_auto({"name": "auto"}, camera=False)["name"] == "loops"
+    assert resolve_auto(AUTO, camera=True).name == "loops3d"
+    assert resolve_auto(AUTO, camera=False).name == "loops"
 
 
 def _path(tilt_deg: float, climb: float, n: int = 200) -> np.ndarray:
@@ -118,11 +121,12 @@ def _path(tilt_deg: float, climb: float, n: int = 200) -> np.ndarray:
 
 
 def test_auto_picks_by_the_motion():
-    assert resolve_auto({"name": "auto"}, False, _path(3.0, 0.0))["name"] == "loops"  # a car on a road
-    assert resolve_auto({"name": "auto"}, False, _path(35.0, 0.0))["name"] == "loops3d"  # hand-held
-    assert resolve_auto({"name": "auto"}, False, _path(3.0, 0.3))["name"] == "loops3d"  # a climbing drone
-    assert resolve_auto({"name": "auto"}, False, _path(35.0, 0.0), planar=True)["name"] == "loops"
-    assert resolve_auto({"name": "radius"}, False, _path(35.0, 0.0)) == {"name": "radius"}
+    assert resolve_auto(AUTO, False, _path(3.0, 0.0)).name == "loops"  # a car on a road
+    assert resolve_auto(AUTO, False, _path(35.0, 0.0)).name == "loops3d"  # hand-held
+    assert resolve_auto(AUTO, False, _path(3.0, 0.3)).name == "loops3d"  # a climbing drone
+    assert resolve_auto(AUTO, False, _path(35.0, 0.0), planar=True).name == "loops"
+    radius = PluginSection(name="radius")
+    assert resolve_auto(radius, False, _path(35.0, 0.0)) is radius
 
 
 def test_loops3d_repairs_a_failed_front_end_step(two_laps):
@@ -132,7 +136,7 @@ def test_loops3d_repairs_a_failed_front_end_step(two_laps):
     warm[40:] = truth[39] @ jump @ se3.relative(truth[39], truth[40:])  # the front end failed on frame 40
     topo = load("dm2.place_recognition", "loops3d")(progress=False).run(frames, warm)
     assert topo.log[0]["repaired_steps"] == [39]
-    assert topo.loop_closed == (topo.log[0]["closures"] > 0)
+    assert topo.closures == topo.log[0]["closures"] and topo.loop_closed == (topo.closures > 0)
     assert np.allclose(topo.poses[:40], warm[:40], atol=0.02)  # before the failed step: as it was
     step = se3.relative(topo.poses[39], topo.poses[40])
     assert np.linalg.norm(step[:3, 3] - se3.relative(truth[39], truth[40])[:3, 3]) < 0.05

@@ -89,7 +89,7 @@ def test_config_yaml_is_the_effective_config(seq, run):
     out = run[0]
     written = yaml.safe_load((out / "config.yaml").read_text())
     expected = config.load(seq / "config.yaml", {"optimiser": {"epochs": 2, "max_steps": 0}})
-    assert written == expected and written["place_recognition"]["name"] == "auto"  # as given, not mutated
+    assert written == expected.model_dump() and written["place_recognition"]["name"] == "auto"  # as given, not mutated
     resolved = yaml.safe_load((out / "resolved.yaml").read_text())
     assert resolved["place_recognition"]["name"] == "loops"  # auto, resolved for planar scans
     assert resolved["registration"] == written["registration"]
@@ -250,15 +250,19 @@ def test_unknown_plugin(seq, tmp_path, option, group):
 
 
 @pytest.mark.parametrize("text,message", [
-    ("optimiser:\n  epochs: 2\n  bogus: 1\n", "unknown optimiser options: bogus"),
+    ("optimiser:\n  epochs: 2\n  bogus: 1\n", "optimiser.bogus: Extra inputs are not permitted"),
     ("optimizer:\n  epochs: 2\n", "unknown config sections: optimizer"),
     ("optimiser: {epochs: 2\n", "invalid YAML"),
     ("- 1\n- 2\n", "must be a mapping"),
-    ("optimiser: {select: best}\n", "optimiser.select must be one of map, loss"),
-    ("optimiser: {start: gtsam}\n", "optimiser.start must be one of auto, graph, prepared"),
-    ("optimiser: {epochs: three}\n", "optimiser.epochs must be int, got 'three'"),
-    ("optimiser: {epochs: 0}\n", "optimiser.epochs must be at least 1"),
-    ("optimiser: {lr_pose: fast}\n", "optimiser.lr_pose must be None or float"),
+    ("optimiser: {select: best}\n", "optimiser.select: Input should be 'map' or 'loss' (got 'best')"),
+    ("optimiser: {start: gtsam}\n", "optimiser.start: Input should be 'auto', 'graph' or 'prepared' (got 'gtsam')"),
+    ("optimiser: {chamfer_metric: l1}\n", "optimiser.chamfer_metric: Input should be 'point' or 'plane'"),
+    ("optimiser: {consistency_kernel: huber}\n", "optimiser.consistency_kernel: Input should be 'cauchy' or"),
+    ("optimiser: {epochs: three}\n", "optimiser.epochs: Input should be a valid integer (got 'three')"),
+    ("optimiser: {epochs: 2.5}\n", "optimiser.epochs: Input should be a valid integer"),
+    ("optimiser: {use_bce: 1}\n", "optimiser.use_bce: Input should be a valid boolean"),
+    ("optimiser: {epochs: 0}\n", "optimiser.epochs: Input should be greater than or equal to 1"),
+    ("optimiser: {lr_pose: fast}\n", "optimiser.lr_pose: Input should be a valid number"),
     ("seed: abc\n", "seed: Input should be a valid integer"),
     ("device: gpu\n", "device: auto, cpu, cuda or cuda:N"),
     ("nproc: 0\n", "nproc: Input should be greater than 0"),
@@ -300,7 +304,7 @@ def test_default_warm_start_fuses_a_logs_odometry(tmp_path):
     a trajectory given with --poses, or 3D scans with carried odometry: poses."""
     from types import SimpleNamespace
 
-    from dm2_backend.cli.refine import default_to_icp
+    from dm2_backend.cli.run_setup import default_to_icp
 
     cfg = config.load(None, {})
     planar, lidar = SimpleNamespace(planar=True), SimpleNamespace(planar=False)

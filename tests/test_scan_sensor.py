@@ -7,10 +7,11 @@ import numpy as np
 from optim_cases import planar_case
 from shared_helpers import DATA, need
 
+from dm2_backend.config_schema import PluginSection
 from dm2_backend.formats import ReadOptions, open_scans
 from dm2_backend.pipeline.inputs import load_inputs
 from dm2_backend.prepare.steps import resolve_auto
-from dm2_backend.scans import DEPTH_CAMERA, LASER_2D, LIDAR
+from dm2_backend.scans import DEPTH_CAMERA, LASER_2D, LIDAR, SensorKind
 from dm2_backend.simulate.sequence import write_sequence
 
 
@@ -22,10 +23,21 @@ def test_a_lidar_folder_and_a_planar_one(tmp_path):
     for i, scan in enumerate(case.scans):  # the same scans with height: a 3D scanner
         pts = np.c_[scan[:, :2], np.linspace(-1, 1, len(scan))].astype(np.float32)
         np.c_[pts, np.zeros(len(pts), np.float32)].tofile(lifted / f"{i:06d}.bin")
-    assert open_scans(lifted).sensor == LIDAR
-    assert open_scans(tmp_path / "velodyne").sensor == LIDAR  # the reader cannot tell ...
+    assert open_scans(lifted).sensor is None and open_scans(tmp_path / "velodyne").sensor is None  # a folder
+    # cannot tell; the scans' geometry decides, once: in z = 0 a 2D laser, with height a LiDAR
     inputs = load_inputs(tmp_path / "velodyne", None, tmp_path / "warm_start.txt", "kitti", ReadOptions())
-    assert inputs.scans.planar and inputs.scans.sensor == LASER_2D  # ... the scans in z = 0 do
+    assert inputs.scans.planar and inputs.scans.sensor is SensorKind.LASER_2D
+    inputs = load_inputs(lifted, None, tmp_path / "warm_start.txt", "kitti", ReadOptions())
+    assert not inputs.scans.planar and inputs.scans.sensor is SensorKind.LIDAR
+
+
+def test_every_source_that_knows_its_sensor_declares_it():
+    from dm2_backend.formats.registry import SCAN_SOURCES
+
+    declared = {name: src.sensor for name, src in SCAN_SOURCES.items()}
+    assert declared["carmen"] is LASER_2D and declared["depth"] is DEPTH_CAMERA
+    assert declared["kitti-raw"] is declared["nclt"] is LIDAR
+    assert declared["folder"] is declared["bag"] is None  # either kind: decided from the scans
 
 
 def test_carmen_is_a_2d_laser():
@@ -36,4 +48,4 @@ def test_a_depth_sequence_is_a_depth_camera_and_auto_picks_loops3d():
     folder = need(DATA / "depth3d" / "redkitchen_000-499")
     scans = open_scans(folder)
     assert scans.sensor == DEPTH_CAMERA and scans.subset(np.arange(3)).sensor == DEPTH_CAMERA
-    assert resolve_auto({"name": "auto", "options": {}}, scans.sensor == DEPTH_CAMERA)["name"] == "loops3d"
+    assert resolve_auto(PluginSection(name="auto"), scans.sensor == DEPTH_CAMERA).name == "loops3d"

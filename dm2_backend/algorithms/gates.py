@@ -3,6 +3,7 @@ puts walls where the other scan saw through) and how well the matched surfaces p
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass
 
 import numpy as np
@@ -10,6 +11,29 @@ from scipy.ndimage import minimum_filter
 
 from dm2_backend.algorithms.common import Cloud, Match
 from dm2_backend.geometry import se3
+
+
+class Gate(enum.Enum):
+    """A gate a pairwise registration must pass; its value formats the measured value and the limit it failed."""
+
+    FITNESS = "fitness {value:.2f} < {limit:.2f}"
+    RMSE = "rmse {value:.3f} > {limit:.3f}"
+    FREE_SPACE = "free space {value:.2f} > {limit:.2f}"
+
+    def message(self, value: float, limit: float) -> str:
+        return self.value.format(value=value, limit=limit)
+
+
+@dataclass(frozen=True)
+class GateFailure:
+    """One failed gate: what it measured and the limit."""
+
+    gate: Gate
+    value: float
+    limit: float
+
+    def __str__(self) -> str:
+        return self.gate.message(self.value, self.limit)
 
 
 def coverage(moving: Cloud, fixed: Cloud, T: np.ndarray, distance: float) -> tuple[float, float]:

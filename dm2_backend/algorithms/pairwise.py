@@ -30,7 +30,7 @@ from dm2_backend.algorithms.common import (
     project_planar,
     resolve_method,
 )
-from dm2_backend.algorithms.gates import check_alignment
+from dm2_backend.algorithms.gates import Gate, GateFailure, check_alignment
 from dm2_backend.algorithms.icp import register
 from dm2_backend.geometry import se3
 from dm2_backend.progress import progress
@@ -121,30 +121,30 @@ class PairwiseRegistration:
         )
         if not frames.planar and self.information == "hessian":
             out.hessian, out.plane_rmse = np.zeros((n, k, 6, 6), np.float32), np.full((n, k), np.inf)
-        by_pair: dict[tuple[int, int], tuple[np.ndarray, str, Match]] = {}
+        by_pair: dict[tuple[int, int], tuple[np.ndarray, list[GateFailure], Match]] = {}
         for pair, (m, free) in zip(pairs, results, strict=True):
-            reasons = []
+            failed = []
             if m.fitness < self.min_fitness:
-                reasons.append(f"fitness {m.fitness:.2f} < {self.min_fitness:.2f}")
+                failed.append(GateFailure(Gate.FITNESS, m.fitness, self.min_fitness))
             if m.rmse > max_rmse:
-                reasons.append(f"rmse {m.rmse:.3f} > {max_rmse:.3f}")
+                failed.append(GateFailure(Gate.RMSE, m.rmse, max_rmse))
             if free > max_free:
-                reasons.append(f"free space {free:.2f} > {max_free:.2f}")
-            T = m.T if not reasons else inits[pair]
-            by_pair[pair] = (project_planar(T) if frames.planar else orthonormal(T), "; ".join(reasons), m)
+                failed.append(GateFailure(Gate.FREE_SPACE, free, max_free))
+            T = m.T if not failed else inits[pair]
+            by_pair[pair] = (project_planar(T) if frames.planar else orthonormal(T), failed, m)
         for i in range(n):
             for col in range(k):
                 j = int(groups[i, col])
                 if j < 0:
                     continue
                 pair = (min(i, j), max(i, j))
-                T, reason, m = by_pair[pair]
+                T, failed, m = by_pair[pair]
                 out.relative[i, col] = T if i < j else se3.inverse(T)
-                out.valid[i, col], out.fitness[i, col], out.rmse[i, col] = not reason, m.fitness, m.rmse
+                out.valid[i, col], out.fitness[i, col], out.rmse[i, col] = not failed, m.fitness, m.rmse
                 if out.hessian is not None and m.hessian is not None:
                     out.hessian[i, col], out.plane_rmse[i, col] = m.hessian, m.plane_rmse
-                if reason:
-                    out.reason[(i, j)] = reason
+                if failed:
+                    out.reason[(i, j)] = "; ".join(map(str, failed))
         return out
 
     def _check(self, frames: Frames) -> None:

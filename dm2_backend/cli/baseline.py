@@ -7,7 +7,8 @@ from pathlib import Path
 import click
 
 from dm2_backend.baselines.options import GRAPH_METHODS, KERNELS, METHODS, SolverOptions
-from dm2_backend.cli.refine import command_started, output_folder, prepare_run, print_summary, run_options
+from dm2_backend.cli.run_setup import command_started, output_folder, prepare_run, run_options
+from dm2_backend.cli.summary import print_summary
 from dm2_backend.formats.g2o import INFORMATION_MODES
 from dm2_backend.pipeline.run_folder import run_folder
 

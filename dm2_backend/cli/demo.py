@@ -30,7 +30,7 @@ def default_folder() -> Path:
 def command(out: Path | None, frames: int, epochs: int | None, seed: int, force: bool, quiet: bool) -> None:
     """Simulate a drifting 2D laser sequence with two loops, refine it, and report ATE."""
     from dm2_backend import config
-    from dm2_backend.cli.refine import print_summary
+    from dm2_backend.cli.summary import print_summary
     from dm2_backend.formats import ReadOptions
     from dm2_backend.pipeline.inputs import load_inputs
     from dm2_backend.pipeline.refine import refine

@@ -1,174 +1,74 @@
-"""Optimiser settings (the ``optimiser:`` section of the YAML config) and the values derived from the data."""
+"""What the optimiser derives from the data, the start and its settings (the frozen :class:`OptimConfig`, the
+``optimiser:`` section of the run configuration, defined in :mod:`dm2_backend.config_optimiser`)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
-from dm2_backend.errors import did_you_mean
+from dm2_backend.config_optimiser import OptimConfig
 
-#: options that take one of a few names (checked when the config is read, before any work)
-CHOICES = {"start": ("auto", "graph", "prepared"), "select": ("map", "loss"), "chamfer_metric": ("point", "plane"),
-           "batching": ("topology", "temporal", "random"), "pose_model": ("direct", "lnet"),
-           "consistency_kernel": ("cauchy", "none")}
+__all__ = ["Derived", "Lengths", "LossRegime", "OptimConfig", "PoseRegime", "dense_voxel", "derive", "loss_regime",
+           "pose_regime", "sampled_points"]
 
 
-@dataclass
-class OptimConfig:
-    """Defaults work without tuning: every length left as None is derived from the data (see :func:`derive`)."""
+@dataclass(frozen=True)
+class Lengths:
+    """The optimiser's lengths (m; rad for ``step_rotation``): the config's, or derived from the data."""
 
-    epochs: int = 12
-    #: cap on optimisation steps: long sequences run fewer epochs (floor(max_steps / steps per epoch), at least
-    #: one). More passes of noisy steps made ACES worse (icp warm start 0.716 m: 2 epochs 0.300, 12 epochs 0.75)
-    #: while a 300-frame sequence keeps all 12 (228 steps). 0 = no cap
-    max_steps: int = 1000
-    #: ... but never fewer epochs than this (at most ``epochs``): at 10,000 frames the 1,000-step cap alone gave
-    #: each frame a single visit, spent entirely in the pose warm-up when polishing a 3D start
-    min_epochs: int = 2
-    #: stop early once the optimisation has converged: after an epoch whose mean loss fell by less than this
-    #: fraction of the previous epoch's and whose poses made no better map than the best so far (the start
-    #: counts), two such epochs in a row (pose warm-up epochs do not count). 0 = run every epoch (the default: a
-    #: 3D polish changes the loss by under 0.1 % an epoch while the map still sharpens; with 1e-3, sim-3d-500
-    #: stopped after 4 of 12 epochs, its ATE still falling (0.0366 -> 0.0361 m), and returned its start)
-    converge_tol: float = 0.0
-    #: torch CPU threads; the steps are many small ops, where one thread beats two (0.15 s vs 1.0 s a step on
-    #: 7k ACES frames while the other core is busy), 0 keeps torch's default
-    threads: int = 1
-    #: anchors (groups) per optimisation step
-    batch_groups: int = 16
-    #: "topology" (the paper), "temporal" (DeepMapping) or "random": which frames share a group
-    batching: str = "topology"
-    #: "direct" per-frame corrections or "lnet" (PointNet, the paper's L-Net)
-    pose_model: str = "direct"
-    #: drift parameters: corrections that carry over to all later frames (see pose_model.py); None: on for a
-    #: drifting start, off for a locally accurate one (see :func:`derive`): there noisy drift steps bend a
-    #: good trajectory (ACES from 0.0365 m: 0.215 with, 0.0705 without)
-    drift: bool | None = None
-    #: step of each drift parameter relative to the direct ones (None: 1/sqrt(frames))
-    drift_factor: float | None = None
-    #: points per frame the losses see (None: 256 on planar data and from the prepared start; 512 of the
-    #: down-sampled frame's points for 3D data, whose polished starts have errors below the spacing of a
-    #: 256-point sample: simulated 3D LiDAR 500 frames from gtsam's 0.0378 m, 256 points 0.0368 and a map never
-    #: sharper than the start, 512 points 0.0368, 1,024 points 0.0365 in twice the time)
-    points_per_frame: int | None = None
-    #: points per frame (a subset of the above) and free-space samples per ray for the occupancy BCE
-    bce_points_per_frame: int = 64
-    samples_per_ray: int = 2
-    #: drop free-space samples within ``free_margin`` of any observed point of the step (rays grazing the
-    #: ground or a wall). Off by default, as the paper samples along the rays only: measured mixed (simulated
-    #: 3D LiDAR 500 frames 0.0567 -> 0.0492 m, 2,000 frames 0.305 -> 0.325, ACES 0.0358 -> 0.0360)
-    free_clear: bool = False
-    #: Chamfer distance between nearest points: "point" (the paper: Euclidean) or "plane" (along the
-    #: neighbour's surface normal, estimated from its frame's points); None: plane for 3D data, point for
-    #: planar (a 2D scan's neighbours lie on a line)
-    chamfer_metric: str | None = None
-    #: loss weights: total = bce + alpha * chamfer + beta * consistency (lengths in units of ``unit``)
-    alpha: float = 1.0
-    beta: float = 1.0
-    #: None: on, except when polishing a locally accurate 3D start (see :func:`loss_regime`)
-    use_bce: bool | None = None
-    use_chamfer: bool = True
-    use_consistency: bool | None = None
-    #: robust kernel on each (anchor, neighbour) consistency distance d: "cauchy" uses c*log(1 + d/c) with c = unit,
-    #: so a wrong pairwise registration pulls with a bounded force; "none" is the paper's plain mean
-    consistency_kernel: str = "cauchy"
-    #: Adam learning rate of the pose parameters (scales ``step_translation``/``step_rotation``); None: 1.0 from a
-    #: drifting start, 0.05 from a locally accurate one, whose remaining errors are a few cells (ACES
-    #: from 0.0365 m after 2 epochs: lr 1.0 0.0705 (1 epoch), 0.2 0.0376, 0.05 0.0359), 0.02 when polishing a
-    #: locally accurate 3D start (see :func:`pose_regime`)
-    lr_pose: float | None = None
-    #: the start counts as locally accurate when it is loop-closed (``Topology.poses``) or when the median
-    #: disagreement between its relative poses and the pairwise registrations is below this many units, i.e.
-    #: half a point spacing (measured: RedKitchen icp warm start 0.13, simulated 3D LiDAR after loop closure
-    #: 0.09 to 0.26; simulated random-walk odometry 0.34 to 2.75)
-    accurate_below: float = 0.25
-    #: which poses refine returns: "map" the sharpest map (lowest mean map entropy of the scans, no ground
-    #: truth needed) among the start and every epoch, so refine never ends blurrier than its start; "loss"
-    #: the epoch of lowest mean loss (the start is then never returned)
-    select: str = "map"
-    #: where the optimiser starts: "graph" the pose-graph solution over the prepared edges (what ``dm2
-    #: baseline gtsam`` returns) when its map is sharper than the prepared poses', "prepared" the prepared
-    #: poses (loop-closed, else the warm start), "auto" graph for 3D data, prepared for planar data. Measured:
-    #: simulated 3D LiDAR 500 frames refine 0.055 m from prepared, 0.038 from graph (``loops`` corrects
-    #: x, y, yaw only; the graph all six); ACES 0.0363 from prepared, 0.0421 from graph
-    start: str = "auto"
-    #: the dense multi-frame plane term, minimised by second-order steps over all poses jointly with the pose
-    #: graph's factors before the first-order epochs (``dm2_backend.optim.dense``); None: on for 3D data, off for
-    #: planar data (a 2D scan has lines, not planes)
-    dense: bool | None = None
-    #: largest voxel of the plane term (m; non-flat voxels are split down to a quarter); None:
-    #: max(median range / 8, 4 x the raw scans' point spacing)
-    dense_voxel: float | None = None
-    #: at most this many rounds (one Gauss-Newton step each, planes fitted again)
-    dense_rounds: int = 30
-    #: cells (each frame's points summed in cells of a quarter voxel) kept per frame and in all (time and memory
-    #: grow with them: about 200 MiB and 20 s a round a million); a frame with more is summed into cells twice
-    #: as large, then keeps a random subset. Simulated 32-beam LiDAR, 500 frames from gtsam's 0.0275 m: 2,048
-    #: cells a frame 0.0010 m, 200 cells a frame (as at 7,500 frames) 0.0027 m
-    dense_cells_per_frame: int = 2048
-    dense_max_cells: int = 1_500_000
-    #: the first-order DeepMapping2 epochs (Adam on the M-Net BCE, Chamfer and consistency losses over anchor
-    #: groups); None: on, except after the dense stage, from whose result they only make the map blurrier
-    #: (simulated 3D LiDAR 200 frames: dense 0.0006 m, the epochs after it 0.0032, the sharpest map the dense one)
-    first_order: bool | None = None
-    #: epochs at the start in which the poses hold still while the occupancy field learns the map (an
-    #: untrained field pulls them anywhere); None: 1 when polishing a locally accurate 3D start, else 0
-    pose_warmup: float | None = None
-    lr_field: float = 1e-2
-    lr_network: float = 1e-3
-    #: final learning rate as a fraction of the initial one (cosine schedule)
-    lr_final: float = 0.05
-    grid_levels: int = 8
-    grid_features: int = 2
-    #: cells of the finest occupancy grid level (memory bound): about 1024^2 in 2D, 128^3 in 3D
-    grid_max_cells: int = 2**21
-    # derived from the data when None:
-    unit: float | None = None  # length unit of losses (m): 2 x point spacing
-    finest_cell: float | None = None  # finest occupancy grid cell (m): = unit
-    free_margin: float | None = None  # free-space samples stop this short of the hit (m): = unit
-    chamfer_truncate: float | None = None  # m: 10 x unit
-    step_translation: float | None = None  # Adam step on translation (m): unit / 10
-    step_rotation: float | None = None  # Adam step on rotation (rad): step_translation / range_median
-
-    @classmethod
-    def from_dict(cls, values: dict | None) -> OptimConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = set(values or {}) - known
-        if unknown:
-            raise ValueError(f"unknown optimiser options: {', '.join(sorted(unknown))}"
-                             f"{did_you_mean(sorted(unknown)[0], known)}")
-        cfg = cls(**(values or {}))
-        for f in fields(cls):
-            _check_type(f.name, f.type, getattr(cfg, f.name))
-        if cfg.epochs < 1:
-            raise ValueError(f"optimiser.epochs must be at least 1, got {cfg.epochs}")
-        if min(cfg.dense_rounds, cfg.dense_cells_per_frame, cfg.dense_max_cells) < 1 or (
-                cfg.dense_voxel is not None and cfg.dense_voxel <= 0):
-            raise ValueError("optimiser.dense_rounds, dense_cells_per_frame and dense_max_cells must be at least 1 "
-                             f"and dense_voxel positive, got {cfg.dense_rounds}, {cfg.dense_cells_per_frame}, "
-                             f"{cfg.dense_max_cells} and {cfg.dense_voxel}")
-        if cfg.min_epochs < 1 or cfg.converge_tol < 0:
-            raise ValueError("optimiser.min_epochs must be at least 1 and converge_tol at least 0, "
-                             f"got {cfg.min_epochs} and {cfg.converge_tol}")
-        for name, allowed in CHOICES.items():
-            value = getattr(cfg, name)
-            if value is not None and value not in allowed:
-                raise ValueError(f"optimiser.{name} must be one of {', '.join(allowed)}, got {value!r}")
-        return cfg
+    unit: float  # length unit of losses: 2 x point spacing
+    finest_cell: float  # finest occupancy grid cell: = unit
+    free_margin: float  # free-space samples stop this short of the hit: = unit
+    chamfer_truncate: float  # 10 x unit
+    step_translation: float  # Adam step on translation: unit / 10
+    step_rotation: float  # Adam step on rotation: step_translation / range_median
 
 
-def _check_type(name: str, annotation: str, value) -> None:
-    """``value`` fits the field's annotation (``int``, ``float | None``, ...; an int passes for a float)."""
-    allowed = {t.strip() for t in str(annotation).split("|")}
-    if value is None:
-        ok = "None" in allowed
-    elif isinstance(value, bool):
-        ok = "bool" in allowed
-    elif isinstance(value, int):
-        ok = bool(allowed & {"int", "float"})
-    else:
-        ok = type(value).__name__ in allowed
-    if not ok:
-        raise ValueError(f"optimiser.{name} must be {' or '.join(sorted(allowed))}, got {value!r}")
+@dataclass(frozen=True)
+class PoseRegime:
+    """Drift terms and the poses' learning rate (see :func:`pose_regime`)."""
+
+    drift: bool
+    lr_pose: float
+
+
+@dataclass(frozen=True)
+class LossRegime:
+    """The losses and the pose warm-up (see :func:`loss_regime`)."""
+
+    use_bce: bool
+    use_consistency: bool
+    chamfer_metric: str
+    pose_warmup: float
+
+
+@dataclass(frozen=True)
+class Derived:
+    """Everything the optimiser derived from the data, the start and the config's None values (the run report's
+    ``derived``, in this order)."""
+
+    unit: float
+    finest_cell: float
+    free_margin: float
+    chamfer_truncate: float
+    step_translation: float
+    step_rotation: float
+    drift: bool
+    lr_pose: float
+    #: median disagreement between the start's relative poses and the registrations (m; None: no valid pair)
+    start_disagreement: float | None
+    locally_accurate_start: bool
+    use_bce: bool
+    use_consistency: bool
+    chamfer_metric: str
+    pose_warmup: float
+    #: a locally accurate 3D start, polished (see :func:`loss_regime`)
+    polish: bool
+    points_per_frame: int
+    #: an epoch disagreeing more than this with the registrations has diverged and is never selected (m)
+    max_disagreement: float | None
+    epochs: int
+    first_order: bool
+    pose_warmup_steps: int
 
 
 def sampled_points(cfg: OptimConfig, frames_max_points: int, planar: bool) -> int:
@@ -178,7 +78,7 @@ def sampled_points(cfg: OptimConfig, frames_max_points: int, planar: bool) -> in
     return min(frames_max_points, 512) if not planar and cfg.start in ("auto", "graph") else 256
 
 
-def loss_regime(cfg: OptimConfig, planar: bool, polish: bool) -> dict:
+def loss_regime(cfg: OptimConfig, planar: bool, polish: bool) -> LossRegime:
     """The losses where the config leaves them None. From a locally accurate 3D start (the pose-graph solution,
     or poses that ``loops3d`` closed) the optimiser polishes: the start already satisfies the pairwise
     registrations, so the consistency loss only holds the poses there, and the occupancy field's finest cell
@@ -188,15 +88,15 @@ def loss_regime(cfg: OptimConfig, planar: bool, polish: bool) -> dict:
     LiDAR keyframes (map entropy -4.2436): Chamfer only -4.2606, + consistency -4.238 (never below the start),
     + BCE -4.2598; from their ``loops3d`` poses (-4.2653): all three losses never below the start, Chamfer
     only -4.2750."""
-    return {
-        "use_bce": cfg.use_bce if cfg.use_bce is not None else not polish,
-        "use_consistency": cfg.use_consistency if cfg.use_consistency is not None else not polish,
-        "chamfer_metric": cfg.chamfer_metric or ("point" if planar else "plane"),
-        "pose_warmup": cfg.pose_warmup if cfg.pose_warmup is not None else (1.0 if polish else 0.0),
-    }
+    return LossRegime(
+        use_bce=cfg.use_bce if cfg.use_bce is not None else not polish,
+        use_consistency=cfg.use_consistency if cfg.use_consistency is not None else not polish,
+        chamfer_metric=cfg.chamfer_metric or ("point" if planar else "plane"),
+        pose_warmup=cfg.pose_warmup if cfg.pose_warmup is not None else (1.0 if polish else 0.0),
+    )
 
 
-def derive(cfg: OptimConfig, scale: dict[str, float], planar: bool = True) -> dict:
+def derive(cfg: OptimConfig, scale: dict[str, float], planar: bool = True) -> Lengths:
     """Fill the None lengths from the data's scale (Frames.scale). The unit is twice the point spacing: of the
     down-sampled frames in 2D; of the raw scans (at least the voxel) in 3D, where the frames are a subsample
     (real LiDAR keyframes: 0.42 m between the 1,024 points of a frame, 0.17 m in the scans). The Chamfer
@@ -206,14 +106,14 @@ def derive(cfg: OptimConfig, scale: dict[str, float], planar: bool = True) -> di
         spacing = max(scale["spacing_raw"], scale.get("voxel", 0.0), 1e-3)
     unit = cfg.unit or 2.0 * spacing
     step_t = cfg.step_translation or unit / 10.0
-    return {
-        "unit": unit,
-        "finest_cell": cfg.finest_cell or unit,
-        "free_margin": cfg.free_margin or unit,
-        "chamfer_truncate": cfg.chamfer_truncate or 10.0 * unit,
-        "step_translation": step_t,
-        "step_rotation": cfg.step_rotation or step_t / max(scale.get("range_median", 1.0), 1e-3),
-    }
+    return Lengths(
+        unit=unit,
+        finest_cell=cfg.finest_cell or unit,
+        free_margin=cfg.free_margin or unit,
+        chamfer_truncate=cfg.chamfer_truncate or 10.0 * unit,
+        step_translation=step_t,
+        step_rotation=cfg.step_rotation or step_t / max(scale.get("range_median", 1.0), 1e-3),
+    )
 
 
 def dense_voxel(cfg: OptimConfig, scale: dict[str, float]) -> float:
@@ -227,14 +127,14 @@ def dense_voxel(cfg: OptimConfig, scale: dict[str, float]) -> float:
     return max(scale.get("range_median", 1.0) / 8.0, 4.0 * spacing, 1e-3)
 
 
-def pose_regime(cfg: OptimConfig, accurate: bool, polish: bool = False) -> dict:
+def pose_regime(cfg: OptimConfig, accurate: bool, polish: bool = False) -> PoseRegime:
     """``drift`` and ``lr_pose`` where the config leaves them None: small steps without drift terms from a
     locally accurate start, smaller ones when polishing it in 3D (simulated 3D LiDAR 500 frames from gtsam's
     0.0378 m: lr 0.05 dips the map in the first epochs and ends at map entropy -4.999, 0.02 ends at -5.0065; at
     2,000 frames, 8 epochs, 0.05 never recovered from its first pose epoch), full steps with drift terms from a
     drifting start."""
     lr = 1.0 if not accurate else (0.02 if polish else 0.05)
-    return {
-        "drift": cfg.drift if cfg.drift is not None else not accurate,
-        "lr_pose": cfg.lr_pose if cfg.lr_pose is not None else lr,
-    }
+    return PoseRegime(
+        drift=cfg.drift if cfg.drift is not None else not accurate,
+        lr_pose=cfg.lr_pose if cfg.lr_pose is not None else lr,
+    )

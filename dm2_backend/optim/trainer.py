@@ -1,67 +1,33 @@
-"""Training as optimisation: the DeepMapping2 loop over anchor groups, with checkpoints and resume."""
+"""Training as optimisation: the DeepMapping2 loop over anchor groups, with checkpoints and resume (the
+checkpoint file in :mod:`~dm2_backend.optim.checkpoint`, the choice of the returned poses in
+:mod:`~dm2_backend.optim.selection`)."""
 
 from __future__ import annotations
 
-import io
 import math
-import pickle
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError, one_line
 from dm2_backend.geometry import se3_torch
 from dm2_backend.optim import distributed, losses
 from dm2_backend.optim.batching import make_groups
-from dm2_backend.optim.config import OptimConfig, derive, loss_regime, pose_regime, sampled_points
+from dm2_backend.optim.checkpoint import CHECKPOINT, load_checkpoint, plain_state, save_checkpoint
+from dm2_backend.optim.config import Derived, OptimConfig, derive, loss_regime, pose_regime, sampled_points
 from dm2_backend.optim.mnet_file import MNET, save_mnet
 from dm2_backend.optim.occupancy import GridOccupancy
 from dm2_backend.optim.pose_model import PoseModel
 from dm2_backend.optim.regime import disagreement, locally_accurate
+from dm2_backend.optim.selection import selection
 from dm2_backend.progress import progress
 from dm2_backend.stages import Frames, Pairwise, Topology
 from dm2_backend.threads import ordered_map
-
-CHECKPOINT = "checkpoint.pt"
-
-
-def plain_state(value):
-    """``value`` with numpy arrays as CPU tensors and numpy scalars / tuples as plain Python values: what
-    ``torch.load(weights_only=True)`` accepts."""
-    if isinstance(value, dict):
-        return {k: plain_state(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [plain_state(v) for v in value]
-    if isinstance(value, tuple):
-        return tuple(plain_state(v) for v in value)
-    if isinstance(value, np.ndarray):
-        return torch.from_numpy(np.ascontiguousarray(value))
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    return value
-
-
-def load_checkpoint(path: Path, device) -> dict:
-    """A checkpoint written by :meth:`Optimiser._save`, loaded with ``weights_only=True`` (a file handed to
-    ``--resume`` cannot run code); ``best["poses"]`` back as a numpy array. An unreadable or foreign file is an
-    :class:`InputError` naming it."""
-    try:
-        state = torch.load(path, map_location=device, weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError, AttributeError) as exc:
-        raise InputError(path, f"not a dm2 checkpoint, or a damaged one ({one_line(str(exc))[:200]})") from None
-    if not isinstance(state, dict) or not isinstance(state.get("best"), dict) or "poses" not in state["best"]:
-        raise InputError(path, "not a dm2 checkpoint (no best poses)")
-    poses = state["best"]["poses"]
-    state["best"]["poses"] = poses.cpu().numpy() if isinstance(poses, torch.Tensor) else np.asarray(poses)
-    return state
 
 
 @dataclass
@@ -69,7 +35,7 @@ class OptimResult:
     poses: np.ndarray
     best_epoch: int
     history: list[dict] = field(default_factory=list)
-    derived: dict = field(default_factory=dict)
+    derived: Derived | None = None
     stopped: str | None = None
     #: which poses were returned and why (``best_epoch`` -1: the start itself)
     selection: str = ""
@@ -147,75 +113,72 @@ class Optimiser:
         self.metric = metric
         self.map_metric = map_metric
         self.trace_metric = trace_metric
-        if cfg.select not in ("map", "loss"):
-            raise ValueError(f"unknown select {cfg.select!r} (map or loss)")
         self.progress = progress
         self.device = resolve_device(device)
         if cfg.threads > 0 and self.device.type == "cpu":
             torch.set_num_threads(cfg.threads)
-        self.derived = derive(cfg, frames.scale, frames.planar)
+        lengths = derive(cfg, frames.scale, frames.planar)
         spread = disagreement(warm_start, topology.groups, pairwise.relative, pairwise.valid,
                               frames.scale.get("range_median", 1.0))
         # loop-closed poses need no drift terms (they would undo the closures: sim-3d-5000, 0.95 m start, drifted
         # to 40 m with them); the pose-graph solution agrees with the registrations by construction; other
         # starts are judged by the measured disagreement
         accurate = (from_graph or topology.loop_closed
-                    or locally_accurate(spread, self.derived["unit"], cfg.accurate_below))
+                    or locally_accurate(spread, lengths.unit, cfg.accurate_below))
         polish = accurate and not frames.planar
-        self.derived.update(pose_regime(cfg, accurate, polish), start_disagreement=spread,
-                            locally_accurate_start=accurate)
-        self.derived.update(loss_regime(cfg, frames.planar, polish), polish=polish)
-        if polish and cfg.chamfer_truncate is None:
-            self.derived["chamfer_truncate"] = self.derived["unit"]
+        pose, loss = pose_regime(cfg, accurate, polish), loss_regime(cfg, frames.planar, polish)
         self.planar = frames.planar
         self.n = len(frames)
+        self.steps_per_epoch = math.ceil(self.n / cfg.batch_groups)
+        epochs = cfg.epochs
+        if cfg.max_steps > 0:  # long sequences: fewer passes, the same step budget, but at least min_epochs
+            epochs = max(min(cfg.epochs, cfg.min_epochs), min(cfg.epochs, cfg.max_steps // self.steps_per_epoch))
+        first_order = cfg.first_order if cfg.first_order is not None else not dense
+        self.epochs = epochs if first_order else 0
+        warmup = int(round(loss.pose_warmup * self.steps_per_epoch)) if pose.drift is False else 0
         torch.manual_seed(seed)
         if samples is None:
             samples = sample_points(frames, sampled_points(cfg, frames.max_points, frames.planar), seed)
         pts = samples
-        self.derived["points_per_frame"] = pts.shape[1]
+        if polish and cfg.chamfer_truncate is None:  # polishing: the Chamfer distance truncated at one unit
+            lengths = replace(lengths, chamfer_truncate=lengths.unit)
+        self.derived = Derived(
+            **asdict(lengths),
+            drift=pose.drift, lr_pose=pose.lr_pose, start_disagreement=spread, locally_accurate_start=accurate,
+            use_bce=loss.use_bce, use_consistency=loss.use_consistency, chamfer_metric=loss.chamfer_metric,
+            pose_warmup=loss.pose_warmup, polish=polish, points_per_frame=pts.shape[1],
+            # an epoch whose poses disagree with the registrations far more than the start did has diverged (a
+            # scattered map can look sharp to the map metric: no two frames overlap any more); never selected
+            max_disagreement=None if spread is None else max(4.0 * spread, lengths.unit),
+            epochs=self.epochs, first_order=first_order, pose_warmup_steps=warmup,
+        )
         self.points = torch.from_numpy(pts).to(self.device)
         self.normals = None
-        if self.derived["chamfer_metric"] == "plane":
+        if self.derived.chamfer_metric == "plane":
             self.normals = torch.from_numpy(sample_normals(frames, pts)).to(self.device)
-        elif self.derived["chamfer_metric"] != "point":
-            raise ValueError(f"unknown chamfer_metric {self.derived['chamfer_metric']!r} (point or plane)")
         self.topo_groups = topology.groups
         self._pairs = (topology.groups, pairwise.relative, pairwise.valid, frames.scale.get("range_median", 1.0))
-        # an epoch whose poses disagree with the registrations far more than the start did has diverged (a scattered
-        # map can look sharp to the map metric: no two frames overlap any more); it is never selected
-        self.derived["max_disagreement"] = None if spread is None else max(4.0 * spread, self.derived["unit"])
         self.groups = make_groups(cfg.batching, topology.groups, seed)
         self.relative = torch.from_numpy(pairwise.relative).to(self.device)
         self.valid = torch.from_numpy(pairwise.valid & (topology.groups >= 0)).to(self.device)
         self.model = PoseModel(
-            warm_start, frames.planar, self.derived["step_translation"], self.derived["step_rotation"],
-            kind=cfg.pose_model, drift=self.derived["drift"], points=self.points,
+            warm_start, frames.planar, self.derived.step_translation, self.derived.step_rotation,
+            kind=cfg.pose_model, drift=self.derived.drift, points=self.points,
             length_scale=frames.scale.get("range_median", 1.0), drift_factor=cfg.drift_factor,
         ).to(self.device)
         lo, hi = self._map_box(warm_start, pts)
         self.field = GridOccupancy(
-            lo, hi, self.derived["finest_cell"], levels=cfg.grid_levels, features=cfg.grid_features,
+            lo, hi, self.derived.finest_cell, levels=cfg.grid_levels, features=cfg.grid_features,
             max_cells=cfg.grid_max_cells,
         ).to(self.device)
         groups = [
             {"params": self.field.parameters(), "lr": cfg.lr_field},
-            {"params": self.model.pose_parameters(), "lr": self.derived["lr_pose"]},
+            {"params": self.model.pose_parameters(), "lr": self.derived.lr_pose},
         ]
         if self.model.network_parameters():
             groups.append({"params": self.model.network_parameters(), "lr": cfg.lr_network})
         self.optim = torch.optim.Adam(groups)
-        self.steps_per_epoch = math.ceil(self.n / cfg.batch_groups)
-        self.epochs = cfg.epochs
-        if cfg.max_steps > 0:  # long sequences: fewer passes, the same step budget, but at least min_epochs
-            self.epochs = max(min(cfg.epochs, cfg.min_epochs), min(cfg.epochs, cfg.max_steps // self.steps_per_epoch))
-        first_order = cfg.first_order if cfg.first_order is not None else not dense
-        if not first_order:
-            self.epochs = 0
-        self.derived.update(epochs=self.epochs, first_order=first_order)
         total = max(1, self.epochs * self.steps_per_epoch)
-        warmup = int(round(self.derived["pose_warmup"] * self.steps_per_epoch)) if self.derived["drift"] is False else 0
-        self.derived["pose_warmup_steps"] = warmup
 
         def cosine(s: int) -> float:
             return cfg.lr_final + (1 - cfg.lr_final) * 0.5 * (1 + math.cos(math.pi * min(s, total) / total))
@@ -230,13 +193,13 @@ class Optimiser:
         sub = pts[:, :: max(1, pts.shape[1] // 32)]
         world = np.einsum("nij,nmj->nmi", poses[:, :3, :3], sub) + poses[:, None, :3, 3]
         lo, hi = world.reshape(-1, 3).min(0), world.reshape(-1, 3).max(0)
-        pad = 0.2 * (hi - lo).max() + 4 * self.derived["unit"]
+        pad = 0.2 * (hi - lo).max() + 4 * self.derived.unit
         dims = 2 if self.planar else 3
         return lo[:dims] - pad, hi[:dims] + pad
 
     # ------------------------------------------------------------------ one step
     def _step_loss(self, anchors: np.ndarray, generator: torch.Generator) -> dict[str, torch.Tensor]:
-        cfg, unit = self.cfg, self.derived["unit"]
+        cfg, unit = self.cfg, self.derived.unit
         groups = self.groups[anchors]
         topo = self.topo_groups[anchors]
         frames = np.unique(np.concatenate([anchors, groups[groups >= 0], topo[topo >= 0]]))
@@ -251,9 +214,9 @@ class Optimiser:
         total = torch.zeros((), device=self.device)
         member = np.unique(np.concatenate([anchors, groups[groups >= 0]]))
         ms = torch.from_numpy(slot[member]).to(self.device)
-        if self.derived["use_bce"]:
+        if self.derived.use_bce:
             hits = world[ms, : cfg.bce_points_per_frame]
-            margin = self.derived["free_margin"]
+            margin = self.derived.free_margin
             free = losses.free_space_samples(hits, Tf[ms, :3, 3], cfg.samples_per_ray, margin, generator)
             if cfg.free_clear:
                 free = losses.clear_of(free, world, margin)
@@ -262,7 +225,7 @@ class Optimiser:
         if cfg.use_chamfer:
             out["chamfer"] = self._chamfer(anchors, groups, slot, T, world, fidx) / unit
             total = total + cfg.alpha * out["chamfer"]
-        if self.derived["use_consistency"]:
+        if self.derived.use_consistency:
             a = torch.from_numpy(slot[anchors]).to(self.device)
             nb = torch.from_numpy(slot[np.where(topo >= 0, topo, anchors[:, None])]).to(self.device)
             rel = self.relative[torch.from_numpy(anchors).to(self.device)]
@@ -272,8 +235,6 @@ class Optimiser:
             d = (a2 - a1.unsqueeze(1)).norm(dim=-1).mean(-1) / unit  # (B,k), in units
             if cfg.consistency_kernel == "cauchy":
                 d = torch.log1p(d)
-            elif cfg.consistency_kernel != "none":
-                raise ValueError(f"unknown consistency_kernel {cfg.consistency_kernel!r} (cauchy or none)")
             valid = self.valid[torch.from_numpy(anchors).to(self.device)]
             out["consistency"] = (d * valid).sum() / valid.sum().clamp_min(1)
             total = total + cfg.beta * out["consistency"]
@@ -306,7 +267,7 @@ class Optimiser:
         A, N = world[sa_t], world[sj_t]  # (P,M,3)
         nA = torch.gather(N, 1, ian.unsqueeze(-1).expand(-1, -1, 3))
         nN = torch.gather(A, 1, ina.unsqueeze(-1).expand(-1, -1, 3))
-        cut = self.derived["chamfer_truncate"]
+        cut = self.derived.chamfer_truncate
         if self.normals is None:
             return (A - nA).norm(dim=-1).clamp(max=cut).mean() + (N - nN).norm(dim=-1).clamp(max=cut).mean()
         # point-to-plane: the residual along the neighbour's surface normal (rotated into the world)
@@ -331,7 +292,7 @@ class Optimiser:
         return {
             "epoch": epoch, "model": self.model.state_dict(), "field": self.field.state_dict(),
             "optim": self.optim.state_dict(), "sched": self.sched.state_dict(), "best": plain_state(best),
-            "history": plain_state(history), "config": plain_state(asdict(self.cfg)), "seed": int(self.seed),
+            "history": plain_state(history), "config": plain_state(self.cfg.model_dump()), "seed": int(self.seed),
         }
 
     def _save_mnet(self, path: Path) -> None:
@@ -340,13 +301,7 @@ class Optimiser:
         with torch.no_grad():
             first = self.model()[0].cpu().numpy()
         gauge = self.model.T0[0].cpu().numpy() @ np.linalg.inv(first)
-        save_mnet(path, self.field, gauge, trained=bool(self.derived["use_bce"]))
-
-    def _save(self, path: Path, state: dict) -> None:
-        buffer = io.BytesIO()  # serialised first: a full disk is then an OSError of the write, not torch's
-        torch.save(state, buffer)
-        with atomic_write(path, "wb") as fh:
-            fh.write(buffer.getbuffer())
+        save_mnet(path, self.field, gauge, trained=bool(self.derived.use_bce))
 
     def run(self, checkpoint_dir: Path | None = None, resume: bool = False) -> OptimResult:
         """Train; with several ranks only rank 0 reads and writes the checkpoint, shows progress and
@@ -378,7 +333,7 @@ class Optimiser:
         stopped = None
         # convergence (loss and, with a metric, accuracy against the steps): a few points per epoch
         trace_every = max(1, self.steps_per_epoch // 8)
-        warmup_epochs = math.ceil(self.derived["pose_warmup_steps"] / self.steps_per_epoch)
+        warmup_epochs = math.ceil(self.derived.pose_warmup_steps / self.steps_per_epoch)
         # an early stop at convergence only under the step budget (explicit epochs run them all) and with the map
         # selection (it needs a map that no longer improves, judged on rank 0); every rank takes rank 0's decision
         early = self.cfg.converge_tol > 0 and self.cfg.max_steps > 0 and self.cfg.select == "map"
@@ -430,7 +385,7 @@ class Optimiser:
                 row["ate"] = float(self.metric(poses))
                 if getattr(self.metric, "name", None):  # which metric "ate" is (pipeline.live.LiveMetric)
                     row["ate_metric"] = self.metric.name
-            spread, limit = disagreement(poses, *self._pairs), self.derived["max_disagreement"]
+            spread, limit = disagreement(poses, *self._pairs), self.derived.max_disagreement
             row["disagreement"] = spread
             diverged = spread is not None and limit is not None and spread > limit
             if diverged:
@@ -455,29 +410,14 @@ class Optimiser:
                 row["converged"] = (f"stopped after epoch {epoch} of {self.epochs}: the loss changed by less than "
                                     f"{self.cfg.converge_tol:g} of itself and the map did not improve, twice")
             if ckpt is not None and lead:
-                self._save(ckpt, self._state(epoch, best, history))
+                save_checkpoint(ckpt, self._state(epoch, best, history))
             if "converged" in row:
                 break
         rejected = sum("rejected" in row for row in history)
         if rejected and best["epoch"] < 0:
             stopped = stopped or (f"diverged: all {rejected} epochs disagreed with the registrations "
-                                  f"(limit {self.derived['max_disagreement']:.3g} m); returned the start")
+                                  f"(limit {self.derived.max_disagreement:.3g} m); returned the start")
         if ckpt is not None and lead:
             self._save_mnet(checkpoint_dir / MNET)
         return OptimResult(best["poses"], best["epoch"], history, self.derived, stopped,
-                           _selection(best, by_map, rejected, self.epochs))
-
-
-def _selection(best: dict, by_map: bool, rejected: int = 0, epochs: int = 1) -> str:
-    if epochs == 0:
-        return "the start: first-order epochs off (optimiser.first_order)"
-    note = f"; {rejected} diverged epochs rejected" if rejected else ""
-    return _chosen(best, by_map) + note
-
-
-def _chosen(best: dict, by_map: bool) -> str:
-    if not by_map:
-        return f"lowest epoch loss: epoch {best['epoch']}" if best["epoch"] >= 0 else "the start (no epoch ran)"
-    if best["epoch"] < 0:
-        return f"the start: no epoch made a sharper map (map entropy {best['start_map']:.4f})"
-    return f"sharpest map: epoch {best['epoch']} (map entropy {best['map']:.4f}, start {best['start_map']:.4f})"
+                           selection(best, by_map, rejected, self.epochs))

@@ -14,6 +14,7 @@ from dm2_backend.baselines import g2o_backend, gtsam_backend
 from dm2_backend.baselines.graph import build_graph
 from dm2_backend.baselines.multiway import multiway
 from dm2_backend.baselines.options import GRAPH_METHODS, METHODS, GraphResult, SolverOptions
+from dm2_backend.config_schema import RunConfig
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.cautions import pose_cautions
@@ -40,7 +41,7 @@ def solve(method: str, graph: PoseGraph, options: SolverOptions) -> GraphResult:
     return GRAPH_SOLVERS[method](graph, options)
 
 
-def baseline(method: str, inputs: RunInputs, cfg: dict, out: Path, cache_dir: Path | None,
+def baseline(method: str, inputs: RunInputs, cfg: RunConfig, out: Path, cache_dir: Path | None,
              options: SolverOptions, progress: bool = True, started: float | None = None) -> RunReport:
     """Prepare (cached, shared with ``dm2 refine``), run the baseline, write the run folder. ``started``:
     when the command started (``time.perf_counter``): the report's total then counts it all."""
@@ -54,7 +55,7 @@ def baseline(method: str, inputs: RunInputs, cfg: dict, out: Path, cache_dir: Pa
     extra: dict = {}
     if method == "icp":
         final = prep.warm_start
-        extra["baseline"] = {"solver": f"warm start ({cfg['warm_start']['name']})"}
+        extra["baseline"] = {"solver": f"warm start ({cfg.warm_start.name})"}
     elif method == "multiway":
         result = multiway(prep.frames, prep.initial, prep.topology, prep.pairwise, options)
         final = result.poses

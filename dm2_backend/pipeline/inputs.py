@@ -12,7 +12,7 @@ from dm2_backend.errors import InputError
 from dm2_backend.evaluation.relations import load_relations
 from dm2_backend.formats import ReadOptions, open_scans, read_trajectory
 from dm2_backend.geometry import se3
-from dm2_backend.scans import LASER_2D, LIDAR, ScanSequence, associate_scans
+from dm2_backend.scans import ScanSequence, SensorKind, associate_scans
 from dm2_backend.trajectory import Trajectory, associate_by_time
 
 log = logging.getLogger(__name__)
@@ -74,8 +74,8 @@ def load_inputs(
                 given, fmt = scans.trajectories[name], scans.meta.get("format")
                 break
     scans.planar = looks_planar(scans, given)
-    if scans.planar and scans.sensor == LIDAR:  # a folder of scans in z = 0: a 2D laser, found by looking
-        scans.sensor = LASER_2D
+    if scans.sensor is None:  # a source that cannot tell (a folder of scans in z = 0: a 2D laser): by looking
+        scans.sensor = SensorKind.of_geometry(scans.planar)
     if given is not None and scans.planar:
         given.planar = True
     gt, gt_frames = None, None

@@ -28,6 +28,7 @@ import torch.distributed as td
 import torch.multiprocessing as mp
 from torch.multiprocessing.spawn import ProcessException
 
+from dm2_backend.config_schema import RunConfig
 from dm2_backend.errors import InputError
 from dm2_backend.optim.config import OptimConfig, sampled_points
 from dm2_backend.optim.distributed import Dist, init, rank_device, wait_group
@@ -85,25 +86,25 @@ def session(nproc: int, cache_dir: Path | None, device: str) -> Iterator[Session
         yield Session(Dist(), Mode.SINGLE, cache_dir)
 
 
-def prepare_once(inputs, cfg: dict, ocfg: OptimConfig, sess: Session, progress: bool) -> tuple[Prepared, str | None]:
+def prepare_once(inputs, cfg: RunConfig, sess: Session, progress: bool) -> tuple[Prepared, str | None]:
     """The prepared data, and with several processes the cache entry of the points sampled for the optimiser
     (written once, memory-mapped by every rank)."""
     if sess.mode is not Mode.TORCHRUN:
         prep = prepare(inputs.scans, inputs.given, cfg, sess.cache, progress)
-        return prep, samples_entry(sess.cache, prep, ocfg, cfg["seed"]) if sess.mode is Mode.SPAWN else None
+        return prep, samples_entry(sess.cache, prep, cfg.optimiser, cfg.seed) if sess.mode is Mode.SPAWN else None
     d = sess.dist
     prep, name = None, None
     for turn in (d.rank == 0, d.local_rank == 0 and d.rank != 0, d.local_rank != 0):
         if turn:  # rank 0 fills the cache, then one process per node (if not shared), then the rest read it
             prep = prepare(inputs.scans, inputs.given, cfg, sess.cache, progress and d.rank == 0)
-            name = samples_entry(sess.cache, prep, ocfg, cfg["seed"])
+            name = samples_entry(sess.cache, prep, cfg.optimiser, cfg.seed)
         td.barrier(group=sess.group)
     return prep, name
 
 
-def samples_entry(cache: Path, prep: Prepared, ocfg: OptimConfig, seed: int) -> str:
+def samples_entry(cache: Path, prep: Prepared, cfg: OptimConfig, seed: int) -> str:
     """Cache entry of :func:`sample_points` for these frames (the same points the optimiser would draw)."""
-    m = sampled_points(ocfg, prep.frames.max_points, prep.frames.planar)
+    m = sampled_points(cfg, prep.frames.max_points, prep.frames.planar)
     name = f"samples-{step_key(prep.keys['frames'], m, seed, code_fingerprint(sample_points))}"
     if store.get(cache, name) is None:
         store.put(cache, name, {"samples": sample_points(prep.frames, m, seed)})
@@ -121,24 +122,24 @@ class Watch:
     trace: Callable | None = None
 
 
-def build(prep: Prepared, start: Start, ocfg: OptimConfig, cfg: dict, watch: Watch | None = None,
+def build(prep: Prepared, start: Start, cfg: RunConfig, watch: Watch | None = None,
           progress: bool = True, samples: np.ndarray | None = None, dist: Dist | None = None) -> Optimiser:
     """The optimiser of a run (one construction for every launch mode), starting from ``start``."""
     dist = dist or Dist()
     watch = watch if dist.rank == 0 and watch is not None else Watch()
-    device = str(rank_device(cfg["device"], dist)) if dist.enabled else cfg["device"]
-    return Optimiser(prep.frames, start.poses, prep.topology, prep.pairwise, ocfg, seed=cfg["seed"],
+    device = str(rank_device(cfg.device, dist)) if dist.enabled else cfg.device
+    return Optimiser(prep.frames, start.poses, prep.topology, prep.pairwise, cfg.optimiser, seed=cfg.seed,
                      device=device, metric=watch.metric, map_metric=watch.map_metric,
                      progress=progress and dist.rank == 0, samples=samples, dist=dist,
                      from_graph=start.locally_accurate, trace_metric=watch.trace,
                      dense=start.refined)
 
 
-def optimise_rank(prep: Prepared, start: Start, samples: str, ocfg: OptimConfig, cfg: dict, sess: Session,
+def optimise_rank(prep: Prepared, start: Start, samples: str, cfg: RunConfig, sess: Session,
                   out: Path, resume: bool, progress: bool, watch: Watch) -> tuple[OptimResult, str]:
     """This torchrun rank's part of the optimisation; rank 0's result is the run's."""
     points = store.get(sess.cache, samples)[0]["samples"]
-    opt = build(prep, start, ocfg, cfg, watch, progress, points, sess.dist)
+    opt = build(prep, start, cfg, watch, progress, points, sess.dist)
     return opt.run(checkpoint_dir=out, resume=resume), str(opt.device)
 
 
@@ -151,8 +152,7 @@ class Job:
     keys: dict[str, str]
     start: Start
     samples: str
-    ocfg: OptimConfig
-    cfg: dict
+    cfg: RunConfig
     out: Path
     resume: bool
     progress: bool
@@ -170,11 +170,11 @@ def run_rank(rank: int, job: Job) -> OptimResult:
     its result (and its peak memory) in the scratch folder for the parent."""
     torch.set_num_threads(1)
     dist = Dist(rank, job.world, rank)
-    init(dist, rank_device(job.cfg["device"], dist), f"file://{job.scratch / 'store'}")
+    init(dist, rank_device(job.cfg.device, dist), f"file://{job.scratch / 'store'}")
     try:
         prep = load_prepared(job.cache, job.keys)
         points = store.get(job.cache, job.samples)[0]["samples"]
-        opt = build(prep, job.start, job.ocfg, job.cfg, job.watch, job.progress, points, dist)
+        opt = build(prep, job.start, job.cfg, job.watch, job.progress, points, dist)
         result = opt.run(checkpoint_dir=job.out, resume=job.resume)
         if rank == 0:
             peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import asdict
 from pathlib import Path
 
+from dm2_backend.config_schema import RunConfig
 from dm2_backend.optim import distributed
-from dm2_backend.optim.config import OptimConfig
 from dm2_backend.pipeline import parallel
 from dm2_backend.pipeline.inputs import RunInputs
 from dm2_backend.pipeline.live import live_metric
@@ -18,28 +19,27 @@ from dm2_backend.pipeline.start import choose_start, dense_start
 log = logging.getLogger(__name__)
 
 
-def refine(inputs: RunInputs, cfg: dict, out: Path, cache_dir: Path | None, resume: bool = False,
+def refine(inputs: RunInputs, cfg: RunConfig, out: Path, cache_dir: Path | None, resume: bool = False,
            progress: bool = True, started: float | None = None) -> RunReport | None:
     """Run the whole pipeline; returns the report (also written to ``out/report.json``); ``started``: when the
     command started (``time.perf_counter``), so that the report's total counts reading and writing too. With
-    ``cfg["nproc"] > 1`` the optimisation runs in that many spawned processes; started by torchrun, this
+    ``cfg.nproc > 1`` the optimisation runs in that many spawned processes; started by torchrun, this
     process is one rank, and ranks other than 0 return None (they write nothing)."""
     t_start = time.perf_counter()
-    ocfg = OptimConfig.from_dict(cfg["optimiser"])
     stamps = output_timestamps(inputs)
-    with parallel.session(int(cfg.get("nproc", 1)), cache_dir, cfg["device"]) as sess:
+    with parallel.session(cfg.nproc, cache_dir, cfg.device) as sess:
         lead = sess.dist.rank == 0
         if lead:
             out.mkdir(parents=True, exist_ok=True)
-        prep, samples = parallel.prepare_once(inputs, cfg, ocfg, sess, progress)
+        prep, samples = parallel.prepare_once(inputs, cfg, sess, progress)
         t_map = time.perf_counter()
         sampler = map_sampler(inputs, progress) if lead else None
-        start = choose_start(prep, ocfg, sampler) if lead else None
+        start = choose_start(prep, cfg.optimiser, sampler) if lead else None
         t_map = time.perf_counter() - t_map
         metric = live_metric(inputs, stamps) if lead else None
         t_dense = time.perf_counter()
         if lead:
-            start = dense_start(inputs.scans, prep, start, ocfg, cfg["seed"], progress, metric,
+            start = dense_start(inputs.scans, prep, start, cfg.optimiser, cfg.seed, progress, metric,
                                 checkpoint_dir=out, resume=resume)
         if sess.mode is parallel.Mode.TORCHRUN:
             start = distributed.broadcast(start)
@@ -47,18 +47,18 @@ def refine(inputs: RunInputs, cfg: dict, out: Path, cache_dir: Path | None, resu
         watch = parallel.Watch(metric, map_entropy(sampler), metric) if lead else None
         extra = {}
         if sess.mode is parallel.Mode.SINGLE:
-            opt = parallel.build(prep, start, ocfg, cfg, watch, progress)
+            opt = parallel.build(prep, start, cfg, watch, progress)
             t_opt = time.perf_counter()
             result, device = opt.run(checkpoint_dir=out, resume=resume), str(opt.device)
         elif sess.mode is parallel.Mode.SPAWN:  # timed with starting the processes and building their optimisers
             t_opt = time.perf_counter()
-            job = parallel.Job(sess.cache, prep.keys, start, samples, ocfg, cfg, out, resume, progress,
+            job = parallel.Job(sess.cache, prep.keys, start, samples, cfg, out, resume, progress,
                                watch, sess.dist.world, sess.scratch)
             done = parallel.spawn(job)
             result, device, extra["rank_peak_rss_mb"] = done["result"], done["device"], done["rank_peak_rss_mb"]
         else:
             t_opt = time.perf_counter()
-            result, device = parallel.optimise_rank(prep, start, samples, ocfg, cfg, sess, out, resume,
+            result, device = parallel.optimise_rank(prep, start, samples, cfg, sess, out, resume,
                                                     progress, watch)
         if not lead:
             return None
@@ -68,6 +68,6 @@ def refine(inputs: RunInputs, cfg: dict, out: Path, cache_dir: Path | None, resu
         timings["optimise"] = time.perf_counter() - t_opt
         timings["total"] = time.perf_counter() - t_start
         extra.update(best_epoch=result.best_epoch, selection=result.selection, start=start.summary(),
-                     stopped=result.stopped, derived=result.derived, device=device, processes=sess.dist.world)
+                     stopped=result.stopped, derived=asdict(result.derived), device=device, processes=sess.dist.world)
         return write_run(out, cfg, inputs, prep, result.poses, "dm2 refine", timings, extra, result.history,
                          sampler=sampler, start=start.poses, started=started)

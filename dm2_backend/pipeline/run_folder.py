@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dm2_backend.atomic import is_temporary, watching_writes
+from dm2_backend.config_schema import RunConfig
 from dm2_backend.errors import InputError
 from dm2_backend.optim.dense_checkpoint import DENSE_CHECKPOINT
 
@@ -125,9 +126,9 @@ class RunFolder:
             self._lock = None
 
 
-def fingerprint(cfg: dict, **inputs) -> dict:
+def fingerprint(cfg: RunConfig, **inputs) -> dict:
     """What a resume must share with the run it continues: the config (flattened) and the inputs."""
-    return {"config": _flatten(cfg), "inputs": {k: str(v) for k, v in inputs.items() if v is not None}}
+    return {"config": _flatten(cfg.model_dump()), "inputs": {k: str(v) for k, v in inputs.items() if v is not None}}
 
 
 def check_target(out: Path) -> None:

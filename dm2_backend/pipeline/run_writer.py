@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from dm2_backend import config
+from dm2_backend.config_schema import RunConfig
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.cautions import pose_cautions
@@ -83,7 +84,7 @@ def map_metrics(sampler: MapSampler, poses: np.ndarray) -> dict[str, float]:
     return {"map_entropy": q.entropy, "map_plane_variance_m2": q.plane_variance}
 
 
-def write_run(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final: np.ndarray, method: str,
+def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, final: np.ndarray, method: str,
               timings: dict, details: dict | None = None, epochs: list[dict] | None = None,
               sampler: MapSampler | None = None, start: np.ndarray | None = None,
               files: list[str] | None = None, started: float | None = None) -> RunReport:
@@ -97,7 +98,8 @@ def write_run(out: Path, cfg: dict, inputs: RunInputs, prep: Prepared, final: np
     stages = {"warm_start": prep.warm_start, "loop_closed": prep.topology.poses, "start": start, "final": final}
     maps = {name: map_metrics(sampler, poses) for name, poses in stages.items() if poses is not None}
     config.dump(cfg, out / "config.yaml")
-    config.dump(prep.resolved, out / "resolved.yaml")  # the plugins as run: ``auto`` resolved
+    # the plugins as run: ``auto`` resolved
+    config.dump({name: section.model_dump() for name, section in prep.resolved.items()}, out / "resolved.yaml")
     warm_traj = trajectory_of(prep.warm_start, inputs)
     final_traj = trajectory_of(final, inputs)
     written = outputs.write_trajectories(out, final_traj, inputs.given_path, inputs.given_format)

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from dm2_backend.algorithms.common import path_length
+from dm2_backend.config_schema import PluginSection, RunConfig
 from dm2_backend.errors import InputError
 from dm2_backend.plugins.registry import load as load_plugin
 from dm2_backend.prepare import store
@@ -41,8 +42,8 @@ class Prepared:
     cached: dict[str, bool] = field(default_factory=dict)
     #: step -> name of its cache entry (see :func:`load_prepared`)
     keys: dict[str, str] = field(default_factory=dict)
-    #: the plugin sections as run, ``auto`` resolved (the caller's config is left as given)
-    resolved: dict[str, dict] = field(default_factory=dict)
+    #: config section -> its plugin as run, ``auto`` resolved (the caller's config is left as given)
+    resolved: dict[str, PluginSection] = field(default_factory=dict)
     #: what the warm-start plugin reported about its run (its ``report`` attribute; e.g. the ``icp`` warm
     #: start's per-step sources), None when it reports nothing
     warm_report: dict | None = None
@@ -80,35 +81,36 @@ def moves_like_a_ground_vehicle(poses: np.ndarray, planar: bool) -> bool:
     return bool(np.percentile(tilt, 95) <= GROUND_MAX_TILT_DEG and np.ptp(height) <= GROUND_MAX_CLIMB * max(path, 1e-9))
 
 
-def resolve_auto(section: dict, camera: bool, poses: np.ndarray | None = None, planar: bool = False) -> dict:
+def resolve_auto(section: PluginSection, camera: bool, poses: np.ndarray | None = None,
+                 planar: bool = False) -> PluginSection:
     """Place recognition ``auto``: ``loops`` (loop closure under large drift, matching bird's-eye views) for
     laser scanners that move like a ground vehicle; ``loops3d`` (6-DoF loop closure) for depth-camera sequences
     (a hand-held camera's frame has no vertical axis to look down) and for scanners that tilt or climb (hand-held,
     backpack, drone; see :func:`moves_like_a_ground_vehicle` on the warm start ``poses``)."""
-    if section.get("name") != "auto":
+    if section.name != "auto":
         return section
     ground = poses is None or moves_like_a_ground_vehicle(poses, planar)
-    return {"name": "loops3d" if camera or not ground else "loops", "options": dict(section.get("options") or {})}
+    return PluginSection(name="loops3d" if camera or not ground else "loops", options=dict(section.options))
 
 
 def default_cache_dir() -> Path:
     return Path(os.environ.get("DM2_CACHE_DIR", Path.home() / ".cache" / "dm2"))
 
 
-def _code(group: str, section: dict) -> str:
+def _code(group: str, section: PluginSection) -> str:
     """The code fingerprint of the plugin a section names (its module and the dm2 modules it uses)."""
-    return code_fingerprint(load_plugin(group, section["name"]))
+    return code_fingerprint(load_plugin(group, section.name))
 
 
-def _plugin(group: str, section: dict, progress: bool = True):
-    cls = load_plugin(group, section["name"])
-    options = dict(section.get("options") or {})
+def _plugin(group: str, section: PluginSection, progress: bool = True):
+    cls = load_plugin(group, section.name)
+    options = dict(section.options)
     if not progress and "progress" in getattr(cls, "__dataclass_fields__", {}):
         options.setdefault("progress", False)  # --quiet silences the plugins' bars too
     try:
         return cls(**options)
     except TypeError as exc:
-        raise InputError(None, f"{group} plugin {section['name']!r}: {exc}") from exc
+        raise InputError(None, f"{group} plugin {section.name!r}: {exc}") from exc
 
 
 class _Cache:
@@ -144,7 +146,7 @@ def load_prepared(cache_dir: Path, keys: dict[str, str]) -> Prepared:
 def prepare(
     scans: ScanSequence,
     given: Trajectory | None,
-    cfg: dict,
+    cfg: RunConfig,
     cache_dir: Path | None,
     progress: bool = True,
 ) -> Prepared:
@@ -153,10 +155,10 @@ def prepare(
     timings: dict[str, float] = {}
     cached: dict[str, bool] = {}
     keys: dict[str, str] = {}
-    fcfg = cfg["frames"]
+    fcfg = cfg.frames
     from dm2_backend.prepare import frames as frames_module
 
-    k_frames = step_key(source_key(scans), fcfg, cfg["seed"], scans.planar, code_fingerprint(frames_module))
+    k_frames = step_key(source_key(scans), fcfg.model_dump(), cfg.seed, scans.planar, code_fingerprint(frames_module))
     keys["frames"] = name = f"frames-{k_frames}"
     t = time.perf_counter()
     hit = cache.get(name)
@@ -164,7 +166,7 @@ def prepare(
     if hit is None:
         from dm2_backend.prepare.frames import load_frames  # open3d: not imported by ranks that only read
 
-        frames = load_frames(scans, fcfg["max_points"], fcfg.get("voxel"), cfg["seed"], progress)
+        frames = load_frames(scans, fcfg.max_points, fcfg.voxel, cfg.seed, progress)
         if cache.root is not None:
             store.put_frames(cache.root, name, frames)
             hit = cache.get(name)  # from here on the frames are memory-mapped; the copy in memory is dropped
@@ -172,9 +174,9 @@ def prepare(
         frames = store.frames_from(*hit)
     timings["frames"] = time.perf_counter() - t
 
-    ws = cfg["warm_start"]
+    ws = cfg.warm_start
     given_hash = hashlib.sha1(given.poses.tobytes()).hexdigest() if given is not None else ""
-    k_ws = step_key(k_frames, ws, given_hash, _code("dm2.warm_start", ws))
+    k_ws = step_key(k_frames, ws.model_dump(), given_hash, _code("dm2.warm_start", ws))
     keys["warm_start"] = name = f"warm-{k_ws}"
     t = time.perf_counter()
     hit = cache.get(name)
@@ -190,8 +192,8 @@ def prepare(
         log.info("%s", warm_report["summary"])
     timings["warm_start"] = time.perf_counter() - t
 
-    pr = resolve_auto(cfg["place_recognition"], scans.sensor == DEPTH_CAMERA, warm, frames.planar)
-    k_pr = step_key(k_ws, pr, _code("dm2.place_recognition", pr))
+    pr = resolve_auto(cfg.place_recognition, scans.sensor == DEPTH_CAMERA, warm, frames.planar)
+    k_pr = step_key(k_ws, pr.model_dump(), _code("dm2.place_recognition", pr))
     keys["place_recognition"] = name = f"topology-{k_pr}"
     t = time.perf_counter()
     hit = cache.get(name)
@@ -201,12 +203,13 @@ def prepare(
         arrays = {"groups": topo.groups, "edges": topo.edges}
         if topo.poses is not None:
             arrays["poses"] = topo.poses
-        hit = cache.put(name, arrays, {"edge_kind": topo.edge_kind, "log": topo.log, "loop_closed": topo.loop_closed})
+        hit = cache.put(name, arrays, {"edge_kind": topo.edge_kind, "log": topo.log, "loop_closed": topo.loop_closed,
+                                          "closures": topo.closures})
     topo = store.topology_from(hit) if hit is not None else topo
     timings["place_recognition"] = time.perf_counter() - t
 
-    reg = cfg["registration"]
-    keys["registration"] = name = f"pairwise-{step_key(k_pr, reg, _code('dm2.registration', reg))}"
+    reg = cfg.registration
+    keys["registration"] = name = f"pairwise-{step_key(k_pr, reg.model_dump(), _code('dm2.registration', reg))}"
     t = time.perf_counter()
     hit = cache.get(name)
     cached["registration"] = hit is not None
@@ -218,5 +221,5 @@ def prepare(
         hit = cache.put(name, arrays, {"reason": {f"{i},{j}": r for (i, j), r in pair.reason.items()}})
     pair = store.pairwise_from(hit) if hit is not None else pair
     timings["registration"] = time.perf_counter() - t
-    resolved = {"warm_start": dict(ws), "place_recognition": dict(pr), "registration": dict(reg)}
+    resolved = {"warm_start": ws, "place_recognition": pr, "registration": reg}
     return Prepared(frames, warm, topo, pair, timings, cached, keys, resolved, warm_report)

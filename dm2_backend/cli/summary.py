@@ -1,0 +1,31 @@
+"""The summary ``dm2 refine``, ``dm2 baseline`` and ``dm2 demo`` print after a run."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from dm2_backend.pipeline.run_report import RunReport
+
+
+def print_summary(report: RunReport, out: Path) -> None:
+    before, after = report.warm_start_metrics, report.metrics
+    for key in after:
+        if key in before and key != "error":
+            click.echo(f"{key:<28} warm start {before[key]:10.4f}  ->  {report.method} {after[key]:10.4f}")
+    if "error" in after:
+        click.echo(f"evaluation failed: {after['error']}", err=True)
+    for text in report.cautions or []:
+        click.echo(f"caution: {text}")
+    if report.details.get("stopped"):
+        click.echo(f"warning: {report.details['stopped']}", err=True)
+    t = report.timings
+    mem = report.peak_rss_mb
+    click.echo(f"{report.frames} frames in {t['total']:.1f} s, peak memory {mem:.0f} MiB")
+    for stage, profile in (report.details.get("consistency") or {}).items():
+        stretches = ", ".join(f"{s['first']}-{s['last']}" for s in profile["segments"]) or "none"
+        level = "no frame scored" if profile["level_m"] is None else f"frames agree to {profile['level_m']:.3g} m"
+        caution = " (planar scans: the profile is validated on 3D data only)" if report.planar else ""
+        click.echo(f"consistency of the {stage}: {level}; flagged frames: {stretches}{caution}")
+    click.echo(f"wrote {out}")
