@@ -15,6 +15,8 @@ import json
 import time
 from pathlib import Path
 
+import numpy as np
+
 from dm2_backend.evaluation.relations import load_relations, relations_error
 from dm2_backend.formats.carmen import open_carmen_scans
 from dm2_backend.plugins.warm_start_icp import IcpWarmStart
@@ -39,13 +41,16 @@ def cases() -> dict[str, HospitalTraits]:
             "pauses": dataclasses.replace(plain, gaps=full.gaps), "all": full}
 
 
-def warm_start_errors(seq, rel, windows: str = "auto") -> dict:
-    """The odometry's and the fused warm start's mean relation errors (m), the warm start's time and windows."""
+def warm_start_errors(seq, rel, windows: str = "auto", save: Path | None = None) -> dict:
+    """The odometry's and the fused warm start's mean relation errors (m), the warm start's time and windows;
+    ``save``: also write the warm start's poses there (``.npy``, for ``benchmarks/hospital_closures.py``)."""
     odometry = seq.trajectories["odometry"]
     t0 = time.perf_counter()
     ws = IcpWarmStart(progress=False, windows=windows)
     poses = ws.run(load_frames(seq, 1024, None, 0, False), odometry)
     seconds = time.perf_counter() - t0
+    if save is not None:
+        np.save(save, poses)
 
     def error(p) -> float:
         return relations_error(Trajectory(p, seq.timestamps, planar=True), rel).stats["trans_mean"]
@@ -62,10 +67,11 @@ def measure(log: Path, relations: Path, out: Path, name: str, traits: HospitalTr
         seq = open_carmen_scans(log)
         if count is not None:
             raise ValueError("the original log is measured whole")
-        return warm_start_errors(seq, load_relations(relations), windows)
+        out.mkdir(parents=True, exist_ok=True)
+        return warm_start_errors(seq, load_relations(relations), windows, out / f"{name}.warm.npy")
     write_rewritten(out, log, relations, traits, name, count=count)
     return warm_start_errors(open_carmen_scans(out / f"{name}.clf"), load_relations(out / f"{name}.relations"),
-                             windows)
+                             windows, out / f"{name}.warm.npy")
 
 
 def table(results: dict) -> str:

@@ -39,9 +39,10 @@ Conventions:
 * Scans are returned in the ROBOT frame (offset applied), z = 0. Trajectories are robot poses:
   ``"odometry"`` = the robot pose fields, ``"logged"`` = laser pose (+) offset^-1. For RAWLASER both are the
   ODOM poses interpolated at the scan times. Timestamps are the ipc_timestamp, parsed with ``float()``.
-* Readings ``<= min_range`` (0) or ``>= max_range`` are invalid and dropped. ``max_range``: the
-  ``ReadOptions.max_range``, else the message's ``maximum_range`` field, else (FLASER) CARMEN's 80 m,
-  lowered to the log's largest reading when that value repeats as a saturation value (ACES: 50 m; a
+* Readings ``<= min_range`` (0) or ``>= max_range`` are invalid and dropped, and so are isolated long returns
+  (one beam far beyond two neighbours on one surface: glass, open doors; :mod:`dm2_backend.planar_returns`).
+  ``max_range``: the ``ReadOptions.max_range``, else the message's ``maximum_range`` field, else (FLASER)
+  CARMEN's 80 m, lowered to the log's largest reading when that value repeats as a saturation value (ACES: 50 m; a
   ROBOTLASER1 log whose field declares more than its scanner's 81.91 m code: 81.91 m).
 * Log order is kept. Real logs have non-monotonic ipc timestamps (Intel: 631 steps back, up to 0.9 s, while
   the poses show file order is right) and duplicate ODOM stamps, so neither is an error here; the count of
@@ -95,6 +96,7 @@ from dm2_backend.formats.registry import (
     trajectory_format,
 )
 from dm2_backend.geometry import se3
+from dm2_backend.planar_returns import isolated_long_returns
 from dm2_backend.scans import Scan, ScanSequence, SensorKind
 from dm2_backend.trajectory import Trajectory, validate_poses
 
@@ -272,12 +274,14 @@ def saturation_code(msgs: list[Message]) -> float | None:
 
 def scan_points(msg: Message, offset: tuple[float, float, float], max_r: float | None,
                 min_r: float = 0.0) -> tuple[np.ndarray, np.ndarray | None]:
-    """Valid readings of ``msg`` as (M,3) float32 points in the robot frame, and their remissions."""
+    """Valid readings of ``msg`` as (M,3) float32 points in the robot frame, and their remissions; isolated long
+    returns (:mod:`dm2_backend.planar_returns`) are not valid."""
     r = msg.ranges.astype(np.float64)
     limit = max_r if max_r is not None else msg.max_range
     valid = r > min_r
     if limit is not None and limit > 0:
         valid &= r < np.float32(limit)
+    valid &= ~isolated_long_returns(r, valid, msg.angular_resolution)
     a = msg.start_angle + np.arange(len(r)) * msg.angular_resolution + offset[2]
     rv, av = r[valid], a[valid]
     pts = np.zeros((len(rv), 3), dtype=np.float32)

@@ -107,11 +107,12 @@ def test_each_trait_alone(tmp_path_factory, trait):
 def test_windows_catch_scan_matching_that_drifted(hospital):
     """The codes read as points (a reader told the range is 100 m): scan matching loses 2 m along a hall at the
     corner (the failure of the hospital log). The per-window check names that window, says why, and takes the
-    odometry there: the warm start ends no worse than the odometry in ATE (per-step tests alone: 3x worse)."""
+    odometry there: the warm start ends no worse than the odometry in ATE (per-step tests alone: 1.8x worse; 3x
+    before the reader dropped isolated codes)."""
     log, truth = hospital
     as_points = ReadOptions(max_range=100.0)
     plain, odometry, _ = warm_start(log, as_points, windows="off")
-    assert ate(plain, truth) > 2.0 * ate(odometry, truth)  # the failure, reproduced
+    assert ate(plain, truth) > 1.5 * ate(odometry, truth)  # the failure, reproduced (isolated codes are dropped)
     poses, _, ws = warm_start(log, as_points)
     assert ate(poses, truth) <= ate(odometry, truth)
     wrong = []
@@ -212,6 +213,7 @@ def test_aces_rewritten_as_robotlaser1_reads_the_same_scans(tmp_path):
     from pathlib import Path
 
     from dm2_backend.formats.carmen import load, robotlaser1_line
+    from dm2_backend.planar_returns import isolated_long_returns
 
     aces = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "carmen" / "aces.clf.bz2"
     if not aces.exists():
@@ -224,6 +226,7 @@ def test_aces_rewritten_as_robotlaser1_reads_the_same_scans(tmp_path):
     assert seq.meta["max_range"] == 50.0 and len(seq) == len(msgs)
     for i in range(0, len(msgs), 37):
         valid = (msgs[i].ranges > 0) & (msgs[i].ranges < 50.0)
+        valid &= ~isolated_long_returns(msgs[i].ranges, valid, msgs[i].angular_resolution)  # as both readers do
         a = msgs[i].start_angle + msgs[i].angular_resolution * np.flatnonzero(valid)
         r = msgs[i].ranges[valid]
         # the same points, but for the angles' %.6f rad in the message (at most 3 mm at 50 m)

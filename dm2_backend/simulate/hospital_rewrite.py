@@ -15,18 +15,15 @@ import numpy as np
 from dm2_backend.atomic import atomic_write
 from dm2_backend.formats.carmen import load, max_range, robotlaser1_line
 from dm2_backend.formats.carmen_parser import SCAN_ORDER
+from dm2_backend.planar_returns import SAME_SURFACE
 from dm2_backend.simulate.hospital import MAX_RANGE_CODE, HospitalTraits, pauses, returns_with_traits
-
-#: two neighbouring beams lie on one surface when their ranges differ by less than this many times ``range x beam
-#: step`` (a surface seen at up to atan(5) = 79 deg incidence); across a larger jump a resampled beam takes the
-#: nearer neighbour's range, never one in between (no phantom points between a wall and what is behind it)
-SAME_SURFACE = 5.0
 
 
 def resample(r: np.ndarray, fraction: float, resolution: float) -> np.ndarray:
     """Ranges at the angles ``fraction`` (0 <= f < 1) of a beam step (``resolution``, rad) past each of ``r``'s
-    beams: linear between two valid beams on one surface, else the nearer beam's reading (the shorter at exactly
-    half a step); the last beam has no right neighbour and returns nothing (inf) unless ``fraction`` is 0.
+    beams: linear between two valid beams on one surface (:data:`~dm2_backend.planar_returns.SAME_SURFACE`), else
+    the nearer beam's reading, the shorter at exactly half a step (never a phantom point between a wall and what is
+    behind it); the last beam has no right neighbour and returns nothing (inf) unless ``fraction`` is 0.
     ``r``: invalid readings are inf."""
     if fraction == 0.0:
         return r.copy()
