@@ -108,18 +108,18 @@ class Loops3dTopology:
         if bad:
             raise InputError(None, f"place recognition loops3d: invalid options {', '.join(bad)}")
         s = lengths(frames)
-        spacing = max(s["spacing"], s["voxel"], 1e-3)
-        kf_dist = self.keyframe_distance or s["range_median"] / 10.0
+        spacing = max(s.spacing, s.voxel, 1e-3)
+        kf_dist = self.keyframe_distance or s.range_median / 10.0
         self._lengths = {
-            "radius": self.radius or 0.5 * s["range_median"],
+            "radius": self.radius or 0.5 * s.range_median,
             "keyframe_distance": kf_dist,
             "min_path_gap": self.min_path_gap or 4.0 * kf_dist,
             "window": self.window or kf_dist,
-            "max_window": self.max_window or 0.5 * s["range_median"],
+            "max_window": self.max_window or 0.5 * s.range_median,
             "max_rmse": self.max_rmse or 1.5 * spacing,
             "fine": fine_distance(s),
             "voxel": spacing,
-            "range": s["range_median"],
+            "range": s.range_median,
         }
 
     # ------------------------------------------------------------------ loop closing

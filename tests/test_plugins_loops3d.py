@@ -102,7 +102,7 @@ def test_loops3d_rejects_bad_options_and_planar_scans(two_laps):
     cls = load("dm2.place_recognition", "loops3d")
     with pytest.raises(InputError, match="window=-1"):
         cls(window=-1.0, progress=False).run(frames, warm)
-    planar = type(frames)(frames.points, None, True, dict(frames.scale))
+    planar = type(frames)(frames.points, None, True, frames.scale)
     with pytest.raises(InputError, match="planar"):
         cls(progress=False).run(planar, warm)
 

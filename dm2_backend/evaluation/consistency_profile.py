@@ -99,7 +99,7 @@ def profile_voxel(scans: ScanSequence) -> float:
     """The largest plane voxel, from the data as the dense stage takes it: a few per median range, its finest
     quarter at least a point spacing."""
     scale = derive_scale(scans)
-    return max(scale["range_median"] / 8.0, 4.0 * scale["spacing_raw"], 1e-3)
+    return max(scale.range_median / 8.0, 4.0 * scale.spacing_raw, 1e-3)
 
 
 def window_frames(poses: np.ndarray, voxel: float) -> int:

@@ -119,7 +119,7 @@ class Optimiser:
             torch.set_num_threads(cfg.threads)
         lengths = derive(cfg, frames.scale, frames.planar)
         spread = disagreement(warm_start, topology.groups, pairwise.relative, pairwise.valid,
-                              frames.scale.get("range_median", 1.0))
+                              frames.scale.length)
         # loop-closed poses need no drift terms (they would undo the closures: sim-3d-5000, 0.95 m start, drifted
         # to 40 m with them); the pose-graph solution agrees with the registrations by construction; other
         # starts are judged by the measured disagreement
@@ -157,14 +157,14 @@ class Optimiser:
         if self.derived.chamfer_metric == "plane":
             self.normals = torch.from_numpy(sample_normals(frames, pts)).to(self.device)
         self.topo_groups = topology.groups
-        self._pairs = (topology.groups, pairwise.relative, pairwise.valid, frames.scale.get("range_median", 1.0))
+        self._pairs = (topology.groups, pairwise.relative, pairwise.valid, frames.scale.length)
         self.groups = make_groups(cfg.batching, topology.groups, seed)
         self.relative = torch.from_numpy(pairwise.relative).to(self.device)
         self.valid = torch.from_numpy(pairwise.valid & (topology.groups >= 0)).to(self.device)
         self.model = PoseModel(
             warm_start, frames.planar, self.derived.step_translation, self.derived.step_rotation,
             kind=cfg.pose_model, drift=self.derived.drift, points=self.points,
-            length_scale=frames.scale.get("range_median", 1.0), drift_factor=cfg.drift_factor,
+            length_scale=frames.scale.length, drift_factor=cfg.drift_factor,
         ).to(self.device)
         lo, hi = self._map_box(warm_start, pts)
         self.field = GridOccupancy(
