@@ -77,6 +77,8 @@ class Topology:
     loop_closed: bool = False
     #: loop closures the place recognition kept (0 for one that closes no loops)
     closures: int = 0
+    #: warm-start steps (frame k to k + 1) the place recognition repaired before closing loops
+    repaired_steps: tuple[int, ...] = ()
 
     @property
     def k(self) -> int:

@@ -109,7 +109,8 @@ def frames_from(arrays: dict[str, np.ndarray], meta: dict) -> Frames:
 def topology_from(hit: tuple[dict, dict]) -> Topology:
     arrays, meta = hit
     return Topology(arrays["groups"], arrays["edges"], meta["edge_kind"], meta["log"], poses=arrays.get("poses"),
-                    loop_closed=bool(meta.get("loop_closed", False)), closures=int(meta.get("closures", 0)))
+                    loop_closed=bool(meta.get("loop_closed", False)), closures=int(meta.get("closures", 0)),
+                    repaired_steps=tuple(int(k) for k in meta.get("repaired_steps", ())))
 
 
 def pairwise_from(hit: tuple[dict, dict]) -> Pairwise:
