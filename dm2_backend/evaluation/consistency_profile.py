@@ -29,7 +29,7 @@ from scipy.spatial import cKDTree
 
 from dm2_backend.atomic import atomic_write
 from dm2_backend.evaluation import plots
-from dm2_backend.evaluation.report import safe_name
+from dm2_backend.evaluation.report_writers import safe_name
 from dm2_backend.optim.planes import Cells, assign, cells_from_scans, chunks, disagreement, fit
 from dm2_backend.scan_scale import derive_scale
 from dm2_backend.scans import ScanSequence
