@@ -7,6 +7,7 @@ import numpy as np
 import open3d as o3d
 
 from dm2_backend.scans import ScanSequence
+from dm2_backend.stages import ScanScale
 
 
 def point_spacing(points: np.ndarray) -> float:
@@ -16,7 +17,7 @@ def point_spacing(points: np.ndarray) -> float:
     return float(np.median(d[d > 0])) if (d > 0).any() else 0.0
 
 
-def derive_scale(seq: ScanSequence, sample: int = 20) -> dict[str, float]:
+def derive_scale(seq: ScanSequence, sample: int = 20) -> ScanScale:
     """Lengths taken from the data: median/90th-percentile range and median point spacing of raw scans."""
     idx = np.unique(np.linspace(0, len(seq) - 1, min(sample, len(seq))).astype(int))
     ranges, spacings = [], []
@@ -26,8 +27,5 @@ def derive_scale(seq: ScanSequence, sample: int = 20) -> dict[str, float]:
         ranges.append(r)
         spacings.append(point_spacing(pts[:: max(1, len(pts) // 4096)]))
     r = np.concatenate(ranges)
-    return {
-        "range_median": float(np.median(r)),
-        "range_p90": float(np.percentile(r, 90)),
-        "spacing_raw": float(np.median(spacings)),
-    }
+    return ScanScale(range_median=float(np.median(r)), range_p90=float(np.percentile(r, 90)),
+                     spacing_raw=float(np.median(spacings)))

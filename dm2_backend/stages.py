@@ -3,9 +3,40 @@ model beside :mod:`dm2_backend.scans` and :mod:`dm2_backend.trajectory`."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
+
+
+@dataclass(frozen=True)
+class ScanScale:
+    """Lengths taken from the data (m). Each defaults to None, "not measured" (frames built by hand):
+    :func:`dm2_backend.algorithms.common.lengths` completes the missing ones from the points."""
+
+    #: median range of the raw scans' points
+    range_median: float | None = None
+    #: 90th percentile of that range
+    range_p90: float | None = None
+    #: median point spacing of the raw scans
+    spacing_raw: float | None = None
+    #: voxel grid of the down-sampled frames (0: none)
+    voxel: float | None = None
+    #: median point spacing of the down-sampled frames
+    spacing: float | None = None
+
+    @property
+    def length(self) -> float:
+        """The scene's length unit: the median range, 1 m where not measured."""
+        return 1.0 if self.range_median is None else self.range_median
+
+    def to_dict(self) -> dict[str, float]:
+        """The measured lengths by name, in field order (the cache's ``meta.json`` and the reports)."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, float]) -> ScanScale:
+        """The record of :meth:`to_dict`'s dict (keys missing: not measured)."""
+        return cls(**{k: float(v) for k, v in d.items()})
 
 
 @dataclass
@@ -13,13 +44,13 @@ class Frames:
     """Down-sampled scans held in memory for preparation and optimisation.
 
     ``points[i]`` is (M_i, 3) float32 in the sensor frame of frame i. ``scale`` holds the lengths derived
-    from the data (see :func:`dm2_backend.scan_scale.derive_scale`).
+    from the data (:class:`ScanScale`, from :func:`dm2_backend.scan_scale.derive_scale`).
     """
 
     points: list[np.ndarray]
     timestamps: np.ndarray | None
     planar: bool
-    scale: dict[str, float] = field(default_factory=dict)
+    scale: ScanScale = field(default_factory=ScanScale)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -46,6 +77,8 @@ class Topology:
     loop_closed: bool = False
     #: loop closures the place recognition kept (0 for one that closes no loops)
     closures: int = 0
+    #: warm-start steps (frame k to k + 1) the place recognition repaired before closing loops
+    repaired_steps: tuple[int, ...] = ()
 
     @property
     def k(self) -> int:

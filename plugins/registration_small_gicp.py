@@ -42,7 +42,7 @@ class SmallGicpRegistration(PairwiseRegistration):
         small_gicp's down-sampled cloud with covariances and its KD-tree, made once per frame instead of
         once per pair (each frame is in about eight pairs)."""
         scale = lengths(frames)
-        self._resolution = 0.5 * max(scale["voxel"], scale["spacing"])
+        self._resolution = 0.5 * max(scale.voxel, scale.spacing)
 
         def build(f: int) -> Cloud:
             cloud = Cloud(frames.points[f], frames.planar, fine).ensure("point-to-point")

@@ -30,7 +30,7 @@ from dm2_backend.algorithms.gates import check_alignment, constraint
 from dm2_backend.algorithms.icp import register
 from dm2_backend.algorithms.topology import check_k, check_poses
 from dm2_backend.progress import progress
-from dm2_backend.stages import Frames, Topology
+from dm2_backend.stages import Frames, ScanScale, Topology
 
 
 @dataclass
@@ -75,7 +75,7 @@ class DescriptorTopology:
         check_k(self.k)
         check_poses(frames, poses)
         scale = lengths(frames)
-        radius = self.radius or 0.5 * scale["range_median"]
+        radius = self.radius or 0.5 * scale.range_median
         log: list[dict] = [{"plugin": self.name, "radius": radius, "k": self.k}]
         loops = self._loops(frames, poses, scale, radius, log)
         near = radius_neighbours(poses[:, :3, 3], radius, self.k)
@@ -83,10 +83,10 @@ class DescriptorTopology:
         rows = [[(j, "loop") for j in lp] + [(j, "radius") for j in nr] for lp, nr in pairs]
         return assemble(rows, self.k, self.temporal_fill, log)
 
-    def _loops(self, frames: Frames, poses: np.ndarray, scale: dict, radius: float, log: list) -> list[list[int]]:
+    def _loops(self, frames: Frames, poses: np.ndarray, scale: ScanScale, radius: float, log: list) -> list[list[int]]:
         """Verified loop partners per frame, best fitness first."""
         n = len(frames)
-        max_range = self.max_range or scale["range_p90"]
+        max_range = self.max_range or scale.range_p90
         descs = np.stack(
             [sc.descriptor(p, self.rings, self.sectors, max_range, frames.planar) for p in frames.points]
         ).astype(np.float32)
@@ -98,8 +98,8 @@ class DescriptorTopology:
         fine = fine_distance(scale)
         gates = {
             "min_fitness": self.min_fitness,
-            "max_rmse": self.max_rmse or 1.5 * max(scale["voxel"], scale["spacing"]),
-            "max_offset": self.max_offset or scale["range_median"],
+            "max_rmse": self.max_rmse or 1.5 * max(scale.voxel, scale.spacing),
+            "max_offset": self.max_offset or scale.range_median,
             "min_constraint": self.min_constraint,
             "max_free_space": self.max_free_space or (0.1 if frames.planar else 0.04),
             "free_space_margin": self.free_space_margin or (4.0 if frames.planar else 1.0) * fine,

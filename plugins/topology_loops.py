@@ -136,19 +136,19 @@ class LoopsTopology:
 
     def _setup(self, frames: Frames) -> None:
         s = lengths(frames)
-        res = self.resolution or 2.0 * max(s["spacing"], s["voxel"], 1e-3)
-        half = self.submap_half_length or s["range_p90"]
+        res = self.resolution or 2.0 * max(s.spacing, s.voxel, 1e-3)
+        half = self.submap_half_length or s.range_p90
         self._lengths = {
-            "radius": self.radius or 0.5 * s["range_median"],
-            "keyframe_distance": self.keyframe_distance or 0.5 * s["range_median"],
+            "radius": self.radius or 0.5 * s.range_median,
+            "keyframe_distance": self.keyframe_distance or 0.5 * s.range_median,
             "submap_half_length": half,
             "resolution": res,
-            "window": self.window or 0.5 * s["range_median"],
-            "max_window": self.max_window or 4.0 * s["range_p90"],
+            "window": self.window or 0.5 * s.range_median,
+            "max_window": self.max_window or 4.0 * s.range_p90,
             "min_path_gap": self.min_path_gap or 4.0 * half,
             "cycle_tolerance": self.cycle_tolerance or 4.0 * res,
             "fine": fine_distance(s),
-            "reach": s["range_p90"],
+            "reach": s.range_p90,
         }
         self._rng = np.random.default_rng(self.seed)
         self._grids: dict[tuple[int, float], cm.LikelihoodGrid] = {}

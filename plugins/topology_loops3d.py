@@ -96,8 +96,8 @@ class Loops3dTopology:
             raise InputError(None, "place recognition loops3d: planar scans; use loops")
         self._setup(frames)
         log: list[dict] = [{"plugin": self.name, **self._lengths}]
-        corrected, closures = self._close_loops(frames, poses, log)
-        return self._topology(frames, corrected, log, closures)
+        corrected, closures, repaired = self._close_loops(frames, poses, log)
+        return self._topology(frames, corrected, log, closures, repaired)
 
     # ------------------------------------------------------------------ set-up
     def _setup(self, frames: Frames) -> None:
@@ -108,22 +108,22 @@ class Loops3dTopology:
         if bad:
             raise InputError(None, f"place recognition loops3d: invalid options {', '.join(bad)}")
         s = lengths(frames)
-        spacing = max(s["spacing"], s["voxel"], 1e-3)
-        kf_dist = self.keyframe_distance or s["range_median"] / 10.0
+        spacing = max(s.spacing, s.voxel, 1e-3)
+        kf_dist = self.keyframe_distance or s.range_median / 10.0
         self._lengths = {
-            "radius": self.radius or 0.5 * s["range_median"],
+            "radius": self.radius or 0.5 * s.range_median,
             "keyframe_distance": kf_dist,
             "min_path_gap": self.min_path_gap or 4.0 * kf_dist,
             "window": self.window or kf_dist,
-            "max_window": self.max_window or 0.5 * s["range_median"],
+            "max_window": self.max_window or 0.5 * s.range_median,
             "max_rmse": self.max_rmse or 1.5 * spacing,
             "fine": fine_distance(s),
             "voxel": spacing,
-            "range": s["range_median"],
+            "range": s.range_median,
         }
 
     # ------------------------------------------------------------------ loop closing
-    def _close_loops(self, frames: Frames, poses: np.ndarray, log: list) -> tuple[np.ndarray, int]:
+    def _close_loops(self, frames: Frames, poses: np.ndarray, log: list) -> tuple[np.ndarray, int, list[int]]:
         L = self._lengths
         poses, repaired = self._repair(frames, poses)
         self._keys = keys = _keyframes(poses, L["keyframe_distance"], np.radians(self.keyframe_angle))
@@ -148,7 +148,7 @@ class Loops3dTopology:
                 c.entry.update(accepted=False, dropped=True, reason="dropped by the final robust solve")
         log[0].update(keyframes=len(keys), closures=len(closures), repaired_steps=repaired,
                       dropped=sum(1 for e in log[1:] if e.get("dropped")))
-        return estimate, len(closures)
+        return estimate, len(closures), repaired
 
     def _repair(self, frames: Frames, poses: np.ndarray) -> tuple[np.ndarray, list[int]]:
         """The input trajectory with its failed steps repaired: each increment is checked by GICP of the frame
@@ -281,7 +281,8 @@ class Loops3dTopology:
         return voxel_cloud(pts, self._lengths["voxel"], False, 2.0 * self._lengths["fine"])
 
     # ------------------------------------------------------------------ topology
-    def _topology(self, frames: Frames, corrected: np.ndarray, log: list, closures: int) -> Topology:
+    def _topology(self, frames: Frames, corrected: np.ndarray, log: list, closures: int,
+                  repaired: list[int]) -> Topology:
         """Loop partners: far along the path, within the radius, and looking at the same place (the centroids
         of their scans in the world within the radius too); then radius and temporal neighbours."""
         L = self._lengths
@@ -292,8 +293,8 @@ class Loops3dTopology:
         rows = loop_rows(pos, path_length(corrected), L["radius"], L["min_path_gap"], self.k, limit, centroid)
         topo = assemble(rows, self.k, self.temporal_fill, log)
         # corrected only when a loop was closed or a failed step repaired
-        topo.closures = closures
-        topo.poses = corrected if closures or log[0].get("repaired_steps") else None
+        topo.closures, topo.repaired_steps = closures, tuple(repaired)
+        topo.poses = corrected if closures or repaired else None
         topo.loop_closed = topo.poses is not None and closures > 0
         # (Topology.loop_closed tells the two apart: the optimiser treats only loop-closed starts as accurate)
         return topo

@@ -107,9 +107,9 @@ class IcpWarmStart:
         scale = lengths(frames)
         fine = self.max_distance or fine_distance(scale)
         distances = (4.0 * fine, fine)
-        kf_dist = self.keyframe_distance or scale["range_median"] / 10.0
+        kf_dist = self.keyframe_distance or scale.range_median / 10.0
         kf_angle = np.radians(self.keyframe_angle)
-        voxel = self.map_voxel or max(scale["voxel"], scale["spacing"])
+        voxel = self.map_voxel or max(scale.voxel, scale.spacing)
         increments = self._increments(frames, given)
         n = len(frames)
         poses = np.tile(np.eye(4), (n, 1, 1))
@@ -125,7 +125,7 @@ class IcpWarmStart:
         self.verdicts: list[WindowVerdict] = []
         fuse = self._fusing(frames, increments, method)
         if fuse:
-            self._start_fusion(n, fine, scale["range_median"])
+            self._start_fusion(n, fine, scale.range_median)
         for i in progress(range(1, n), "icp warm start", unit="frame", enabled=self.progress):
             delta = increments[i - 1] if increments is not None else velocity
             predicted = poses[i - 1] @ delta

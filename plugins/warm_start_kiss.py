@@ -36,7 +36,7 @@ class KissWarmStart:
         except ImportError:
             raise InputError(None, "warm start 'kiss-icp' needs kiss-icp: install dm2[kiss]") from None
         scale = lengths(frames)
-        max_range = self.max_range or 1.5 * scale["range_p90"]
+        max_range = self.max_range or 1.5 * scale.range_p90
         config = KISSConfig()
         config.data.max_range, config.data.min_range, config.data.deskew = float(max_range), 0.0, False
         config.mapping.voxel_size = float(self.voxel_size or max_range / 100.0)

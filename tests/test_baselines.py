@@ -21,7 +21,7 @@ from dm2_backend.errors import InputError
 from dm2_backend.formats.g2o import read_g2o, write_g2o
 from dm2_backend.geometry import se3
 from dm2_backend.pose_graph import PoseGraph
-from dm2_backend.stages import Frames, Pairwise, Topology
+from dm2_backend.stages import Frames, Pairwise, ScanScale, Topology
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 GRAPHS = DATA / "posegraphs"
@@ -131,7 +131,7 @@ def test_build_graph_from_registrations():
     gt = se3.from_xy_yaw(np.array([[0, 0, 0], [1, 0, 0.1], [2, 0.2, 0.2], [3, 0.3, 0.1]], float))
     warm = gt @ se3.from_xy_yaw(np.array([[0, 0, 0], [0.1, 0, 0], [0.2, 0, 0.01], [0.3, 0, 0.02]]))
     ring = np.column_stack([5 * np.cos(np.arange(100)), 5 * np.sin(np.arange(100)), np.zeros(100)])
-    frames = Frames([ring.astype(np.float32)] * 4, None, planar=True, scale={"voxel": 0.0, "spacing": 0.1})
+    frames = Frames([ring.astype(np.float32)] * 4, None, planar=True, scale=ScanScale(voxel=0.0, spacing=0.1))
     groups = np.array([[1, 2], [0, 2], [0, 3], [2, -1]])
     rel = np.tile(np.eye(4), (4, 2, 1, 1))
     for i in range(4):
@@ -166,7 +166,7 @@ def test_build_graph_3d_solves_and_round_trips(tmp_path):
                                              rng.normal(0, 0.05, (n, 3))]))
     warm = gt @ se3.from_xyz_euler(np.column_stack([0.05 * np.arange(n), np.zeros((n, 4)), 0.01 * np.arange(n)]))
     cloud = rng.uniform(-10, 10, (200, 3)).astype(np.float32)
-    frames = Frames([cloud] * n, None, planar=False, scale={"voxel": 0.2, "spacing": 0.3})
+    frames = Frames([cloud] * n, None, planar=False, scale=ScanScale(voxel=0.2, spacing=0.3))
     groups = np.array([[i + 1, (i + 4) % n] for i in range(n)])
     groups[-1, 0] = -1
     rel = np.tile(np.eye(4), (n, 2, 1, 1))
@@ -246,7 +246,7 @@ def test_multiway_function_returns_n_poses():
     graph, gt = ring_graph()
     rng = np.random.default_rng(0)
     cloud = (rng.uniform(-5, 5, (300, 3)) * [1, 1, 0]).astype(np.float32)
-    frames = Frames([cloud] * 40, None, planar=True, scale={"voxel": 0.0, "spacing": 0.3})
+    frames = Frames([cloud] * 40, None, planar=True, scale=ScanScale(voxel=0.0, spacing=0.3))
     groups = np.full((40, 1), -1)
     groups[:-1, 0] = np.arange(1, 40)
     rel = np.tile(np.eye(4), (40, 1, 1, 1))

@@ -18,6 +18,7 @@ from dm2_backend import config
 from dm2_backend.cli.main import cli
 from dm2_backend.config_schema import RunConfig
 from dm2_backend.formats import ReadOptions, open_scans, read_trajectory
+from dm2_backend.prepare import store
 from dm2_backend.prepare.cache_keys import code_fingerprint, file_fingerprint, module_closure, source_key, step_key
 from dm2_backend.prepare.steps import prepare
 from dm2_backend.simulate.sequence import write_sequence
@@ -160,3 +161,12 @@ def test_loop_closed_is_a_field_that_survives_the_cache(seq, tmp_path):
     assert fresh.closures == fresh.log[0]["closures"]
     assert fresh.loop_closed == (fresh.poses is not None and fresh.closures > 0)
     assert (cached.loop_closed, cached.closures) == (fresh.loop_closed, fresh.closures)
+
+
+def test_repaired_steps_survive_the_cache_and_default_to_none_when_missing(tmp_path):
+    groups, edges = np.array([[1], [0]]), np.array([[0, 1]])
+    store.put(tmp_path, "topology-x", {"groups": groups, "edges": edges},
+              {"edge_kind": ["temporal"], "log": [{}], "repaired_steps": [3, 7]})
+    assert store.topology_from(store.get(tmp_path, "topology-x")).repaired_steps == (3, 7)
+    store.put(tmp_path, "topology-old", {"groups": groups, "edges": edges}, {"edge_kind": ["temporal"], "log": [{}]})
+    assert store.topology_from(store.get(tmp_path, "topology-old")).repaired_steps == ()

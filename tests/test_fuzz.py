@@ -482,7 +482,7 @@ def test_config_yaml_is_safe_loaded(tmp_path, monkeypatch):
 
 
 def test_output_names_from_content_are_sanitised():
-    from dm2_backend.evaluation.report import safe_name
+    from dm2_backend.evaluation.report_writers import safe_name
 
     for label in ("/tf:map.base/../../etc/passwd", "../../x", "a/b\\c", "\0\n", "topic with spaces"):
         name = safe_name(label)

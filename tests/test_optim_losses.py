@@ -187,7 +187,7 @@ def test_bce_lower_at_ground_truth_with_field_fitted_there(case):
         return se3_torch.transform(T, pts), T[:, :3, 3]
 
     world, origins = world_and_origins(gt)
-    unit = 2 * case.frames.scale["spacing"]
+    unit = 2 * case.frames.scale.spacing
     lo, hi = world.reshape(-1, 3).min(0).values.numpy(), world.reshape(-1, 3).max(0).values.numpy()
     field = GridOccupancy(lo[:2] - 2, hi[:2] + 2, unit, levels=6, max_cells=2**14)
     opt = torch.optim.Adam(field.parameters(), lr=1e-2)

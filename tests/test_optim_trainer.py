@@ -30,6 +30,7 @@ from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.plugins.topology_radius import RadiusTopology
 from dm2_backend.simulate.lidar import LidarModel
 from dm2_backend.simulate.sequence import SimSettings, simulate
+from dm2_backend.stages import ScanScale
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -220,13 +221,13 @@ def test_batching_groups():
 
 
 def test_derived_lengths_follow_the_data():
-    d = derive(OptimConfig(), {"spacing": 0.2, "voxel": 0.0, "range_median": 10.0})
+    d = derive(OptimConfig(), ScanScale(spacing=0.2, voxel=0.0, range_median=10.0))
     assert d.unit == pytest.approx(0.4) and d.finest_cell == d.free_margin == d.unit
     assert d.chamfer_truncate == pytest.approx(4.0) and d.step_translation == pytest.approx(0.04)
     assert d.step_rotation == pytest.approx(0.004)
-    d = derive(OptimConfig(unit=1.0, step_rotation=0.5), {"spacing": 0.2, "voxel": 0.5})
+    d = derive(OptimConfig(unit=1.0, step_rotation=0.5), ScanScale(spacing=0.2, voxel=0.5))
     assert d.unit == 1.0 and d.step_rotation == 0.5 and d.step_translation == pytest.approx(0.1)
-    assert derive(OptimConfig(), {"spacing": 0.1, "voxel": 0.3}).unit == pytest.approx(0.6)
+    assert derive(OptimConfig(), ScanScale(spacing=0.1, voxel=0.3)).unit == pytest.approx(0.6)
 
 
 def test_pose_regime_follows_start_accuracy():
@@ -323,7 +324,7 @@ def test_loss_regime_from_the_pose_graph_start():
     assert sampled_points(cfg, 300, planar=False) == 300
     assert sampled_points(OptimConfig(start="prepared"), 1024, planar=False) == 256
     # 3D: the unit follows the raw scans' spacing (the frames are a subsample), planar data the frames'
-    scale = {"spacing": 0.4, "spacing_raw": 0.15, "voxel": 0.1, "range_median": 8.0}
+    scale = ScanScale(spacing=0.4, spacing_raw=0.15, voxel=0.1, range_median=8.0)
     assert derive(cfg, scale, planar=False).unit == pytest.approx(0.3)
     assert derive(cfg, scale, planar=True).unit == pytest.approx(0.8)
     assert derive(cfg, scale, planar=False).chamfer_truncate == pytest.approx(3.0)
@@ -363,7 +364,7 @@ def test_a_diverging_run_returns_its_start_not_a_scattered_map(case, select):
     both the loss and a local map metric can look better than the start; the registrations tell."""
     from dm2_backend.evaluation.map_quality import MapSampler, MapSettings
 
-    voxel = case.frames.scale["spacing"]
+    voxel = case.frames.scale.spacing
     sampler = MapSampler(list(case.frames.points), True, voxel, 3 * voxel, MapSettings()) if select == "map" else None
     opt = Optimiser(case.frames, case.warm, case.topology, case.pairwise,
                     small_config(epochs=2, lr_pose=1e6, select=select), seed=0, device="cpu", progress=False,

@@ -102,7 +102,7 @@ def test_loops3d_rejects_bad_options_and_planar_scans(two_laps):
     cls = load("dm2.place_recognition", "loops3d")
     with pytest.raises(InputError, match="window=-1"):
         cls(window=-1.0, progress=False).run(frames, warm)
-    planar = type(frames)(frames.points, None, True, dict(frames.scale))
+    planar = type(frames)(frames.points, None, True, frames.scale)
     with pytest.raises(InputError, match="planar"):
         cls(progress=False).run(planar, warm)
 
@@ -135,7 +135,7 @@ def test_loops3d_repairs_a_failed_front_end_step(two_laps):
     warm = truth.copy()
     warm[40:] = truth[39] @ jump @ se3.relative(truth[39], truth[40:])  # the front end failed on frame 40
     topo = load("dm2.place_recognition", "loops3d")(progress=False).run(frames, warm)
-    assert topo.log[0]["repaired_steps"] == [39]
+    assert topo.repaired_steps == (39,) and topo.log[0]["repaired_steps"] == [39]
     assert topo.closures == topo.log[0]["closures"] and topo.loop_closed == (topo.closures > 0)
     assert np.allclose(topo.poses[:40], warm[:40], atol=0.02)  # before the failed step: as it was
     step = se3.relative(topo.poses[39], topo.poses[40])

@@ -72,7 +72,7 @@ def test_radius_within_radius_and_temporal_fill(floor):
 def test_radius_default_and_small_inputs(floor):
     frames, truth = floor
     topo = RadiusTopology().run(frames, truth)
-    assert topo.log[0]["radius"] == pytest.approx(0.5 * frames.scale["range_median"])
+    assert topo.log[0]["radius"] == pytest.approx(0.5 * frames.scale.range_median)
     small = Frames(frames.points[:3], None, True, frames.scale)
     topo = RadiusTopology(k=8).run(small, truth[:3])
     check_groups(topo, 3, 8)

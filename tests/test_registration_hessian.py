@@ -9,7 +9,7 @@ from dm2_backend.algorithms.icp import point_to_plane_hessian, register
 from dm2_backend.baselines import gtsam_backend
 from dm2_backend.baselines.graph import EIGEN_FLOOR, build_graph, hessian_information
 from dm2_backend.geometry import se3
-from dm2_backend.stages import Frames, Pairwise, Topology
+from dm2_backend.stages import Frames, Pairwise, ScanScale, Topology
 
 
 def _exp(xi: np.ndarray) -> np.ndarray:
@@ -72,7 +72,7 @@ def test_hessian_information_keeps_a_slid_corridor_match_from_moving_the_graph()
     n = 6
     gt = se3.from_xyz_euler(np.column_stack([np.arange(n) * 1.0, np.zeros((n, 5))]))
     cloud = _corridor(rng).astype(np.float32)
-    frames = Frames([cloud] * n, None, planar=False, scale={"voxel": 0.1, "spacing": 0.1})
+    frames = Frames([cloud] * n, None, planar=False, scale=ScanScale(voxel=0.1, spacing=0.1))
     groups = np.array([[i + 3 if i + 3 < n else -1] for i in range(n)])
     rel = np.tile(np.eye(4), (n, 1, 1, 1))
     hess = np.zeros((n, 1, 6, 6), np.float32)
@@ -107,7 +107,7 @@ def test_the_registration_plugin_keeps_the_hessians_when_asked():
 
     rng = np.random.default_rng(4)
     clouds = [_corridor(rng).astype(np.float32) for _ in range(3)]
-    scale = {"voxel": 0.1, "spacing": 0.1, "spacing_raw": 0.1, "range_median": 5.0, "range_p90": 15.0}
+    scale = ScanScale(voxel=0.1, spacing=0.1, spacing_raw=0.1, range_median=5.0, range_p90=15.0)
     frames = Frames(clouds, None, planar=False, scale=scale)
     topology = Topology(np.array([[1, 2], [0, 2], [0, 1]]))
     plain = IcpRegistration(progress=False).run(frames, np.tile(np.eye(4), (3, 1, 1)), topology)

@@ -4,7 +4,7 @@ topology assembly. ICP is in :mod:`.icp`, alignment checks in :mod:`.gates`."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import open3d as o3d
@@ -13,32 +13,34 @@ from scipy.spatial import cKDTree
 from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
 from dm2_backend.scan_scale import point_spacing
-from dm2_backend.stages import Frames, Topology
+from dm2_backend.stages import Frames, ScanScale, Topology
 
 #: ICP variants; "auto" is GICP for 3D clouds (sparse down-sampled scans suit its covariances better than
 #: point-to-plane's normals) and 2D point-to-line for planar scans
 METHODS = ("auto", "point-to-plane", "point-to-point", "gicp")
 
 
-def lengths(frames: Frames) -> dict[str, float]:
-    """``frames.scale`` completed from the points where keys are missing (frames built by hand)."""
-    s = dict(frames.scale)
+def lengths(frames: Frames) -> ScanScale:
+    """``frames.scale`` completed from the points where lengths are not measured (frames built by hand); the
+    voxel 0 (none) there. ``spacing_raw`` stays as it is."""
+    s = frames.scale
     if not frames.points:
         raise InputError(None, "no frames to prepare")
     sub = frames.points[:: max(1, len(frames) // 20)]
-    if "range_median" not in s or "range_p90" not in s:
+    if s.range_median is None or s.range_p90 is None:
         r = np.concatenate([np.linalg.norm(p, axis=1) for p in sub])
-        s.setdefault("range_median", float(np.median(r)))
-        s.setdefault("range_p90", float(np.percentile(r, 90)))
-    if "spacing" not in s:
-        s["spacing"] = float(np.median([point_spacing(p) for p in sub if len(p) > 1]))
-    s.setdefault("voxel", 0.0)
+        s = replace(s, range_median=float(np.median(r)) if s.range_median is None else s.range_median,
+                    range_p90=float(np.percentile(r, 90)) if s.range_p90 is None else s.range_p90)
+    if s.spacing is None:
+        s = replace(s, spacing=float(np.median([point_spacing(p) for p in sub if len(p) > 1])))
+    if s.voxel is None:
+        s = replace(s, voxel=0.0)
     return s
 
 
-def fine_distance(scale: dict[str, float]) -> float:
+def fine_distance(scale: ScanScale) -> float:
     """Correspondence distance for a converged alignment: three point spacings (or voxels)."""
-    return 3.0 * max(scale["voxel"], scale["spacing"])
+    return 3.0 * max(scale.voxel, scale.spacing)
 
 
 def resolve_method(method: str, planar: bool) -> str:

@@ -90,7 +90,7 @@ class PairwiseRegistration:
         self._check(frames)
         scale = lengths(frames)
         fine = self.max_distance or fine_distance(scale)
-        max_rmse = self.max_rmse or 1.5 * max(scale["voxel"], scale["spacing"])
+        max_rmse = self.max_rmse or 1.5 * max(scale.voxel, scale.spacing)
         margin = self.free_space_margin or (4.0 if frames.planar else 1.0) * fine
         max_free = self.max_free_space or (0.15 if frames.planar else 0.1)
         groups = np.asarray(topology.groups)

@@ -11,7 +11,7 @@ from dm2_backend.stages import Frames
 
 def default_radius(frames: Frames) -> float:
     """Half the median range: frames this close share most of their view."""
-    return 0.5 * lengths(frames)["range_median"]
+    return 0.5 * lengths(frames).range_median
 
 
 def check_k(k: int) -> None:

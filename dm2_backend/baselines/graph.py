@@ -96,7 +96,7 @@ def rmse_floor(frames: Frames, model: InformationModel) -> float:
     if model.rmse_floor is not None:
         return model.rmse_floor
     s = frames.scale
-    base = max(s.get("voxel", 0.0), s.get("spacing", 0.0))
+    base = max(s.voxel or 0.0, s.spacing or 0.0)
     return 0.1 * base if base > 0 else 1e-3
 
 
@@ -141,7 +141,7 @@ def build_graph(frames: Frames, warm: np.ndarray, topology: Topology, pairwise: 
     if info:
         fallback = np.median(np.stack(list(isotropic.values())), axis=0) * model.fallback_weight
     else:
-        sigma = max(frames.scale.get("voxel", 0.0), frames.scale.get("spacing", 0.0)) or 0.1
+        sigma = max(frames.scale.voxel or 0.0, frames.scale.spacing or 0.0) or 0.1
         fallback = registration_information(sigma, 1.0, 1, float(np.median(arms)), planar, floor)
     edges, relative, information = [], [], []
     warm_odometry = 0

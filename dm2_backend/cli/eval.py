@@ -15,16 +15,9 @@ from dm2_backend.evaluation.consistency_profile import consistency_profiles, wri
 from dm2_backend.evaluation.evaluate import EvalOptions, evaluate
 from dm2_backend.evaluation.map_quality import MapSampler, poses_of_scans
 from dm2_backend.evaluation.relations import MAX_DT, load_relations
-from dm2_backend.evaluation.report import (
-    EvalReport,
-    read_run_report,
-    safe_name,
-    terminal_text,
-    write_csv,
-    write_evo_results,
-    write_json,
-    write_markdown,
-)
+from dm2_backend.evaluation.report import EvalReport, terminal_text
+from dm2_backend.evaluation.report_writers import safe_name, write_csv, write_evo_results, write_json, write_markdown
+from dm2_backend.evaluation.run_compare import read_run_report
 from dm2_backend.formats import ReadOptions, open_scans, read_trajectory
 from dm2_backend.pipeline.inputs import looks_planar
 

@@ -92,7 +92,7 @@ def is_run_folder(path: Path) -> bool:
 
 def run_folder_rows(path: Path) -> list[tuple[str, str]]:
     """A run folder: what made it, its frames, metrics and cautions, and the trajectories to give other tools."""
-    from dm2_backend.evaluation.report import read_run_report
+    from dm2_backend.evaluation.run_compare import read_run_report
 
     report = read_run_report(path)
     rows = [("path", str(path)), ("format", "dm2 run folder (dm2 refine / dm2 baseline)"),

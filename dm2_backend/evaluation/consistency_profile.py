@@ -29,7 +29,7 @@ from scipy.spatial import cKDTree
 
 from dm2_backend.atomic import atomic_write
 from dm2_backend.evaluation import plots
-from dm2_backend.evaluation.report import safe_name
+from dm2_backend.evaluation.report_writers import safe_name
 from dm2_backend.optim.planes import Cells, assign, cells_from_scans, chunks, disagreement, fit
 from dm2_backend.scan_scale import derive_scale
 from dm2_backend.scans import ScanSequence
@@ -99,7 +99,7 @@ def profile_voxel(scans: ScanSequence) -> float:
     """The largest plane voxel, from the data as the dense stage takes it: a few per median range, its finest
     quarter at least a point spacing."""
     scale = derive_scale(scans)
-    return max(scale["range_median"] / 8.0, 4.0 * scale["spacing_raw"], 1e-3)
+    return max(scale.range_median / 8.0, 4.0 * scale.spacing_raw, 1e-3)
 
 
 def window_frames(poses: np.ndarray, voxel: float) -> int:

@@ -1,19 +1,6 @@
-"""Evaluation reports: terminal table, JSON, CSV and Markdown (written atomically), evo result archives,
-and the run report (``report.json``) that ``dm2 compare`` reads.
-
-Run report schema (``<run folder>/report.json``, one JSON object)::
-
-    method       str               what produced the run, e.g. "dm2 refine" or "KISS-ICP warm start"
-    metrics      {name: number}    flat metrics, units in the names (see :func:`run_metrics`), e.g.
-                                   "ape_trans_rmse_m", "ape_rot_rmse_deg", "relations_trans_mean_m"
-    timings      {stage: seconds}  wall-clock seconds per stage, e.g. {"prepare": 12.1, "refine": 340.2}
-    peak_rss_mb  number            peak resident memory of the run, MiB
-    cautions     [str]             optional: where the metrics are ill-posed (a rotation APE the alignment
-                                   does not determine) or a trajectory standing still scores within reach
-    epochs       [ {...} ]         optional, per refinement epoch: "epoch" (int), "loss" and "ate" (numbers),
-                                   each key optional; "ate" may also be {name: number}; "ate_metric"
-                                   names the metric "ate" is (a key of "metrics": "ape_trans_rmse_m" or
-                                   "relations_trans_mean_m"; its value at the start is in "start_metrics")
+"""Evaluation reports as types: one estimate's and one evaluation's results, their rows, JSON and terminal text,
+and a run report's flat metrics. The files are written by :mod:`.report_writers`, ``dm2 compare``'s table of
+run reports is :mod:`.run_compare`, the text tables :mod:`.text_table`.
 
 Evaluation JSON (``dm2 eval --json``): ``format`` ("dm2-eval/1"), ``ground_truth``, ``relations``,
 ``settings`` and ``estimates`` (a list with ``label``, ``path``, ``association``, ``alignment`` and
@@ -25,24 +12,18 @@ paper's figure for the paper ATE).
 
 from __future__ import annotations
 
-import csv
-import json
 import math
-import re
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
-from evo.tools import file_interface
 
-from dm2_backend.atomic import atomic_write
-from dm2_backend.errors import InputError
 from dm2_backend.evaluation.ape_rpe import STAT_KEYS, PoseErrors
 from dm2_backend.evaluation.cautions import pose_cautions, standing_still_rmse
 from dm2_backend.evaluation.map_quality import MapQuality
 from dm2_backend.evaluation.paper_ate import LABEL as PAPER_LABEL
 from dm2_backend.evaluation.paper_ate import PaperATE
 from dm2_backend.evaluation.relations import RelationsResult
+from dm2_backend.evaluation.text_table import format_table
 
 FORMAT = "dm2-eval/1"
 COLUMNS = ("estimate", "metric", "unit", "count", "value", *STAT_KEYS)
@@ -169,32 +150,7 @@ def run_metrics(est: EstimateReport) -> dict[str, float]:
     return out
 
 
-def fmt(v) -> str:
-    if v is None:
-        return "-"
-    if isinstance(v, bool) or isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if not math.isfinite(v):
-            return "-"
-        return f"{v:.6f}" if abs(v) < 1e6 else f"{v:.6g}"
-    return str(v)
-
-
-def format_table(header: list[str], body: list[list]) -> str:
-    """Plain aligned text table (numbers right-aligned)."""
-    cells = [[fmt(c) for c in r] for r in body]
-    widths = [max(len(h), *(len(r[i]) for r in cells)) if cells else len(h) for i, h in enumerate(header)]
-    numeric = [all(isinstance(r[i], (int, float)) or r[i] is None for r in body) for i in range(len(header))]
-
-    def line(items: list[str]) -> str:
-        cols = zip(items, widths, numeric, strict=True)
-        return "  ".join(s.rjust(w) if num else s.ljust(w) for s, w, num in cols).rstrip()
-
-    return "\n".join([line(header), line(["-" * w for w in widths]), *(line(r) for r in cells)])
-
-
-def _display_rows(report: EvalReport) -> tuple[list[str], list[list]]:
+def display_rows(report: EvalReport) -> tuple[list[str], list[list]]:
     header = ["estimate", "metric", "unit", "count", "value", *STAT_KEYS]
     body = [[r["estimate"], _LABELS[r["metric"]], r["unit"], r["count"], r["value"],
              *(r.get(k) for k in STAT_KEYS)] for r in rows(report)]
@@ -233,132 +189,10 @@ def map_line(report: EvalReport) -> list[str]:
 
 def terminal_text(report: EvalReport) -> str:
     lines = [line for est in report.estimates for line in describe(est)] + map_line(report)
-    header, body = _display_rows(report)
+    header, body = display_rows(report)
     lines += ["", format_table(header, body)]
     if any(e.paper is not None for e in report.estimates):
         lines.append(f"\n{PAPER_LABEL}: the DeepMapping2 paper's definition (trans = sqrt of the mean "
                      "distance after rigid alignment, sqrt(m); rot = mean |yaw error|); not comparable "
                      "with APE")
     return "\n".join(lines)
-
-
-def write_json(report: EvalReport, path: str | Path) -> None:
-    with atomic_write(path) as fh:
-        json.dump(to_json(report), fh, indent=2, allow_nan=False)
-        fh.write("\n")
-
-
-def write_csv(report: EvalReport, path: str | Path) -> None:
-    with atomic_write(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(COLUMNS))
-        writer.writeheader()
-        for r in rows(report):
-            writer.writerow({k: _csv_cell(r.get(k)) for k in COLUMNS})
-
-
-def _csv_cell(v):
-    return "" if v is None or (isinstance(v, float) and not math.isfinite(v)) else v
-
-
-def write_markdown(report: EvalReport, path: str | Path) -> None:
-    header, body = _display_rows(report)
-    lines = ["# Trajectory evaluation", ""]
-    if report.ground_truth:
-        lines.append(f"Ground truth: `{report.ground_truth}`  ")
-    if report.relations_file:
-        lines.append(f"Relations: `{report.relations_file}`  ")
-    lines += [f"- {line}" for est in report.estimates for line in describe(est)]
-    lines += [f"- {line}" for line in map_line(report)]
-    lines += ["", "| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
-    lines += ["| " + " | ".join(fmt(c) for c in r) + " |" for r in body]
-    if any(e.paper is not None for e in report.estimates):
-        lines += ["", f"*{PAPER_LABEL}*: DeepMapping2's official definition (sqrt of the mean distance after "
-                  "rigid alignment; mean absolute yaw error). Not comparable with APE."]
-    with atomic_write(path) as fh:
-        fh.write("\n".join(lines) + "\n")
-
-
-def safe_name(label: str) -> str:
-    """A file-name part from a label that may come from file content (a topic, a frame id): letters, digits,
-    ``. _ -`` only, never starting with a dot (no hidden files, no ``..``)."""
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", label).strip("._") or "estimate"
-
-
-def write_evo_results(report: EvalReport, folder: str | Path) -> list[Path]:
-    """evo result archives (``evo_res`` reads them), one per estimate and metric."""
-    folder = Path(folder)
-    written = []
-    for est in report.estimates:
-        if est.poses is None:
-            continue
-        for key, m in est.poses.metrics.items():
-            path = folder / f"{safe_name(est.label)}_{key}.zip"
-            with atomic_write(path, "wb") as fh:
-                file_interface.save_res_file(fh, m.result)
-            written.append(path)
-    return written
-
-
-# --- run reports ---------------------------------------------------------------------------------------
-
-def read_run_report(path: str | Path) -> dict:
-    """A run report (a folder holding ``report.json``, or the file); types are checked."""
-    path = Path(path)
-    file = path / "report.json" if path.is_dir() else path
-    if not file.is_file():
-        raise InputError(file, "no such run report")
-    try:
-        data = json.loads(file.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(file, f"not valid JSON ({exc})") from None
-    if not isinstance(data, dict):
-        raise InputError(file, "a run report is a JSON object")
-    for key in ("metrics", "timings"):
-        if not isinstance(data.get(key, {}), dict):
-            raise InputError(file, f"'{key}' must be an object of name: number")
-    if "epochs" in data and not isinstance(data["epochs"], list):
-        raise InputError(file, "'epochs' must be a list")
-    return data
-
-
-def compare_table(reports: dict[str, dict]) -> str:
-    """One table, a column per run and a row per method / metric / timing / memory."""
-    runs = list(reports)
-    metric_keys = list(dict.fromkeys(k for r in reports.values() for k in r.get("metrics", {})))
-    stage_keys = list(dict.fromkeys(k for r in reports.values() for k in r.get("timings", {})))
-    body: list[list] = [["method", *(str(reports[r].get("method", "-")) for r in runs)]]
-    for k in metric_keys:
-        body.append([k, *(_as_number(reports[r].get("metrics", {}).get(k)) for r in runs)])
-    for k in stage_keys:
-        body.append([f"time {k} [s]", *(_as_number(reports[r].get("timings", {}).get(k)) for r in runs)])
-    if stage_keys and "total" not in stage_keys:  # a run's own total counts the stages once, with start-up
-        totals = []
-        for r in runs:
-            vals = [_as_number(v) for v in reports[r].get("timings", {}).values()]
-            nums = [v for v in vals if isinstance(v, float)]
-            totals.append(sum(nums) if nums else None)
-        body.append(["time total [s]", *totals])
-    if any(any(r.get("prepare", {}).get("cached", {}).values()) for r in reports.values()):
-        body.append(["preparation cached", *(_cached(reports[r]) for r in runs)])
-    body.append(["peak RSS [MB]", *(_as_number(reports[r].get("peak_rss_mb")) for r in runs)])
-    notes = [f"{r}: caution: {text}" for r in runs for text in _texts(reports[r].get("cautions"))]
-    return "\n".join([format_table(["quantity", *runs], body), *notes])
-
-
-def _texts(value) -> list[str]:
-    """A report's list of strings (anything else in a hand-edited file is left out)."""
-    return [v for v in value if isinstance(v, str)] if isinstance(value, list) else []
-
-
-def _cached(report: dict) -> str:
-    """Which preparation steps a run loaded from the cache instead of computing (their time is not in it)."""
-    steps = [k for k, v in report.get("prepare", {}).get("cached", {}).items() if v]
-    return ",".join(steps) if steps else "no"
-
-
-def _as_number(v):
-    if isinstance(v, bool) or v is None:
-        return v
-    if isinstance(v, (int, float)):
-        return float(v)
-    return str(v)

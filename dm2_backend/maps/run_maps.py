@@ -33,6 +33,7 @@ from dm2_backend.maps import mnet_export, occupancy_grid
 from dm2_backend.maps.octomap_export import MissingExtra, write_octomap
 from dm2_backend.optim import mnet_file
 from dm2_backend.scans import ScanSequence
+from dm2_backend.stages import ScanScale
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +53,7 @@ class MapData:
     sensors: np.ndarray
     points: list[np.ndarray]
     planar: bool
-    scale: dict
+    scale: ScanScale
 
     def all_points(self, limit: int | None = None) -> np.ndarray:
         pts = np.concatenate(self.points) if self.points else np.zeros((0, 3), np.float32)
@@ -62,13 +63,13 @@ class MapData:
         return np.repeat(self.index, [len(p) for p in self.points])
 
 
-def resolution(scale: dict, planar: bool) -> tuple[float, str]:
+def resolution(scale: ScanScale, planar: bool) -> tuple[float, str]:
     """The map resolution (m, 3 significant digits) from the scans' scale, and a sentence saying why."""
-    spacing = max(float(scale.get("spacing_raw", 0.0)), 1e-3)
+    spacing = max(float(scale.spacing_raw or 0.0), 1e-3)
     if planar:
         res, why = spacing, "median point spacing of the raw scans"
     else:
-        coarse = float(scale.get("range_median", 0.0)) / 40.0
+        coarse = float(scale.range_median or 0.0) / 40.0
         res, why = (spacing, "median point spacing of the raw scans") if spacing >= coarse else (
             coarse, "median range / 40 (dm2's 3D voxel), coarser than the raw point spacing")
     return float(f"{res:.3g}"), why
@@ -108,7 +109,7 @@ def write_run_maps(out: Path, scans: ScanSequence, poses: np.ndarray, planar: bo
     data = gather(scans, np.asarray(poses, np.float64), planar)
     res, why = resolution(data.scale, planar)
     summary.update(frames_used=int(len(data.index)), points_used=int(sum(len(p) for p in data.points)),
-                   resolution=res, resolution_from=why, scale=data.scale)
+                   resolution=res, resolution_from=why, scale=data.scale.to_dict())
     summary["seconds"]["load"] = round(time.perf_counter() - t0, 3)
     say(f"maps: {len(data.index)} of {len(scans)} frames, {summary['points_used']} points, "
         f"resolution {res:g} m ({why}) [{summary['seconds']['load']:.1f} s]")

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from dm2_backend.config_optimiser import OptimConfig
+from dm2_backend.stages import ScanScale
 
 __all__ = ["Derived", "Lengths", "LossRegime", "OptimConfig", "PoseRegime", "dense_voxel", "derive", "loss_regime",
            "pose_regime", "sampled_points"]
@@ -96,14 +97,14 @@ def loss_regime(cfg: OptimConfig, planar: bool, polish: bool) -> LossRegime:
     )
 
 
-def derive(cfg: OptimConfig, scale: dict[str, float], planar: bool = True) -> Lengths:
+def derive(cfg: OptimConfig, scale: ScanScale, planar: bool = True) -> Lengths:
     """Fill the None lengths from the data's scale (Frames.scale). The unit is twice the point spacing: of the
     down-sampled frames in 2D; of the raw scans (at least the voxel) in 3D, where the frames are a subsample
     (real LiDAR keyframes: 0.42 m between the 1,024 points of a frame, 0.17 m in the scans). The Chamfer
     distance is truncated at ten units (one when polishing a locally accurate 3D start, see the trainer)."""
-    spacing = max(scale.get("spacing", 0.0), scale.get("voxel", 0.0), 1e-3)
-    if not planar and scale.get("spacing_raw"):
-        spacing = max(scale["spacing_raw"], scale.get("voxel", 0.0), 1e-3)
+    spacing = max(scale.spacing or 0.0, scale.voxel or 0.0, 1e-3)
+    if not planar and scale.spacing_raw:
+        spacing = max(scale.spacing_raw, scale.voxel or 0.0, 1e-3)
     unit = cfg.unit or 2.0 * spacing
     step_t = cfg.step_translation or unit / 10.0
     return Lengths(
@@ -112,19 +113,19 @@ def derive(cfg: OptimConfig, scale: dict[str, float], planar: bool = True) -> Le
         free_margin=cfg.free_margin or unit,
         chamfer_truncate=cfg.chamfer_truncate or 10.0 * unit,
         step_translation=step_t,
-        step_rotation=cfg.step_rotation or step_t / max(scale.get("range_median", 1.0), 1e-3),
+        step_rotation=cfg.step_rotation or step_t / max(scale.length, 1e-3),
     )
 
 
-def dense_voxel(cfg: OptimConfig, scale: dict[str, float]) -> float:
+def dense_voxel(cfg: OptimConfig, scale: ScanScale) -> float:
     """The plane term's largest voxel: planar patches a few per median range, its finest quarter at least a
     point spacing. Measured from the truth (the floor) and from gtsam on the LiDAR ray-cast through the real
     keyframes' mesh: 0.87 m (this rule) 0.0032 / 0.0033 m, 1.2 m 0.0044 / 0.0044, 1.74 m (8 spacings) 0.0047 /
     0.0049; on the procedural street (500 frames) 0.88 m 0.0010 / 0.0010, 1.76 m 0.0008 / 0.0010."""
     if cfg.dense_voxel is not None:
         return cfg.dense_voxel
-    spacing = scale.get("spacing_raw") or scale.get("spacing") or 0.0
-    return max(scale.get("range_median", 1.0) / 8.0, 4.0 * spacing, 1e-3)
+    spacing = scale.spacing_raw or scale.spacing or 0.0
+    return max(scale.length / 8.0, 4.0 * spacing, 1e-3)
 
 
 def pose_regime(cfg: OptimConfig, accurate: bool, polish: bool = False) -> PoseRegime:

@@ -1,7 +1,30 @@
-"""Which poses the optimiser returns, in words (``OptimResult.selection``): the sharpest map among the start and
-the epochs, or the epoch of lowest loss (``optimiser.select``)."""
+"""Which poses the optimiser returns (the sharpest map among the start and the epochs, or the epoch of lowest
+loss: ``optimiser.select``) and why, in words (``OptimResult.selection``). The best so far is a plain dict (the
+checkpoint keeps it): ``loss``, ``epoch`` (-1: the start), ``poses``, and with the map selection ``map`` and
+``start_map`` (map entropies)."""
 
 from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def first_candidate(poses: np.ndarray, start_map: float | None) -> dict:
+    """The start as the first candidate; ``start_map`` its map entropy when the map selects (else None)."""
+    best = {"loss": math.inf, "epoch": -1, "poses": poses}
+    if start_map is not None:
+        best["map"] = best["start_map"] = start_map
+    return best
+
+
+def offer(best: dict, row: dict, poses: np.ndarray, by_map: bool) -> dict:
+    """``best`` after an epoch that agreed with the registrations (``row``: its history row, ``poses``): the
+    epoch when its map is sharper (``by_map``) or its loss lower, else ``best`` unchanged."""
+    if not (row["map_entropy"] < best["map"] if by_map else row["loss"] < best["loss"]):
+        return best
+    return {**best, "loss": row["loss"], "epoch": row["epoch"], "poses": poses,
+            **({"map": row["map_entropy"]} if by_map else {})}
 
 
 def selection(best: dict, by_map: bool, rejected: int = 0, epochs: int = 1) -> str:

@@ -24,7 +24,7 @@ from dm2_backend.optim.mnet_file import MNET, save_mnet
 from dm2_backend.optim.occupancy import GridOccupancy
 from dm2_backend.optim.pose_model import PoseModel
 from dm2_backend.optim.regime import disagreement, locally_accurate
-from dm2_backend.optim.selection import selection
+from dm2_backend.optim.selection import first_candidate, offer, selection
 from dm2_backend.progress import progress
 from dm2_backend.stages import Frames, Pairwise, Topology
 from dm2_backend.threads import ordered_map
@@ -119,7 +119,7 @@ class Optimiser:
             torch.set_num_threads(cfg.threads)
         lengths = derive(cfg, frames.scale, frames.planar)
         spread = disagreement(warm_start, topology.groups, pairwise.relative, pairwise.valid,
-                              frames.scale.get("range_median", 1.0))
+                              frames.scale.length)
         # loop-closed poses need no drift terms (they would undo the closures: sim-3d-5000, 0.95 m start, drifted
         # to 40 m with them); the pose-graph solution agrees with the registrations by construction; other
         # starts are judged by the measured disagreement
@@ -157,14 +157,14 @@ class Optimiser:
         if self.derived.chamfer_metric == "plane":
             self.normals = torch.from_numpy(sample_normals(frames, pts)).to(self.device)
         self.topo_groups = topology.groups
-        self._pairs = (topology.groups, pairwise.relative, pairwise.valid, frames.scale.get("range_median", 1.0))
+        self._pairs = (topology.groups, pairwise.relative, pairwise.valid, frames.scale.length)
         self.groups = make_groups(cfg.batching, topology.groups, seed)
         self.relative = torch.from_numpy(pairwise.relative).to(self.device)
         self.valid = torch.from_numpy(pairwise.valid & (topology.groups >= 0)).to(self.device)
         self.model = PoseModel(
             warm_start, frames.planar, self.derived.step_translation, self.derived.step_rotation,
             kind=cfg.pose_model, drift=self.derived.drift, points=self.points,
-            length_scale=frames.scale.get("range_median", 1.0), drift_factor=cfg.drift_factor,
+            length_scale=frames.scale.length, drift_factor=cfg.drift_factor,
         ).to(self.device)
         lo, hi = self._map_box(warm_start, pts)
         self.field = GridOccupancy(
@@ -309,9 +309,8 @@ class Optimiser:
         dist, lead = self.dist, self.dist.rank == 0
         history: list[dict] = []
         by_map = self.cfg.select == "map" and self.map_metric is not None
-        best = {"loss": math.inf, "epoch": -1, "poses": self.poses()}
-        if by_map and lead:  # the start is a candidate: refine never returns a blurrier map than it was given
-            best["map"] = best["start_map"] = float(self.map_metric(best["poses"]))
+        first = self.poses()  # the start is a candidate: refine never returns a blurrier map than it was given
+        best = first_candidate(first, float(self.map_metric(first)) if by_map and lead else None)
         start = 0
         ckpt = checkpoint_dir / CHECKPOINT if checkpoint_dir else None
         state = None
@@ -393,11 +392,8 @@ class Optimiser:
             elif self.map_metric is not None and lead:
                 row["map_entropy"] = float(self.map_metric(poses))
             history.append(row)
-            if diverged:
-                pass
-            elif (row["map_entropy"] < best["map"]) if by_map and lead else (row["loss"] < best["loss"]):
-                best = {**best, "loss": row["loss"], "epoch": epoch, "poses": poses,
-                        **({"map": row["map_entropy"]} if by_map and lead else {})}
+            if not diverged:
+                best = offer(best, row, poses, by_map and lead)
             bar.set_postfix(**{k: f"{row[k]:.4g}" for k in ("loss", "ate", "map_entropy") if k in row})
             if early and by_map and lead and epoch >= warmup_epochs + 1:
                 previous = history[-2]["loss"]

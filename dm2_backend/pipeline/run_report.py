@@ -22,7 +22,7 @@ class PrepareSummary:
 
     @classmethod
     def of(cls, prep: Prepared) -> PrepareSummary:
-        return cls(cached=dict(prep.cached), scale=dict(prep.frames.scale),
+        return cls(cached=dict(prep.cached), scale=prep.frames.scale.to_dict(),
                    topology_edges=int(len(prep.topology.edges)), pairs=int((prep.topology.groups >= 0).sum()),
                    pairs_valid=int(prep.pairwise.valid.sum()))
 

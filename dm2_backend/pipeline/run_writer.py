@@ -111,7 +111,7 @@ def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, fina
                                               stem="poses_full_rate")
         log.info("full rate: %d input poses corrected (poses_full_rate_*), %d outside the scans' span keep the "
                  "nearest scan's correction", len(full_rate.trajectory), full_rate.outside)
-    outputs.write_map(out / "map.ply", prep.frames, final, 2 * prep.frames.scale.get("spacing", 0.0))
+    outputs.write_map(out / "map.ply", prep.frames, final, 2 * (prep.frames.scale.spacing or 0.0))
     written += write_run_maps(out, inputs.scans, final, prep.frames.planar)  # map.pgm/.yaml, octomap.bt, M-Net maps
     outputs.write_prior_files(out / "prior", prep.warm_start, prep.topology, prep.pairwise)
     per_frame = None

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import open3d as o3d
 
@@ -42,14 +44,13 @@ def load_frames(
     """Down-sample every scan. ``voxel`` defaults to ``range_median / 40`` (3D) or no voxel grid (planar)."""
     scale = derive_scale(seq)
     if voxel is None:
-        voxel = 0.0 if seq.planar else scale["range_median"] / 40.0
+        voxel = 0.0 if seq.planar else scale.range_median / 40.0
     rng = np.random.default_rng(seed)
     scans = progress_of(seq, "load scans", total=len(seq), unit="scan", enabled=progress)
     # the voxel grids on threads while the next scans are read; the random caps in order, as one loop draws them
     points = [cap(p, max_points, rng) for p in ordered_map(lambda s: voxel_grid(s.points, voxel, max_points), scans)]
     sub = points[:: max(1, len(points) // 20)]
-    scale["voxel"] = float(voxel)
-    scale["spacing"] = float(np.median([point_spacing(p) for p in sub]))
+    scale = replace(scale, voxel=float(voxel), spacing=float(np.median([point_spacing(p) for p in sub])))
     return Frames(points=points, timestamps=seq.timestamps, planar=seq.planar, scale=scale)
 
 

@@ -204,7 +204,7 @@ def prepare(
         if topo.poses is not None:
             arrays["poses"] = topo.poses
         hit = cache.put(name, arrays, {"edge_kind": topo.edge_kind, "log": topo.log, "loop_closed": topo.loop_closed,
-                                          "closures": topo.closures})
+                                          "closures": topo.closures, "repaired_steps": list(topo.repaired_steps)})
     topo = store.topology_from(hit) if hit is not None else topo
     timings["place_recognition"] = time.perf_counter() - t
 

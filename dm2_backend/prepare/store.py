@@ -18,7 +18,7 @@ import numpy as np
 
 from dm2_backend.atomic import atomic_path
 from dm2_backend.errors import InputError
-from dm2_backend.stages import Frames, Pairwise, Topology
+from dm2_backend.stages import Frames, Pairwise, ScanScale, Topology
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +95,7 @@ def put_frames(root: Path, name: str, frames: Frames) -> None:
     arrays = {"points": [np.asarray(p, dtype=np.float32) for p in frames.points], "offsets": offsets}
     if frames.timestamps is not None:
         arrays["timestamps"] = frames.timestamps
-    put(root, name, arrays, {"planar": bool(frames.planar), "scale": frames.scale})
+    put(root, name, arrays, {"planar": bool(frames.planar), "scale": frames.scale.to_dict()})
 
 
 def frames_from(arrays: dict[str, np.ndarray], meta: dict) -> Frames:
@@ -103,13 +103,14 @@ def frames_from(arrays: dict[str, np.ndarray], meta: dict) -> Frames:
     pts, offsets = arrays["points"], arrays["offsets"]
     points = [pts[offsets[i] : offsets[i + 1]] for i in range(len(offsets) - 1)]
     return Frames(points=points, timestamps=arrays.get("timestamps"), planar=bool(meta["planar"]),
-                  scale=dict(meta["scale"]))
+                  scale=ScanScale.from_dict(meta["scale"]))
 
 
 def topology_from(hit: tuple[dict, dict]) -> Topology:
     arrays, meta = hit
     return Topology(arrays["groups"], arrays["edges"], meta["edge_kind"], meta["log"], poses=arrays.get("poses"),
-                    loop_closed=bool(meta.get("loop_closed", False)), closures=int(meta.get("closures", 0)))
+                    loop_closed=bool(meta.get("loop_closed", False)), closures=int(meta.get("closures", 0)),
+                    repaired_steps=tuple(int(k) for k in meta.get("repaired_steps", ())))
 
 
 def pairwise_from(hit: tuple[dict, dict]) -> Pairwise:
