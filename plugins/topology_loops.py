@@ -44,7 +44,7 @@ from dm2_backend.algorithms.common import (
     path_length,
     planar_pose,
 )
-from dm2_backend.algorithms.gates import constraint, free_space
+from dm2_backend.algorithms.gates import Gate, GateFailure, constraint, free_space
 from dm2_backend.algorithms.icp import register
 from dm2_backend.algorithms.loop_graph import Closure, KeyframeGraph, between, confirms, cycle_error
 from dm2_backend.algorithms.topology import check_k, check_poses
@@ -273,14 +273,15 @@ class LoopsTopology:
         entry.update(z=[float(v) for v in z], fitness=round(m.fitness, 4), rmse=round(m.rmse, 5),
                      offset=round(float(np.linalg.norm(z[:2] - init[:2])), 3))
         failed = self._gates(a, b, m, entry, across)
-        weak = len(failed) == 1 and failed[0].startswith("overlap") and entry["overlap"] >= self.weak_fitness
+        weak = len(failed) == 1 and failed[0].gate is Gate.OVERLAP and entry["overlap"] >= self.weak_fitness
         entry["verified"] = not failed or weak
         entry["weak"] = entry["verified"] and (weak or across)
         if across and entry["verified"]:
             entry["reason"] = (f"verified across a corridor (free along {entry['axis']}; {reasons[0]})"
                                + (f"; weak: {failed[0]}" if weak else ""))
         else:
-            entry["reason"] = f"verified, weak: {failed[0]}" if weak else "; ".join(reasons + failed) or "verified"
+            entry["reason"] = (f"verified, weak: {failed[0]}" if weak
+                               else "; ".join([*reasons, *map(str, failed)]) or "verified")
         return entry
 
     def _icp(self, a: int, b: int, init: np.ndarray, hold: np.ndarray | None = None) -> Match:
@@ -295,7 +296,7 @@ class LoopsTopology:
         return register(self._clouds[0], self._clouds[1], init, (2.0 * res, res), "point-to-plane",
                         prior_info=prior)
 
-    def _gates(self, a: int, b: int, m: Match, entry: dict, across: bool = False) -> list[str]:
+    def _gates(self, a: int, b: int, m: Match, entry: dict, across: bool = False) -> list[GateFailure]:
         src, tgt = self._clouds
         res = self._lengths["resolution"]
         visible, whole = self._overlap(a, b, m.T)
@@ -303,11 +304,11 @@ class LoopsTopology:
         c = constraint(src, tgt, m.T, res)
         entry.update(overlap=round(overlap, 4), overlap_in_sight=round(visible, 4), overlap_whole=round(whole, 4),
                      constraint=round(c, 4))
-        reasons = []
+        failed = []
         if overlap < self.min_fitness:
-            reasons.append(f"overlap {overlap:.2f} < {self.min_fitness:.2f}")
+            failed.append(GateFailure(Gate.OVERLAP, overlap, self.min_fitness))
         if c < self.min_constraint and not across:  # a closure across a corridor is degenerate by design
-            reasons.append(f"constraint {c:.3f} < {self.min_constraint:.3f} (degenerate: a corridor?)")
+            failed.append(GateFailure(Gate.CORRIDOR, c, self.min_constraint))
         if self._frames.planar:
             fa, fb = int(self._keys[a]), int(self._keys[b])
             sa = Cloud(self._frames.points[fa], True, 2.0 * res)
@@ -316,8 +317,8 @@ class LoopsTopology:
             free = max(free_space(sb, sa, m.T, margin), free_space(sa, sb, se3.inverse(m.T), margin))
             entry["free_space"] = round(free, 4)
             if free > self.max_free_space:
-                reasons.append(f"free space {free:.2f} > {self.max_free_space:.2f} (walls where the other saw none)")
-        return reasons
+                failed.append(GateFailure(Gate.WALLS, free, self.max_free_space))
+        return failed
 
     def _overlap(self, a: int, b: int, T: np.ndarray) -> tuple[float, float]:
         """Overlap of the two submaps at ``T`` (b's frame in a's): the smaller, over the two directions, of the

@@ -40,7 +40,7 @@ from dm2_backend.algorithms.common import (
     rotation_angle,
     voxel_cloud,
 )
-from dm2_backend.algorithms.gates import constraint, coverage
+from dm2_backend.algorithms.gates import Gate, GateFailure, constraint, coverage
 from dm2_backend.algorithms.icp import register
 from dm2_backend.algorithms.loop_graph3d import Closure3, FrameGraph
 from dm2_backend.algorithms.topology import check_k, check_poses
@@ -242,7 +242,7 @@ class Loops3dTopology:
         offset = se3.relative(init, m.T)
         shift = float(np.linalg.norm(offset[:3, 3]))
         entry.update(offset=round(shift, 4), offset_deg=round(float(np.degrees(rotation_angle(offset[:3, :3]))), 3))
-        reasons = self._gates(src, tgt, m, entry)
+        reasons = [str(f) for f in self._gates(src, tgt, m, entry)]
         if shift > window + fine:
             reasons.append(f"correction {shift:.2f} m beyond the window {window:.2f} m")
         entry["verified"] = not reasons
@@ -250,21 +250,21 @@ class Loops3dTopology:
         entry["z"] = m.T.tolist()  # pose of frame j in frame i
         return entry
 
-    def _gates(self, src: Cloud, tgt: Cloud, m, entry: dict) -> list[str]:
-        """Reasons an alignment fails: overlap (the smaller of both directions), inlier rmse, translation
+    def _gates(self, src: Cloud, tgt: Cloud, m, entry: dict) -> list[GateFailure]:
+        """The gates an alignment fails: overlap (the smaller of both directions), inlier rmse, translation
         constraint; the scores go into ``entry``."""
         L = self._lengths
         overlap = min(m.fitness, coverage(tgt, src, se3.inverse(m.T), L["fine"])[0])
         c = constraint(src, tgt, m.T, L["fine"])
         entry.update(overlap=round(overlap, 4), constraint=round(c, 4))
-        reasons = []
+        failed = []
         if overlap < self.min_overlap:
-            reasons.append(f"overlap {overlap:.2f} < {self.min_overlap:.2f}")
+            failed.append(GateFailure(Gate.OVERLAP, overlap, self.min_overlap))
         if m.rmse > L["max_rmse"]:
-            reasons.append(f"rmse {m.rmse:.3f} > {L['max_rmse']:.3f}")
+            failed.append(GateFailure(Gate.RMSE, m.rmse, L["max_rmse"]))
         if c < self.min_constraint:
-            reasons.append(f"constraint {c:.3f} < {self.min_constraint:.3f} (degenerate)")
-        return reasons
+            failed.append(GateFailure(Gate.DEGENERATE, c, self.min_constraint))
+        return failed
 
     def _sound(self, src: Cloud, tgt: Cloud, m) -> bool:
         """A frame-pair registration good enough to replace a front-end step: it passes the closure gates."""

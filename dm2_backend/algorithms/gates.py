@@ -19,6 +19,11 @@ class Gate(enum.Enum):
     FITNESS = "fitness {value:.2f} < {limit:.2f}"
     RMSE = "rmse {value:.3f} > {limit:.3f}"
     FREE_SPACE = "free space {value:.2f} > {limit:.2f}"
+    #: the loop-closure gates (``loops``, ``loops3d``): submap overlap, the translation constraint, walls
+    OVERLAP = "overlap {value:.2f} < {limit:.2f}"
+    CORRIDOR = "constraint {value:.3f} < {limit:.3f} (degenerate: a corridor?)"
+    DEGENERATE = "constraint {value:.3f} < {limit:.3f} (degenerate)"
+    WALLS = "free space {value:.2f} > {limit:.2f} (walls where the other saw none)"
 
     def message(self, value: float, limit: float) -> str:
         return self.value.format(value=value, limit=limit)
