@@ -33,6 +33,7 @@ as ``warm_start.json``."""
 
 from __future__ import annotations
 
+import enum
 from collections import deque
 from dataclasses import asdict, dataclass
 from typing import ClassVar
@@ -57,6 +58,17 @@ from dm2_backend.progress import progress
 from dm2_backend.stages import Frames
 from dm2_backend.trajectory import Trajectory
 
+
+class StepReason(enum.Enum):
+    """Why a warm-start step took the odometry, whole or in part; the value is what the report counts."""
+
+    OVERLAP = "overlap"
+    DEGENERATE = "degenerate in translation and yaw"
+    DIVERGED = "ICP diverged"
+    DISAGREES = "disagrees with the odometry"
+    GLITCH = "odometry glitch"
+    TRANSLATION = "translation degenerate"
+    YAW = "yaw degenerate"
 
 @dataclass
 class IcpWarmStart:
@@ -187,7 +199,7 @@ class IcpWarmStart:
     def _start_fusion(self, n: int, fine: float, range_median: float) -> None:
         self._fine, self._reach = fine, max(range_median, fine)
         self._source = np.zeros(n, dtype=np.int8)  # index into SOURCES; frame 0 is the given start
-        self._reason: dict[int, str] = {}
+        self._reason: dict[int, tuple[StepReason, str]] = {}
         self._cols = {k: np.full(n, np.nan) for k in ("fitness", "constraint", "yaw_constraint", "dt", "dyaw")}
         self._recent_t: deque[float] = deque(maxlen=200)  # scan-vs-odometry differences of accepted steps
         self._recent_r: deque[float] = deque(maxlen=200)
@@ -230,7 +242,8 @@ class IcpWarmStart:
         cols = self._cols
         if not np.isfinite(match.T).all() or info["fitness"] < self.min_fitness:
             cols["fitness"][i] = info["fitness"]
-            return self._use_odometry(i, predicted, f"overlap {info['fitness']:.2f} < {self.min_fitness:.2f}")
+            return self._use_odometry(i, predicted, StepReason.OVERLAP,
+                                      f"overlap {info['fitness']:.2f} < {self.min_fitness:.2f}")
         # slide the match one fine distance along the weakest translation direction (and turn it so that points
         # at the median range move as far): the share of the scan that leaves the map says whether the scan
         # holds that direction, measured on the points themselves rather than on their (noisy) normals
@@ -243,7 +256,7 @@ class IcpWarmStart:
         weak_t = along < self.min_constraint and info["weak"] < self.min_constraint
         weak_r = turn < self.min_constraint and info["yaw"] < (self.min_constraint * self._reach) ** 2
         if weak_t and weak_r:
-            return self._use_odometry(i, predicted, "degenerate in translation and yaw")
+            return self._use_odometry(i, predicted, StepReason.DEGENERATE, "degenerate in translation and yaw")
         source_kind = 0
         if weak_t or weak_r:
             # hold the degenerate direction at the odometry's prediction, match the others
@@ -259,11 +272,12 @@ class IcpWarmStart:
             match = register(source, target, predicted, distances, "point-to-plane", self.iterations, 0.0,
                              prior_info=hold)
             if not np.isfinite(match.T).all():
-                return self._use_odometry(i, predicted, "ICP diverged")
+                return self._use_odometry(i, predicted, StepReason.DIVERGED, "ICP diverged")
             T = project_planar(match.T)
             info = information_2d(xy, target, T, fine)
             if info["fitness"] < self.min_fitness:
-                return self._use_odometry(i, predicted, f"overlap {info['fitness']:.2f} < {self.min_fitness:.2f}")
+                return self._use_odometry(i, predicted, StepReason.OVERLAP,
+                                          f"overlap {info['fitness']:.2f} < {self.min_fitness:.2f}")
         # agreement with the odometry increment
         d = se3.to_xy_yaw(se3.relative(predicted, T))
         dt, dr = float(np.hypot(d[0], d[1])), abs(float(d[2]))
@@ -273,37 +287,38 @@ class IcpWarmStart:
             at_odometry = information_2d(xy, target, predicted, fine)["fitness"]
             if info["fitness"] < at_odometry + self.better_fitness:
                 return self._use_odometry(
-                    i, predicted, f"disagrees with the odometry ({dt:.3f} m, {np.degrees(dr):.2f} deg; gate "
-                    f"{gate_t:.3f} m, {np.degrees(gate_r):.2f} deg) without fitting clearly better (overlap "
+                    i, predicted, StepReason.DISAGREES,
+                    f"disagrees with the odometry ({dt:.3f} m, {np.degrees(dr):.2f} deg; gate {gate_t:.3f} m, "
+                    f"{np.degrees(gate_r):.2f} deg) without fitting clearly better (overlap "
                     f"{info['fitness']:.2f} vs {at_odometry:.2f})")
-            self._reason[i] = (f"odometry glitch: {dt:.3f} m, {np.degrees(dr):.2f} deg off, the scan fits better "
-                               f"(overlap {info['fitness']:.2f} vs {at_odometry:.2f})")
+            self._reason[i] = (StepReason.GLITCH, f"odometry glitch: {dt:.3f} m, {np.degrees(dr):.2f} deg off, the "
+                               f"scan fits better (overlap {info['fitness']:.2f} vs {at_odometry:.2f})")
         else:
             self._recent_t.append(dt)
             self._recent_r.append(dr)
         if source_kind == 1:
-            self._reason.setdefault(i, f"translation degenerate (slide cost {cols['constraint'][i]:.3f} < "
-                                       f"{self.min_constraint}): along {np.round(info['weak_axis'], 2).tolist()} "
-                                       "from the odometry")
+            self._reason.setdefault(i, (StepReason.TRANSLATION,
+                                        f"translation degenerate (slide cost {cols['constraint'][i]:.3f} < "
+                                        f"{self.min_constraint}): along {np.round(info['weak_axis'], 2).tolist()} "
+                                        "from the odometry"))
         elif source_kind == 2:
-            self._reason.setdefault(i, f"yaw degenerate (turn cost {cols['yaw_constraint'][i]:.3f} < "
-                                       f"{self.min_constraint}): yaw from the odometry")
+            self._reason.setdefault(i, (StepReason.YAW, f"yaw degenerate (turn cost {cols['yaw_constraint'][i]:.3f}"
+                                                         f" < {self.min_constraint}): yaw from the odometry"))
         self._source[i] = source_kind
         return T
 
-    def _use_odometry(self, i: int, predicted: np.ndarray, reason: str) -> np.ndarray:
+    def _use_odometry(self, i: int, predicted: np.ndarray, code: StepReason, message: str) -> np.ndarray:
         self._source[i] = 3
-        self._reason[i] = reason
+        self._reason[i] = (code, message)
         self.rejected.append(i)
         return predicted
 
     def _fusion_report(self, poses: np.ndarray) -> dict:
         src = self._source[1:]
         counts = {name: int((src == k).sum()) for k, name in enumerate(self.SOURCES)}
-        kinds = {}
-        for r in self._reason.values():
-            key = r.split(" (")[0].split(":")[0]
-            kinds[key] = kinds.get(key, 0) + 1
+        kinds: dict[str, int] = {}
+        for code, _ in self._reason.values():
+            kinds[code.value] = kinds.get(code.value, 0) + 1
         r = lambda a: [None if not np.isfinite(v) else round(float(v), 4) for v in a]  # noqa: E731
         reasons = dict(sorted(kinds.items(), key=lambda kv: -kv[1]))
         summary = (f"icp warm start: {counts['scan']} of {len(src)} steps from the scan match, "
@@ -326,7 +341,7 @@ class IcpWarmStart:
                          "fine_distance_m": round(self._fine, 4), "range_median_m": round(self._reach, 4)},
             "per_step": {
                 "source": [self.SOURCES[k] for k in self._source.tolist()],
-                "reason": [self._reason.get(i, "") for i in range(len(self._source))],
+                "reason": [self._reason[i][1] if i in self._reason else "" for i in range(len(self._source))],
                 **{k: r(v) for k, v in self._cols.items()},
             },
         }

@@ -10,7 +10,7 @@ from plugins_scenes import floor_2d, frames_from
 from dm2_backend.algorithms.common import Cloud
 from dm2_backend.algorithms.icp import information_2d, slide_loss
 from dm2_backend.geometry import se3
-from dm2_backend.plugins.warm_start_icp import IcpWarmStart
+from dm2_backend.plugins.warm_start_icp import IcpWarmStart, StepReason
 from dm2_backend.simulate.corridor import corridor_sequence
 from dm2_backend.simulate.path import drifting_odometry
 from dm2_backend.trajectory import Trajectory
@@ -93,6 +93,9 @@ def test_odometry_glitches_are_overruled_by_the_scans():
     reasons = ws.report["per_step"]["reason"]
     assert all(reasons[k].startswith("odometry glitch") for k in (40, 90, 130))
     assert ate(poses, truth) < 0.3 < ate(odometry, truth)
+    # counted by reason code, not by message: every kind is a code's label, and the glitches are among them
+    labels = {r.value for r in StepReason}
+    assert set(ws.report["reasons"]) <= labels and ws.report["reasons"][StepReason.GLITCH.value] >= 3
 
 
 def test_fusion_options_checked(corridor):
