@@ -14,8 +14,10 @@ import hashlib
 import logging
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -143,6 +145,63 @@ def load_prepared(cache_dir: Path, keys: dict[str, str]) -> Prepared:
                     warm_report=hits["warm_start"][1].get("report"))
 
 
+@dataclass
+class Step:
+    """One cached preparation step: its name in the run's records, the name of its cache entry, how to compute
+    its result, how to store it (returning the entry as read back, or None without a cache) and how to read a
+    stored entry."""
+
+    name: str
+    entry: str
+    compute: Callable[[], Any]
+    save: Callable[[_Cache, str, Any], tuple | None]
+    read: Callable[[tuple], Any]
+
+
+@dataclass
+class _Record:
+    """What the steps of one preparation leave besides their results."""
+
+    timings: dict[str, float] = field(default_factory=dict)
+    cached: dict[str, bool] = field(default_factory=dict)
+    keys: dict[str, str] = field(default_factory=dict)
+
+    def run(self, step: Step, cache: _Cache) -> Any:
+        """The step's result from the cache, or computed and stored; timed and recorded."""
+        self.keys[step.name] = step.entry
+        t = time.perf_counter()
+        hit = cache.get(step.entry)
+        self.cached[step.name] = hit is not None
+        if hit is None:
+            value = step.compute()
+            hit = step.save(cache, step.entry, value)
+        result = step.read(hit) if hit is not None else value
+        self.timings[step.name] = time.perf_counter() - t
+        return result
+
+
+def _save_frames(cache: _Cache, name: str, frames: Frames) -> tuple | None:
+    if cache.root is None:
+        return None
+    store.put_frames(cache.root, name, frames)
+    return cache.get(name)  # from here on the frames are memory-mapped; the copy in memory is dropped
+
+
+def _save_topology(cache: _Cache, name: str, topo: Topology) -> tuple | None:
+    arrays = {"groups": topo.groups, "edges": topo.edges}
+    if topo.poses is not None:
+        arrays["poses"] = topo.poses
+    return cache.put(name, arrays, {"edge_kind": topo.edge_kind, "log": topo.log, "loop_closed": topo.loop_closed,
+                                    "closures": topo.closures, "repaired_steps": list(topo.repaired_steps)})
+
+
+def _save_pairwise(cache: _Cache, name: str, pair: Pairwise) -> tuple | None:
+    arrays = {"relative": pair.relative, "valid": pair.valid, "fitness": pair.fitness, "rmse": pair.rmse}
+    if pair.hessian is not None:
+        arrays.update(hessian=pair.hessian, plane_rmse=pair.plane_rmse)
+    return cache.put(name, arrays, {"reason": {f"{i},{j}": r for (i, j), r in pair.reason.items()}})
+
+
 def prepare(
     scans: ScanSequence,
     given: Trajectory | None,
@@ -150,76 +209,50 @@ def prepare(
     cache_dir: Path | None,
     progress: bool = True,
 ) -> Prepared:
-    """Run (or load from ``cache_dir``) the three preparation steps configured in ``cfg``."""
-    cache = _Cache(cache_dir)
-    timings: dict[str, float] = {}
-    cached: dict[str, bool] = {}
-    keys: dict[str, str] = {}
+    """Run (or load from ``cache_dir``) the preparation steps configured in ``cfg``, each a :class:`Step` whose
+    cache key hashes the key of the step before it."""
+    cache, record = _Cache(cache_dir), _Record()
     fcfg = cfg.frames
     from dm2_backend.prepare import frames as frames_module
 
-    k_frames = step_key(source_key(scans), fcfg.model_dump(), cfg.seed, scans.planar, code_fingerprint(frames_module))
-    keys["frames"] = name = f"frames-{k_frames}"
-    t = time.perf_counter()
-    hit = cache.get(name)
-    cached["frames"] = hit is not None
-    if hit is None:
+    def load() -> Frames:
         from dm2_backend.prepare.frames import load_frames  # open3d: not imported by ranks that only read
 
-        frames = load_frames(scans, fcfg.max_points, fcfg.voxel, cfg.seed, progress)
-        if cache.root is not None:
-            store.put_frames(cache.root, name, frames)
-            hit = cache.get(name)  # from here on the frames are memory-mapped; the copy in memory is dropped
-    if hit is not None:
-        frames = store.frames_from(*hit)
-    timings["frames"] = time.perf_counter() - t
+        return load_frames(scans, fcfg.max_points, fcfg.voxel, cfg.seed, progress)
+
+    k_frames = step_key(source_key(scans), fcfg.model_dump(), cfg.seed, scans.planar, code_fingerprint(frames_module))
+    frames = record.run(Step("frames", f"frames-{k_frames}", load, _save_frames, lambda hit: store.frames_from(*hit)),
+                        cache)
 
     ws = cfg.warm_start
     given_hash = hashlib.sha1(given.poses.tobytes()).hexdigest() if given is not None else ""
     k_ws = step_key(k_frames, ws.model_dump(), given_hash, _code("dm2.warm_start", ws))
-    keys["warm_start"] = name = f"warm-{k_ws}"
-    t = time.perf_counter()
-    hit = cache.get(name)
-    cached["warm_start"] = hit is not None
-    if hit is not None:
-        warm, warm_report = hit[0]["poses"], hit[1].get("report")
-    else:
+
+    def warm_start() -> tuple[np.ndarray, dict | None]:
         plugin = _plugin("dm2.warm_start", ws, progress)
-        warm = plugin.run(frames, given)
-        warm_report = getattr(plugin, "report", None)
-        cache.put(name, {"poses": warm}, {"report": warm_report} if warm_report else None)
+        poses = plugin.run(frames, given)
+        return poses, getattr(plugin, "report", None)
+
+    def save_warm(c: _Cache, name: str, value: tuple[np.ndarray, dict | None]) -> tuple | None:
+        c.put(name, {"poses": value[0]}, {"report": value[1]} if value[1] else None)
+        return None  # the poses in memory are used (as read back they would be the same)
+
+    warm, warm_report = record.run(Step("warm_start", f"warm-{k_ws}", warm_start, save_warm,
+                                        lambda hit: (hit[0]["poses"], hit[1].get("report"))), cache)
     if warm_report and warm_report.get("summary"):
         log.info("%s", warm_report["summary"])
-    timings["warm_start"] = time.perf_counter() - t
 
     pr = resolve_auto(cfg.place_recognition, scans.sensor == DEPTH_CAMERA, warm, frames.planar)
     k_pr = step_key(k_ws, pr.model_dump(), _code("dm2.place_recognition", pr))
-    keys["place_recognition"] = name = f"topology-{k_pr}"
-    t = time.perf_counter()
-    hit = cache.get(name)
-    cached["place_recognition"] = hit is not None
-    if hit is None:
-        topo = _plugin("dm2.place_recognition", pr, progress).run(frames, warm)
-        arrays = {"groups": topo.groups, "edges": topo.edges}
-        if topo.poses is not None:
-            arrays["poses"] = topo.poses
-        hit = cache.put(name, arrays, {"edge_kind": topo.edge_kind, "log": topo.log, "loop_closed": topo.loop_closed,
-                                          "closures": topo.closures, "repaired_steps": list(topo.repaired_steps)})
-    topo = store.topology_from(hit) if hit is not None else topo
-    timings["place_recognition"] = time.perf_counter() - t
+    topo = record.run(Step("place_recognition", f"topology-{k_pr}",
+                           lambda: _plugin("dm2.place_recognition", pr, progress).run(frames, warm),
+                           _save_topology, store.topology_from), cache)
 
     reg = cfg.registration
-    keys["registration"] = name = f"pairwise-{step_key(k_pr, reg.model_dump(), _code('dm2.registration', reg))}"
-    t = time.perf_counter()
-    hit = cache.get(name)
-    cached["registration"] = hit is not None
-    if hit is None:
-        pair = _plugin("dm2.registration", reg, progress).run(frames, starting_poses(topo, warm), topo)
-        arrays = {"relative": pair.relative, "valid": pair.valid, "fitness": pair.fitness, "rmse": pair.rmse}
-        if pair.hessian is not None:
-            arrays.update(hessian=pair.hessian, plane_rmse=pair.plane_rmse)
-        hit = cache.put(name, arrays, {"reason": {f"{i},{j}": r for (i, j), r in pair.reason.items()}})
-    pair = store.pairwise_from(hit) if hit is not None else pair
-    timings["registration"] = time.perf_counter() - t
+    k_reg = step_key(k_pr, reg.model_dump(), _code("dm2.registration", reg))
+    pair = record.run(Step("registration", f"pairwise-{k_reg}",
+                           lambda: _plugin("dm2.registration", reg, progress).run(frames, starting_poses(topo, warm),
+                                                                                  topo),
+                           _save_pairwise, store.pairwise_from), cache)
     resolved = {"warm_start": ws, "place_recognition": pr, "registration": reg}
-    return Prepared(frames, warm, topo, pair, timings, cached, keys, resolved, warm_report)
+    return Prepared(frames, warm, topo, pair, record.timings, record.cached, record.keys, resolved, warm_report)
