@@ -57,7 +57,8 @@ def test_open3d_registration_of_a_corridor_reports_the_free_direction():
     target = Cloud(_corridor(rng), planar=False, normal_radius=0.5)
     source = Cloud(_corridor(rng), planar=False, normal_radius=0.5)
     for method in ("gicp", "point-to-plane"):
-        m = register(source, target, np.eye(4), (0.3,), method)
+        assert register(source, target, np.eye(4), (0.3,), method).hessian is None  # only when asked
+        m = register(source, target, np.eye(4), (0.3,), method, hessian=True)
         assert m.fitness > 0.9 and m.hessian is not None
         assert m.plane_rmse < 0.5 * m.rmse, (m.plane_rmse, m.rmse)  # the surfaces' noise, not the points' spacing
         w, v = np.linalg.eigh(m.hessian[:3, :3])

@@ -26,13 +26,15 @@ def register(
     prior_info: np.ndarray | None = None,
     tolerance: float = 1e-6,
     robust_k: float = 0.0,
+    hessian: bool = False,
 ) -> Match:
     """Coarse-to-fine ICP of ``source`` onto ``target`` from ``init``, one pass per correspondence
     distance; fitness and rmse are those of the last (finest) distance. ``prior_weight`` (planar
     point-to-line only) keeps unconstrained directions, e.g. along a corridor, at ``init``; ``prior_info``
     (planar point-to-line only) is a full (3, 3) prior information on (x, y, yaw) about ``init``;
     ``tolerance`` (3D): a pass stops when fitness and inlier rmse change by less than this fraction;
-    ``robust_k`` (planar point-to-line only): Cauchy weights on the residuals, see :func:`icp_2d`."""
+    ``robust_k`` (planar point-to-line only): Cauchy weights on the residuals, see :func:`icp_2d`; ``hessian``
+    (3D): also the point-to-plane information of the result and its residuals' rms (``Match.hessian``)."""
     if source.planar:
         if method == "point-to-point":
             return _icp_o3d_planar(source, target, init, distances, iterations)
@@ -57,6 +59,8 @@ def register(
         T = np.asarray(result.transformation)
     if result is None or len(result.correspondence_set) < 6:
         return Match(T, 0.0, float("inf"))
+    if not hessian:
+        return Match(T.copy(), float(result.fitness), float(result.inlier_rmse))
     pairs = np.asarray(result.correspondence_set)
     normals = target_normals(target, pairs[:, 1], method)
     p = source.points[pairs[:, 0]]

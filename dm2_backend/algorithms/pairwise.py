@@ -173,7 +173,7 @@ class PairwiseRegistration:
         """Frame b onto frame a from init: T_b^a with its fitness and rmse. A good initial guess (most
         pairs) converges in the fine pass alone; otherwise a coarse pass runs first."""
         src, tgt = self._clouds[b], self._clouds[a]
-        kw = {"tolerance": self.tolerance, "robust_k": self.robust_k}
+        kw = {"tolerance": self.tolerance, "robust_k": self.robust_k, "hessian": self.information == "hessian"}
         m = register(src, tgt, init, (fine,), self._method, self.iterations, **kw)
         if m.fitness >= 0.8:
             return m
