@@ -100,12 +100,17 @@ def rmse_floor(frames: Frames, model: InformationModel) -> float:
     return 0.1 * base if base > 0 else 1e-3
 
 
+def residual_sigma(rmse: float, floor: float) -> float:
+    """A registration's residual scale (m): its rmse, at least ``floor`` (the floor where it is not finite)."""
+    return max(rmse if np.isfinite(rmse) else floor, floor)
+
+
 def registration_information(rmse: float, fitness: float, points: int, lever: float, planar: bool,
                              floor: float) -> np.ndarray:
     """Diagonal information of one registration: ``sigma_t = max(rmse, floor) / sqrt(fitness * points)``
     (standard error of the mean inlier residual), ``sigma_r = sigma_t / lever`` (rad)."""
     inliers = max(fitness * points, 1.0)
-    sigma_t = max(rmse if np.isfinite(rmse) else floor, floor) / np.sqrt(inliers)
+    sigma_t = residual_sigma(rmse, floor) / np.sqrt(inliers)
     sigma_r = sigma_t / lever
     sig = [sigma_t, sigma_t, sigma_r] if planar else [sigma_t] * 3 + [sigma_r] * 3
     return np.diag(1.0 / np.square(sig))
@@ -116,7 +121,7 @@ def hessian_information(hessian: np.ndarray, rmse: float, floor: float) -> np.nd
     its point-to-plane residuals: ``hessian / max(rmse, floor)^2``, plus :data:`EIGEN_FLOOR` of the mean
     translation (rotation) diagonal on the translation (rotation) diagonal, so a direction the registration
     does not see keeps a negligible weight in its own units and GTSAM gets a positive definite matrix."""
-    sigma = max(rmse if np.isfinite(rmse) else floor, floor)
+    sigma = residual_sigma(rmse, floor)
     info = 0.5 * (hessian + hessian.T) / sigma**2
     d = np.diag(info)
     return info + np.diag(EIGEN_FLOOR * np.repeat([max(d[:3].mean(), 1e-300), max(d[3:].mean(), 1e-300)], 3))
