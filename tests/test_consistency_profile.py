@@ -13,6 +13,7 @@ import pytest
 from optim_cases import one_thread
 from shared_helpers import DATA, need, run
 
+from dm2_backend.evaluation import consistency_profile as cp
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.consistency_profile import GAP, consistency_profile, write_profiles
 from dm2_backend.formats import ReadOptions, write_trajectory
@@ -80,6 +81,27 @@ def test_a_broken_stretch_of_the_street_is_flagged_and_nothing_far_from_it(break
     p = profile(seq, poses)
     hit, false = flags(p, gt, poses)
     assert hit and false == 0, (p.segments, false)
+
+
+@pytest.mark.parametrize("poses_of", ["truth", "jump"])
+def test_a_sequence_longer_than_the_cell_budget_is_judged_a_stretch_at_a_time(monkeypatch, poses_of):
+    """A budget of 8 frames' cells for 80 frames (as 1.5 million cells for 10,000 frames, where 150 cells a
+    frame flagged half the true frames): the scans are read again in stretches at full density, so the truth
+    scores as with every cell (no flag, each view's median within 15 %) and a jump is still found, nothing
+    far from it."""
+    _, seq, gt = street()
+    full = profile(seq, gt)
+    monkeypatch.setattr(cp, "MAX_CELLS", 8 * cp.CELLS_PER_FRAME)
+    poses = gt if poses_of == "truth" else jump_from(gt, 40)
+    p = profile(seq, poses)
+    assert np.isfinite(p.score_m).all()
+    if poses_of == "truth":
+        assert p.segments == [], p.segments
+        for view in ("all", "past", "future"):
+            assert np.nanmedian(p.views_m[view]) == pytest.approx(np.nanmedian(full.views_m[view]), rel=0.15), view
+    else:
+        hit, false = flags(p, gt, poses)
+        assert hit and false == 0, (p.segments, false)
 
 
 def test_a_wrong_loop_closure_forced_into_a_pose_graph_is_flagged_where_it_bent_the_path():

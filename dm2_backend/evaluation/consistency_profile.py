@@ -11,6 +11,10 @@ frame's score (m) is the largest of three views of "the others":
 - **all**: every other frame (leave-one-out, robust weights), which sees a revisit that does not line up (a
   wrong loop closure, a drift that shows where the path comes back).
 
+A frame needs its cells at full density (``CELLS_PER_FRAME``) for its score to mean anything: a sequence longer
+than ``MAX_CELLS`` holds at that density is read a second time, a stretch of frames at a time
+(:func:`_stretched_views`), so memory stays bounded and every frame is judged as in a short sequence.
+
 Segments scoring ``RATIO`` times the level of the sequence's agreeing frames (its lower quartile) are flagged
 with their frame and time ranges. Validated in 3D (real LiDAR keyframes, a LiDAR ray-cast through their map, a
 procedural street: no flag on the true or front-end poses, every jump, drifting stretch and wrong closure found);
@@ -21,7 +25,7 @@ from __future__ import annotations
 
 import csv
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +34,9 @@ from scipy.spatial import cKDTree
 from dm2_backend.atomic import atomic_write
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.report_writers import safe_name
+from dm2_backend.geometry.voxels import group_rows
 from dm2_backend.optim.planes import Cells, assign, cells_from_scans, chunks, disagreement, fit
+from dm2_backend.progress import progress as progress_of
 from dm2_backend.scan_scale import derive_scale
 from dm2_backend.scans import ScanSequence
 
@@ -183,9 +189,11 @@ def _trimmed_rms(frame: np.ndarray, dist: np.ndarray, weight: np.ndarray, judged
     return out
 
 
-def _neighbour_views(cells: Cells, poses: np.ndarray, voxel: float, window: int) -> tuple[np.ndarray, np.ndarray]:
-    """Each frame against the block of ``window`` frames before it (past) and after it (future)."""
-    block = np.arange(len(poses)) // window
+def _neighbour_views(cells: Cells, poses: np.ndarray, voxel: float, window: int, first: int = 0
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Each frame against the block of ``window`` frames before it (past) and after it (future); ``first``: the
+    sequence's number of frame 0 here (blocks are counted from the sequence's start)."""
+    block = (np.arange(len(poses)) + first) // window
     reach = float(np.linalg.norm(cells.mean, axis=1).max()) if len(cells) else 0.0
     far = 2.0 * (float(np.ptp(poses[:, :3, 3], axis=0).max()) + 2.0 * reach) + 10.0 * voxel
     return _against(cells, poses, voxel, block, 1, far), _against(cells, poses, voxel, block, -1, far)
@@ -218,13 +226,17 @@ def threshold_of(score: np.ndarray) -> tuple[float, float]:
 def consistency_profiles(scans: ScanSequence, candidates: dict[str, np.ndarray], stamps: np.ndarray | None = None,
                          planar: bool = False, voxel: float | None = None, seed: int = 0,
                          progress: bool = False) -> dict[str, ConsistencyProfile]:
-    """The profile of each set of poses (one per scan), the scans summed into cells once. ``planar``: 2D scans,
+    """The profile of each set of poses (one per scan), the scans summed into cells once (twice for a sequence
+    longer than the cell budget holds at ``CELLS_PER_FRAME``: :func:`_stretched_views`). ``planar``: 2D scans,
     their lines seen as vertical walls."""
     voxel = voxel or profile_voxel(scans)
-    cells = cells_from_scans(scans, voxel / 4.0, CELLS_PER_FRAME, MAX_CELLS, seed, progress)
-    if planar:
-        cells = cells.extruded(voxel)
-    return {name: _profile(cells, np.asarray(poses, dtype=np.float64), stamps, voxel)
+    candidates = {name: np.asarray(poses, dtype=np.float64) for name, poses in candidates.items()}
+    cells = _cells(scans, voxel, MAX_CELLS, seed, planar, progress)
+    if len(scans) * CELLS_PER_FRAME <= MAX_CELLS:
+        views = {name: _views(cells, poses, voxel) for name, poses in candidates.items()}
+    else:
+        views = _stretched_views(scans, cells, candidates, voxel, seed, planar, progress)
+    return {name: _profile(views[name], stamps, voxel, window_frames(poses, voxel))
             for name, poses in candidates.items()}
 
 
@@ -234,11 +246,62 @@ def consistency_profile(scans: ScanSequence, poses: np.ndarray, stamps: np.ndarr
     return consistency_profiles(scans, {"poses": poses}, stamps, planar, voxel, seed)["poses"]
 
 
-def _profile(cells: Cells, poses: np.ndarray, stamps: np.ndarray | None, voxel: float) -> ConsistencyProfile:
-    window = window_frames(poses, voxel)
+def _cells(scans: ScanSequence, voxel: float, budget: int, seed: int, planar: bool, progress: bool) -> Cells:
+    cells = cells_from_scans(scans, voxel / 4.0, CELLS_PER_FRAME, budget, seed, progress)
+    return cells.extruded(voxel) if planar else cells
+
+
+def _views(cells: Cells, poses: np.ndarray, voxel: float) -> dict[str, np.ndarray]:
     every = _rms(disagreement(assign(cells, poses, voxel), poses, CAP, bounded=True))
-    past, future = _neighbour_views(cells, poses, voxel, window)
-    views = {"all": every, "past": past, "future": future}
+    past, future = _neighbour_views(cells, poses, voxel, window_frames(poses, voxel))
+    return {"all": every, "past": past, "future": future}
+
+
+def _stretched_views(scans: ScanSequence, sparse: Cells, candidates: dict[str, np.ndarray], voxel: float,
+                     seed: int, planar: bool, progress: bool) -> dict[str, dict[str, np.ndarray]]:
+    """The views of a sequence too long for ``CELLS_PER_FRAME`` cells a frame within ``MAX_CELLS``: with fewer
+    cells a frame a score is noise (the true poses of a 10,000-frame street, 150 cells a frame, flagged half
+    their frames). The scans are read again a stretch at a time at full density: each frame is judged by its
+    own dense cells, against the dense neighbouring blocks (past, future) and against the map of the stretch's
+    dense cells and every other frame's ``sparse`` cells in the voxels the stretch reaches (all)."""
+    n = len(scans)
+    margin = 2 * max(window_frames(poses, voxel) for poses in candidates.values())
+    length = max(MAX_CELLS // (2 * CELLS_PER_FRAME) - 2 * margin, 2 * margin)  # with the sparse cells: one budget
+    views = {name: {view: np.full(n, np.nan) for view in ("all", "past", "future")} for name in candidates}
+    for s in progress_of(range(0, n, length), "profile stretches", total=-(-n // length), unit="stretch",
+                         enabled=progress):
+        e = min(n, s + length)
+        a, b = max(0, s - margin), min(n, e + margin)
+        dense = _cells(scans.subset(np.arange(a, b)), voxel, (b - a) * CELLS_PER_FRAME, seed + s, planar, False)
+        judged = slice(s - a, e - a)
+        for name, poses in candidates.items():
+            past, future = _neighbour_views(dense, poses[a:b], voxel, window_frames(poses, voxel), first=a)
+            views[name]["past"][s:e], views[name]["future"][s:e] = past[judged], future[judged]
+            mixed = _with_reach(dense, a, b, sparse, poses, voxel)
+            views[name]["all"][s:e] = _rms(disagreement(assign(mixed, poses, voxel), poses, CAP, bounded=True))[s:e]
+    return views
+
+
+def _with_reach(dense: Cells, a: int, b: int, sparse: Cells, poses: np.ndarray, voxel: float) -> Cells:
+    """The cells of frames ``a..b-1`` (``dense``, numbered from 0) and the ``sparse`` cells of the other frames
+    that fall in a voxel one of them occupies at ``poses`` (the others cannot share a plane with them)."""
+    dense = replace(dense, frame=dense.frame + np.int32(a))
+    other = sparse.of_frames(~np.isin(np.arange(len(poses)), np.arange(a, b)))
+    keys = np.floor(np.concatenate([_placed(dense, poses), _placed(other, poses)]) / voxel).astype(np.int64)
+    inv, _ = group_rows(keys)
+    near = np.isin(inv[len(dense):], inv[:len(dense)])
+    other = Cells(other.frame[near], other.count[near], other.mean[near], other.scatter[near], other.size)
+    return Cells(*(np.concatenate([getattr(dense, f), getattr(other, f)]) for f in ("frame", "count", "mean",
+                                                                                       "scatter")), dense.size)
+
+
+def _placed(cells: Cells, poses: np.ndarray) -> np.ndarray:
+    f = cells.frame.astype(np.int64)
+    return (poses[f, :3, :3] @ cells.mean.astype(np.float64)[:, :, None])[:, :, 0] + poses[f, :3, 3]
+
+
+def _profile(views: dict[str, np.ndarray], stamps: np.ndarray | None, voxel: float, window: int
+             ) -> ConsistencyProfile:
     stacked = np.stack(list(views.values()))
     score = np.where(np.isfinite(stacked).any(0), np.nanmax(np.where(np.isfinite(stacked), stacked, -np.inf), 0),
                      np.nan)
