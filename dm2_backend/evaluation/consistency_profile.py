@@ -268,6 +268,7 @@ def _stretched_views(scans: ScanSequence, sparse: Cells, candidates: dict[str, n
     margin = 2 * max(window_frames(poses, voxel) for poses in candidates.values())
     length = max(MAX_CELLS // (2 * CELLS_PER_FRAME) - 2 * margin, 2 * margin)  # with the sparse cells: one budget
     views = {name: {view: np.full(n, np.nan) for view in ("all", "past", "future")} for name in candidates}
+    sparse_keys = {name: _voxel_keys(sparse, poses, voxel) for name, poses in candidates.items()}
     for s in progress_of(range(0, n, length), "profile stretches", total=-(-n // length), unit="stretch",
                          enabled=progress):
         e = min(n, s + length)
@@ -277,27 +278,35 @@ def _stretched_views(scans: ScanSequence, sparse: Cells, candidates: dict[str, n
         for name, poses in candidates.items():
             past, future = _neighbour_views(dense, poses[a:b], voxel, window_frames(poses, voxel), first=a)
             views[name]["past"][s:e], views[name]["future"][s:e] = past[judged], future[judged]
-            mixed = _with_reach(dense, a, b, sparse, poses, voxel)
+            mixed = _with_reach(replace(dense, frame=dense.frame + np.int32(a)), a, b, sparse, sparse_keys[name],
+                                poses, voxel)
             views[name]["all"][s:e] = _rms(disagreement(assign(mixed, poses, voxel), poses, CAP, bounded=True))[s:e]
     return views
 
 
-def _with_reach(dense: Cells, a: int, b: int, sparse: Cells, poses: np.ndarray, voxel: float) -> Cells:
-    """The cells of frames ``a..b-1`` (``dense``, numbered from 0) and the ``sparse`` cells of the other frames
-    that fall in a voxel one of them occupies at ``poses`` (the others cannot share a plane with them)."""
-    dense = replace(dense, frame=dense.frame + np.int32(a))
-    other = sparse.of_frames(~np.isin(np.arange(len(poses)), np.arange(a, b)))
-    keys = np.floor(np.concatenate([_placed(dense, poses), _placed(other, poses)]) / voxel).astype(np.int64)
-    inv, _ = group_rows(keys)
-    near = np.isin(inv[len(dense):], inv[:len(dense)])
-    other = Cells(other.frame[near], other.count[near], other.mean[near], other.scatter[near], other.size)
-    return Cells(*(np.concatenate([getattr(dense, f), getattr(other, f)]) for f in ("frame", "count", "mean",
-                                                                                       "scatter")), dense.size)
+def _with_reach(dense: Cells, a: int, b: int, sparse: Cells, sparse_keys: np.ndarray, poses: np.ndarray,
+                voxel: float) -> Cells:
+    """The cells of frames ``a..b-1`` (``dense``) and the ``sparse`` cells of the other frames that fall in a
+    voxel (``sparse_keys``: :func:`_voxel_keys`) one of them occupies at ``poses``: the others cannot share a plane
+    with them."""
+    other = (sparse.frame < a) | (sparse.frame >= b)
+    inv, _ = group_rows(np.concatenate([_voxel_keys(dense, poses, voxel), sparse_keys[other]]))
+    near = np.flatnonzero(other)[np.isin(inv[len(dense):], inv[:len(dense)])]
+    return Cells(*(np.concatenate([getattr(dense, f), getattr(sparse, f)[near]])
+                   for f in ("frame", "count", "mean", "scatter")), dense.size)
 
 
-def _placed(cells: Cells, poses: np.ndarray) -> np.ndarray:
-    f = cells.frame.astype(np.int64)
-    return (poses[f, :3, :3] @ cells.mean.astype(np.float64)[:, :, None])[:, :, 0] + poses[f, :3, 3]
+def _voxel_keys(cells: Cells, poses: np.ndarray, voxel: float) -> np.ndarray:
+    """The voxel (edge ``voxel``) of each cell's mean at ``poses``, (K,3) integers."""
+    keys = np.empty((len(cells), 3), np.int64)
+    for c in chunks(len(cells)):
+        keys[c] = np.floor(_placed(cells, poses, c) / voxel)
+    return keys
+
+
+def _placed(cells: Cells, poses: np.ndarray, part: slice) -> np.ndarray:
+    f = cells.frame[part].astype(np.int64)
+    return (poses[f, :3, :3] @ cells.mean[part].astype(np.float64)[:, :, None])[:, :, 0] + poses[f, :3, 3]
 
 
 def _profile(views: dict[str, np.ndarray], stamps: np.ndarray | None, voxel: float, window: int
