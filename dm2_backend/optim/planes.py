@@ -78,36 +78,60 @@ _SCATTER = np.triu_indices(3)
 
 def compress(points: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One scan's cells: count (K,), mean (K,3), scatter (K,6), float64."""
+    pts, inv, k = _grouped(points, size, None)
+    return _summed(pts, inv, k)
+
+
+def _grouped(points: np.ndarray, size: float, share: int | None) -> tuple[np.ndarray, np.ndarray, int]:
+    """A scan's finite points (float64) and the id of each one's cell of edge ``size``, or ``2 * size`` where
+    ``size`` gives more than ``share`` cells; and the number of cells. Ids in the order of the cells' keys."""
     pts = np.asarray(points, dtype=np.float64)[:, :3]
     pts = pts[np.isfinite(pts).all(1)]
     if len(pts) == 0:
-        return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 6))
-    inv, k = group_rows(np.floor(pts / size).astype(np.int64))
+        return pts, np.zeros(0, np.int64), 0
+    keys = np.floor(pts / size).astype(np.int64)
+    inv, k = group_rows(keys)
+    if share is not None and k > share:  # floor(p / 2s) = floor(floor(p / s) / 2): group the cells, not the points
+        cell_keys = np.empty((k, 3), np.int64)
+        cell_keys[inv] = keys
+        coarse, k = group_rows(cell_keys // 2)
+        inv = coarse[inv]
+    return pts, inv, k
+
+
+def _summed(pts: np.ndarray, inv: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Count, mean and scatter (float64) of the points of each of the ``k`` cells ``inv`` numbers."""
     count = np.bincount(inv, minlength=k).astype(np.float64)
     mean = np.stack([np.bincount(inv, pts[:, a], minlength=k) for a in range(3)], 1) / count[:, None]
     d = pts - mean[inv]
-    outer = d[:, _SCATTER[0]] * d[:, _SCATTER[1]]
-    return count, mean, _sum(inv, outer, k)
+    scatter = np.stack([np.bincount(inv, d[:, i] * d[:, j], minlength=k) for i, j in zip(*_SCATTER, strict=True)],
+                       1)
+    return count, mean, scatter.reshape(k, 6)
 
 
 def cells_from_scans(scans: ScanSequence, size: float, per_frame: int, max_cells: int, seed: int = 0,
                      progress: bool = False) -> Cells:
     """Every scan compressed into cells (scans on threads), at most ``per_frame`` a frame and ``max_cells`` in
     all (at least 64 a frame): a frame with more is summed into cells twice as large (once), and keeps a random
-    subset of those if still too many (each kept cell exact). ``Cells.size`` is the smallest cell."""
+    subset of those if still too many (each kept cell exact: only its points are summed). ``Cells.size`` is the
+    smallest cell."""
     share = min(per_frame, max(64, max_cells // max(len(scans), 1)))
     rng = np.random.default_rng(seed)
 
-    def fitted(scan) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        cells = compress(scan.points, size)
-        return cells if len(cells[0]) <= share else compress(scan.points, 2 * size)
+    def fitted(scan) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray] | None, np.ndarray, np.ndarray, int]:
+        """The scan's cells where they fit the share, else None (a subset is drawn in order); its points' ids."""
+        pts, inv, k = _grouped(scan.points, size, share)
+        return (_summed(pts, inv, k) if k <= share else None), pts, inv, k
 
     bar = progress_of(scans, "dense cells", total=len(scans), unit="scan", enabled=progress)
     parts = []
-    for i, (count, mean, scatter) in enumerate(ordered_map(fitted, bar)):
-        if len(count) > share:
-            keep = np.sort(rng.choice(len(count), share, replace=False))
-            count, mean, scatter = count[keep], mean[keep], scatter[keep]
+    for i, (cells, pts, inv, k) in enumerate(ordered_map(fitted, bar)):
+        if cells is None:
+            kept = np.zeros(k, bool)
+            kept[rng.choice(k, share, replace=False)] = True
+            on = kept[inv]
+            cells = _summed(pts[on], (np.cumsum(kept) - 1)[inv[on]], share)
+        count, mean, scatter = cells
         parts.append((np.full(len(count), i, np.int32), count.astype(np.float32), mean.astype(np.float32),
                       scatter.astype(np.float32)))
     if not parts:
