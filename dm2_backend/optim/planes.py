@@ -86,7 +86,8 @@ def _grouped(points: np.ndarray, size: float, share: int | None) -> tuple[np.nda
     """A scan's finite points (float64) and the id of each one's cell of edge ``size``, or ``2 * size`` where
     ``size`` gives more than ``share`` cells; and the number of cells. Ids in the order of the cells' keys."""
     pts = np.asarray(points, dtype=np.float64)[:, :3]
-    pts = pts[np.isfinite(pts).all(1)]
+    if not np.isfinite(pts).all():  # (a scan sequence drops them already)
+        pts = pts[np.isfinite(pts).all(1)]
     if len(pts) == 0:
         return pts, np.zeros(0, np.int64), 0
     keys = np.floor(pts / size).astype(np.int64)
@@ -143,9 +144,10 @@ def cells_from_scans(scans: ScanSequence, size: float, per_frame: int, max_cells
 @dataclass
 class Assignment:
     """Which cells lie on which plane, fixed for a few rounds: per (frame, voxel) pair its ``frame`` (P,),
-    ``voxel`` (P,) and ``moment`` (P,4,4), the robust-weighted sum of [p 1]^T [p 1] over the frame's points in
-    the voxel (sensor frame); ``centre`` (V,3) a point of each voxel (the fits are made about it); ``sigma`` the
-    noise scale (m) at the poses of the assignment, ``cells`` the cells on planes."""
+    ``voxel`` (P,) and ``moment`` (P,10), the robust-weighted sum of [p 1]^T [p 1] over the frame's points in
+    the voxel (sensor frame), as its distinct entries (:func:`_expand` makes the 4x4 of a few pairs at a time);
+    ``centre`` (V,3) a point of each voxel (the fits are made about it); ``sigma`` the noise scale (m) at the
+    poses of the assignment, ``cells`` the cells on planes."""
 
     frame: np.ndarray
     voxel: np.ndarray
@@ -210,7 +212,7 @@ def _placed_sum(a: Assignment, poses: np.ndarray, keep: np.ndarray | None = None
     (bool per pair): only those pairs."""
     M = np.zeros((a.voxels, 4, 4))
     for c in chunks(len(a.frame)):
-        placed = _about(poses, a.frame[c], a.centre[a.voxel[c]], a.moment[c])
+        placed = _about(poses, a.frame[c], a.centre[a.voxel[c]], _expand(a.moment[c]))
         M += _sum(a.voxel[c], placed if keep is None else placed * keep[c, None, None], a.voxels)
     return M
 
@@ -290,7 +292,7 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
         level_centre = np.zeros((n, 3))
         level_centre[inv] = centre
         level_pairs = Assignment(frame_of[todo][first], pair_voxel,
-                                 _expand(_sum_rows(pair, todo, moments, n_pairs, ref_cell[todo])), level_centre, 1.0, 0)
+                                 _sum_rows(pair, todo, moments, n_pairs, ref_cell[todo]), level_centre, 1.0, 0)
         M = _placed_sum(level_pairs, poses)
         M[M[:, 3, 3] <= 0] = np.eye(4)  # no reference frame's point here: no plane (N = 1 < MIN_POINTS)
         N, mu, lam, vec = _plane_of(M)
@@ -322,7 +324,7 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
     pair, first = _pairs(frames, plane, voxels)
     n = len(first)
     centre = np.concatenate(centres) if centres else np.zeros((0, 3))
-    moment = _expand(_sum_rows(pair, cell, moments, n, weight))
+    moment = _sum_rows(pair, cell, moments, n, weight)
     points = np.bincount(pair, cells.count[cell].astype(np.float64), minlength=n)
     edge = np.concatenate(sizes) if sizes else np.zeros(0)
     return Assignment(frames[first], plane[first], moment, centre, sigma, len(cell), points, edge)
@@ -384,9 +386,10 @@ def linearise(a: Assignment, planes: Planes, poses: np.ndarray) -> Linear:
     scale = 1.0 / a.sigma**2
     across = _across(planes.normal)
     cost, H, g = 0.0, np.zeros((frames, 6, 6)), np.zeros((frames, 6))
-    S, g_plane, B = np.zeros((voxels, 3, 3)), np.zeros((voxels, 3)), np.empty((pairs, 6, 3))
+    S, g_plane = np.zeros((voxels, 3, 3)), np.zeros((voxels, 3))
+    coupling = _BlockRows(a.frame, frames, 6, 3)
     for c in chunks(pairs):
-        frame, voxel, Q = a.frame[c], a.voxel[c], a.moment[c]
+        frame, voxel, Q = a.frame[c], a.voxel[c], _expand(a.moment[c])
         n, d = planes.normal[voxel], planes.offset[voxel]
         R, t = poses[frame, :3, :3], poses[frame, :3, 3]
         m = (n[:, None, :] @ R)[:, 0]  # R^T n: the normal in the sensor frame
@@ -406,15 +409,40 @@ def linearise(a: Assignment, planes: Planes, poses: np.ndarray) -> Linear:
         g += _sum(frame, (A @ Qu[:, :, None])[:, :, 0] * scale, frames)
         S += _sum(voxel, G @ Q @ G.transpose(0, 2, 1) * scale, voxels)
         g_plane += _sum(voxel, (G @ Qu[:, :, None])[:, :, 0] * scale, voxels)
-        B[c] = AQ @ G.transpose(0, 2, 1) * scale
+        coupling.put(c, voxel, AQ @ G.transpose(0, 2, 1) * scale)
     S_inv = np.linalg.pinv(S, rcond=1e-9, hermitian=True)  # a plane of few points may leave a direction free
-    # pairs are ordered by frame (see assign): the (6,3) blocks of B by block row
-    indptr = np.searchsorted(a.frame, np.arange(frames + 1))
-    coupling = bsr_matrix((B, a.voxel, indptr), shape=(6 * frames, 3 * voxels)).tocsr()
-    del B
-    return Linear(cost, H, g, coupling,
+    return Linear(cost, H, g, coupling.matrix(3 * voxels),
                   bsr_matrix((S_inv, np.arange(voxels), np.arange(voxels + 1)), shape=(3 * voxels, 3 * voxels)),
                   g_plane)
+
+
+class _BlockRows:
+    """A sparse matrix of (r,c) blocks, one per pair (block row ``frame``, block column its voxel), written in
+    CSR form a few pairs at a time (no dense copy of all the blocks, no conversion). Pairs are ordered by
+    frame (see :func:`assign`), then voxel: ``bsr_matrix((blocks, voxel, indptr)).tocsr()``'s layout."""
+
+    def __init__(self, frame: np.ndarray, frames: int, r: int, c: int) -> None:
+        self.r, self.c = r, c
+        self.first = np.searchsorted(frame, np.arange(frames + 1))  # each frame's first pair
+        self.per = np.diff(self.first)
+        n = r * c * len(frame)
+        index = np.int32 if n < 2**31 else np.int64
+        self.data, self.indices = np.empty(n), np.empty(n, index)
+        rows = r * c * self.first[:-1, None] + c * np.arange(r) * self.per[:, None]  # each row's first entry
+        self.indptr = np.append(rows.ravel(), n).astype(index)
+        self.frame, self.frames = frame, frames
+
+    def put(self, pairs: slice, column: np.ndarray, blocks: np.ndarray) -> None:
+        """The (P,r,c) ``blocks`` of ``pairs`` (a slice), in block columns ``column`` (P,)."""
+        f = self.frame[pairs]
+        p = np.arange(pairs.start, pairs.stop)
+        at = ((self.r * self.c * self.first[f] + self.c * (p - self.first[f]))[:, None, None]
+              + (self.c * self.per[f])[:, None, None] * np.arange(self.r)[:, None] + np.arange(self.c))
+        self.data[at] = blocks
+        self.indices[at] = (self.c * column)[:, None, None] + np.arange(self.c)
+
+    def matrix(self, columns: int) -> csr_matrix:
+        return csr_matrix((self.data, self.indices, self.indptr), shape=(self.r * self.frames, columns))
 
 
 def _across(normal: np.ndarray) -> np.ndarray:
@@ -438,7 +466,7 @@ def disagreement(a: Assignment, poses: np.ndarray, cap: float = KERNEL,
     frames = int(poses.shape[0])
     sq_sum, own_sum = np.zeros(frames), np.zeros(frames)
     for c in chunks(len(a.frame)):
-        M_pair = _about(poses, a.frame[c], a.centre[a.voxel[c]], a.moment[c])
+        M_pair = _about(poses, a.frame[c], a.centre[a.voxel[c]], _expand(a.moment[c]))
         rest = total[a.voxel[c]] - M_pair * ref_pair[c, None, None]
         keep = rest[:, 3, 3] > 0
         N, mu, _, vec = _plane_of(np.where(keep[:, None, None], rest, np.eye(4)))
