@@ -18,7 +18,6 @@ voxel pulls with bounded force.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 from scipy.sparse import bsr_matrix, csr_matrix
@@ -54,11 +53,6 @@ class Cells:
     def __len__(self) -> int:
         return len(self.frame)
 
-    @cached_property
-    def moments(self) -> np.ndarray:
-        """Each cell's homogeneous moment sum (K,10), computed once (every assignment of every round uses it)."""
-        return _moments(self)
-
     def of_frames(self, keep: np.ndarray) -> Cells:
         """The cells of the frames where ``keep`` (bool per frame) is set; frame numbers unchanged."""
         on = keep[self.frame]
@@ -72,8 +66,10 @@ class Cells:
         return Cells(self.frame, self.count, self.mean, scatter, self.size)
 
 
-#: the entries (row, column) of a 3x3 scatter that :class:`Cells` keep
+#: the entries (row, column) of a 3x3 scatter that :class:`Cells` keep, and the column of each
 _SCATTER = np.triu_indices(3)
+_SCATTER_AT = np.zeros((3, 3), dtype=np.int64)
+_SCATTER_AT[_SCATTER] = np.arange(6)
 
 
 def compress(points: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -192,13 +188,6 @@ def _pairs(frame: np.ndarray, voxel: np.ndarray, voxels: int) -> tuple[np.ndarra
     return inv.ravel(), first
 
 
-def _sum_rows(inv: np.ndarray, rows: np.ndarray, values: np.ndarray, n: int,
-              weight: np.ndarray | None = None) -> np.ndarray:
-    """Sums of ``values[rows]`` (times ``weight``) by group id ``inv``, without copying the rows out."""
-    data = np.ones(len(inv)) if weight is None else weight
-    return np.asarray(csr_matrix((data, (inv, rows)), shape=(n, len(values))) @ values)
-
-
 #: pairs (or cells) handled at a time where each needs a few 4x4 and 6x4 temporaries (bounds the memory)
 CHUNK = 100_000
 
@@ -217,21 +206,22 @@ def _placed_sum(a: Assignment, poses: np.ndarray, keep: np.ndarray | None = None
     return M
 
 
-def _moments(cells: Cells) -> np.ndarray:
-    """Each cell's homogeneous moment sum [p 1]^T [p 1] (sensor frame), as its 10 distinct entries (K,10) in
-    the order of ``_UPPER``."""
-    N = cells.count.astype(np.float64)
-    mu = cells.mean.astype(np.float64)
-    C = cells.scatter.astype(np.float64)
-    Nmu = N[:, None] * mu
-    out = np.empty((len(cells), 10))
-    out[:, [0, 1, 2]] = C[:, [0, 1, 2]] + Nmu[:, [0]] * mu
-    out[:, 3] = Nmu[:, 0]
-    out[:, [4, 5]] = C[:, [3, 4]] + Nmu[:, [1]] * mu[:, 1:]
-    out[:, 6] = Nmu[:, 1]
-    out[:, 7] = C[:, 5] + Nmu[:, 2] * mu[:, 2]
-    out[:, 8] = Nmu[:, 2]
-    out[:, 9] = N
+def _moment_sums(cells: Cells, rows: np.ndarray, group: np.ndarray, n: int,
+                 weight: np.ndarray | None = None) -> np.ndarray:
+    """Sums by ``group`` (into ``n``) of the homogeneous moments [p 1]^T [p 1] (sensor frame) of cells ``rows``
+    (times ``weight``), as their 10 distinct entries (n,10) in the order of ``_UPPER``: one entry at a time, no
+    (K,10) array of every cell's moment."""
+    N = cells.count[rows].astype(np.float64)
+    mu = cells.mean[rows].astype(np.float64)
+    out = np.empty((n, 10))
+    for j, (r, c) in enumerate(zip(*_UPPER, strict=True)):
+        if r == 3:
+            v = N
+        elif c == 3:
+            v = N * mu[:, r]
+        else:  # the scatter about the mean plus N mu_r mu_c
+            v = cells.scatter[rows, _SCATTER_AT[r, c]].astype(np.float64) + (N * mu[:, r]) * mu[:, c]
+        out[:, j] = np.bincount(group, v if weight is None else weight * v, minlength=n)
     return out
 
 
@@ -275,7 +265,6 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
         f = cells.frame[c]
         mean[c] = (poses[f, :3, :3] @ cells.mean[c].astype(np.float64)[:, :, None])[:, :, 0] + poses[f, :3, 3]
     frame_of = cells.frame.astype(np.int64)
-    moments = cells.moments
     todo = np.arange(len(cells))
     chosen, plane_ids, normals, offsets, centres, sizes = [], [], [], [], [], []
     voxels = 0
@@ -283,39 +272,20 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
         if len(todo) == 0:
             break
         size = voxel / 2**level
-        key = np.floor(mean[todo] / size).astype(np.int64)
-        inv, n = group_rows(key)
-        centre = (key + 0.5) * size
-        pair, first = _pairs(frame_of[todo], inv, n)
-        n_pairs = len(first)
-        pair_voxel = inv[first]
-        level_centre = np.zeros((n, 3))
-        level_centre[inv] = centre
-        level_pairs = Assignment(frame_of[todo][first], pair_voxel,
-                                 _sum_rows(pair, todo, moments, n_pairs, ref_cell[todo]), level_centre, 1.0, 0)
-        M = _placed_sum(level_pairs, poses)
-        M[M[:, 3, 3] <= 0] = np.eye(4)  # no reference frame's point here: no plane (N = 1 < MIN_POINTS)
-        N, mu, lam, vec = _plane_of(M)
-        several = np.bincount(pair_voxel, ref_cell[todo][first], minlength=n) >= 2  # seen by two frames or more
-        flat = ((lam[:, 0] < FLATNESS * lam[:, 1]) & (lam[:, 1] >= (MIN_WIDTH * size) ** 2)
-                & (N >= MIN_POINTS) & several)
-        on = flat[inv]
-        ids = np.cumsum(flat) - 1
-        normal = vec[flat, :, 0]
-        vox_centre = level_centre[flat]
+        on, ids, normal, offset, centre = _flat_voxels(cells, todo, mean[todo], frame_of, ref_cell, poses, size)
         chosen.append(todo[on])
-        plane_ids.append(voxels + ids[inv[on]])
-        normals.append(normal[ids[inv[on]]])
-        offsets.append((normal * (mu[flat] + vox_centre)).sum(1)[ids[inv[on]]])
-        centres.append(vox_centre)
-        sizes.append(np.full(len(vox_centre), size))
-        voxels += int(flat.sum())
+        plane_ids.append(voxels + ids)
+        normals.append(normal)
+        offsets.append(offset)
+        centres.append(centre)
+        sizes.append(np.full(len(centre), size))
+        voxels += len(centre)
         todo = todo[~on]
     cell = np.concatenate(chosen) if chosen else np.zeros(0, int)
     plane = np.concatenate(plane_ids) if plane_ids else np.zeros(0, int)
-    normal = np.concatenate(normals) if normals else np.zeros((0, 3))
-    offset = np.concatenate(offsets) if offsets else np.zeros(0)
-    r = (normal * mean[cell]).sum(1) - offset
+    normal = (np.concatenate(normals) if normals else np.zeros((0, 3)))[plane]
+    r = (normal * mean[cell]).sum(1) - (np.concatenate(offsets) if offsets else np.zeros(0))[plane]
+    del normal, mean
     z = np.sqrt(cells.count[cell].astype(np.float64)) * np.abs(r)  # ~ |N(0, sigma^2)| on an exact plane
     z_ref = z[ref_cell[cell] > 0]
     sigma = max(1.4826 * float(np.median(z_ref)) if len(z_ref) else 0.0, 1e-6)
@@ -324,10 +294,39 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
     pair, first = _pairs(frames, plane, voxels)
     n = len(first)
     centre = np.concatenate(centres) if centres else np.zeros((0, 3))
-    moment = _sum_rows(pair, cell, moments, n, weight)
+    moment = _moment_sums(cells, cell, pair, n, weight)
     points = np.bincount(pair, cells.count[cell].astype(np.float64), minlength=n)
     edge = np.concatenate(sizes) if sizes else np.zeros(0)
     return Assignment(frames[first], plane[first], moment, centre, sigma, len(cell), points, edge)
+
+
+def _flat_voxels(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.ndarray, ref_cell: np.ndarray,
+                 poses: np.ndarray, size: float) -> tuple[np.ndarray, ...]:
+    """The flat voxels of edge ``size`` that cells ``todo`` (placed means ``mean``) fall in: which of the cells
+    are on one (bool), the plane of each of those (numbered from 0), and per plane its normal, offset (world)
+    and voxel centre. A function of its own: one level's arrays are released before the next level's."""
+    key = np.floor(mean / size).astype(np.int64)
+    inv, n = group_rows(key)
+    level_centre = np.zeros((n, 3))
+    level_centre[inv] = key
+    level_centre = (level_centre + 0.5) * size
+    del key
+    pair, first = _pairs(frame_of[todo], inv, n)
+    pair_voxel = inv[first]
+    level_pairs = Assignment(frame_of[todo][first], pair_voxel,
+                             _moment_sums(cells, todo, pair, len(first), ref_cell[todo]), level_centre, 1.0, 0)
+    del pair
+    M = _placed_sum(level_pairs, poses)
+    del level_pairs
+    M[M[:, 3, 3] <= 0] = np.eye(4)  # no reference frame's point here: no plane (N = 1 < MIN_POINTS)
+    N, mu, lam, vec = _plane_of(M)
+    several = np.bincount(pair_voxel, ref_cell[todo][first], minlength=n) >= 2  # seen by two frames or more
+    flat = ((lam[:, 0] < FLATNESS * lam[:, 1]) & (lam[:, 1] >= (MIN_WIDTH * size) ** 2)
+            & (N >= MIN_POINTS) & several)
+    on = flat[inv]
+    normal = vec[flat, :, 0]
+    centre = level_centre[flat]
+    return on, (np.cumsum(flat) - 1)[inv[on]], normal, (normal * (mu[flat] + centre)).sum(1), centre
 
 
 def fit(a: Assignment, poses: np.ndarray) -> Planes:
