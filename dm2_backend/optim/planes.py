@@ -213,6 +213,7 @@ def _moment_sums(cells: Cells, rows: np.ndarray, group: np.ndarray, n: int,
     (K,10) array of every cell's moment."""
     N = cells.count[rows].astype(np.float64)
     mu = cells.mean[rows].astype(np.float64)
+    scatter = cells.scatter[rows]
     out = np.empty((n, 10))
     for j, (r, c) in enumerate(zip(*_UPPER, strict=True)):
         if r == 3:
@@ -220,7 +221,7 @@ def _moment_sums(cells: Cells, rows: np.ndarray, group: np.ndarray, n: int,
         elif c == 3:
             v = N * mu[:, r]
         else:  # the scatter about the mean plus N mu_r mu_c
-            v = cells.scatter[rows, _SCATTER_AT[r, c]].astype(np.float64) + (N * mu[:, r]) * mu[:, c]
+            v = scatter[:, _SCATTER_AT[r, c]].astype(np.float64) + (N * mu[:, r]) * mu[:, c]
         out[:, j] = np.bincount(group, v if weight is None else weight * v, minlength=n)
     return out
 
@@ -318,15 +319,16 @@ def _flat_voxels(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.
     del pair
     M = _placed_sum(level_pairs, poses)
     del level_pairs
-    M[M[:, 3, 3] <= 0] = np.eye(4)  # no reference frame's point here: no plane (N = 1 < MIN_POINTS)
-    N, mu, lam, vec = _plane_of(M)
     several = np.bincount(pair_voxel, ref_cell[todo][first], minlength=n) >= 2  # seen by two frames or more
-    flat = ((lam[:, 0] < FLATNESS * lam[:, 1]) & (lam[:, 1] >= (MIN_WIDTH * size) ** 2)
-            & (N >= MIN_POINTS) & several)
+    candidate = np.flatnonzero((M[:, 3, 3] >= MIN_POINTS) & several)  # (no reference frame's point: N = 0)
+    _, mu, lam, vec = _plane_of(M[candidate])
+    is_flat = (lam[:, 0] < FLATNESS * lam[:, 1]) & (lam[:, 1] >= (MIN_WIDTH * size) ** 2)
+    flat = np.zeros(n, bool)
+    flat[candidate[is_flat]] = True
     on = flat[inv]
-    normal = vec[flat, :, 0]
+    normal = vec[is_flat, :, 0]
     centre = level_centre[flat]
-    return on, (np.cumsum(flat) - 1)[inv[on]], normal, (normal * (mu[flat] + centre)).sum(1), centre
+    return on, (np.cumsum(flat) - 1)[inv[on]], normal, (normal * (mu[is_flat] + centre)).sum(1), centre
 
 
 def fit(a: Assignment, poses: np.ndarray) -> Planes:
