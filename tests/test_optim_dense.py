@@ -8,9 +8,11 @@ from functools import lru_cache
 import numpy as np
 import pytest
 from optim_cases import one_thread
+from scipy.sparse import bsr_matrix
 from scipy.spatial.transform import Rotation
 
 from dm2_backend.geometry import se3
+from dm2_backend.geometry.voxels import group_rows
 from dm2_backend.optim import planes
 from dm2_backend.optim.config import OptimConfig
 from dm2_backend.optim.dense import refine_dense
@@ -266,3 +268,43 @@ def test_an_interrupted_dense_stage_resumes_where_it_stopped(tmp_path):
     ckpt.write_bytes(ckpt.read_bytes()[:100])
     with pytest.raises(InputError, match="damaged"):
         refine_dense(cells, graph, dead, VOXEL, checkpoint=ckpt, resume=True)
+
+
+def test_a_frame_over_its_share_keeps_that_many_exact_cells_twice_as_large():
+    rng = np.random.default_rng(4)
+    many = rng.uniform(-3, 3, (20000, 3))  # about 1700 cells of 0.5 m, 216 of 1 m
+    few = rng.uniform(0, 0.9, (500, 3))  # 8 cells of 0.5 m
+    seq = ScanSequence(lambda i: Scan([many, few][i]), 2, planar=False)
+    cells = planes.cells_from_scans(seq, 0.5, 100, 10**6)
+    assert cells.size == 0.5 and np.bincount(cells.frame).tolist() == [100, 8]
+    coarse = dict(zip(map(tuple, np.floor(planes.compress(many, 1.0)[1] / 1.0).astype(int)),
+                      zip(*planes.compress(many, 1.0), strict=True), strict=True))
+    first = cells.frame == 0
+    keys = [tuple(k) for k in np.floor(cells.mean[first] / 1.0).astype(int)]
+    assert len(set(keys)) == 100  # distinct cells of the coarse grid, each summed over all its points
+    for k, count, mean, scatter in zip(keys, cells.count[first], cells.mean[first], cells.scatter[first],
+                                       strict=True):
+        np.testing.assert_allclose(count, coarse[k][0])
+        np.testing.assert_allclose(mean, coarse[k][1], rtol=1e-6)
+        np.testing.assert_allclose(scatter, coarse[k][2], rtol=1e-5, atol=1e-5)
+
+
+def test_group_rows_numbers_the_keys_in_their_order():
+    rng = np.random.default_rng(5)
+    for keys in (rng.integers(-4, 4, (500, 3)), rng.integers(-2**40, 2**40, (50, 3)),
+                 rng.integers(-3, 3, (300, 3)).astype(np.int32) * 50_000):
+        inv, n = group_rows(keys)
+        unique, expected = np.unique(keys.astype(np.int64), axis=0, return_inverse=True)
+        assert n == len(unique) and np.array_equal(inv, expected.ravel())
+
+
+def test_block_rows_are_the_csr_of_the_blocks():
+    rng = np.random.default_rng(6)
+    frame = np.array([0, 0, 0, 2, 3, 3])  # frame 1 has no pair, voxels ascending within a frame
+    voxel = np.array([0, 2, 4, 1, 0, 4])
+    blocks = rng.normal(size=(6, 6, 3))
+    built = planes._BlockRows(frame, 5, 6, 3)
+    built.put(slice(0, 4), voxel[:4], blocks[:4])
+    built.put(slice(4, 6), voxel[4:], blocks[4:])
+    expected = bsr_matrix((blocks, voxel, np.searchsorted(frame, np.arange(6))), shape=(30, 15)).toarray()
+    assert np.array_equal(built.matrix(15).toarray(), expected)

@@ -18,7 +18,6 @@ voxel pulls with bounded force.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 from scipy.sparse import bsr_matrix, csr_matrix
@@ -54,11 +53,6 @@ class Cells:
     def __len__(self) -> int:
         return len(self.frame)
 
-    @cached_property
-    def moments(self) -> np.ndarray:
-        """Each cell's homogeneous moment sum (K,10), computed once (every assignment of every round uses it)."""
-        return _moments(self)
-
     def of_frames(self, keep: np.ndarray) -> Cells:
         """The cells of the frames where ``keep`` (bool per frame) is set; frame numbers unchanged."""
         on = keep[self.frame]
@@ -72,42 +66,69 @@ class Cells:
         return Cells(self.frame, self.count, self.mean, scatter, self.size)
 
 
-#: the entries (row, column) of a 3x3 scatter that :class:`Cells` keep
+#: the entries (row, column) of a 3x3 scatter that :class:`Cells` keep, and the column of each
 _SCATTER = np.triu_indices(3)
+_SCATTER_AT = np.zeros((3, 3), dtype=np.int64)
+_SCATTER_AT[_SCATTER] = np.arange(6)
 
 
 def compress(points: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One scan's cells: count (K,), mean (K,3), scatter (K,6), float64."""
+    pts, inv, k = _grouped(points, size, None)
+    return _summed(pts, inv, k)
+
+
+def _grouped(points: np.ndarray, size: float, share: int | None) -> tuple[np.ndarray, np.ndarray, int]:
+    """A scan's finite points (float64) and the id of each one's cell of edge ``size``, or ``2 * size`` where
+    ``size`` gives more than ``share`` cells; and the number of cells. Ids in the order of the cells' keys."""
     pts = np.asarray(points, dtype=np.float64)[:, :3]
-    pts = pts[np.isfinite(pts).all(1)]
+    if not np.isfinite(pts).all():  # (a scan sequence drops them already)
+        pts = pts[np.isfinite(pts).all(1)]
     if len(pts) == 0:
-        return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 6))
-    inv, k = group_rows(np.floor(pts / size).astype(np.int64))
+        return pts, np.zeros(0, np.int64), 0
+    keys = np.floor(pts / size).astype(np.int64)
+    inv, k = group_rows(keys)
+    if share is not None and k > share:  # floor(p / 2s) = floor(floor(p / s) / 2): group the cells, not the points
+        cell_keys = np.empty((k, 3), np.int64)
+        cell_keys[inv] = keys
+        coarse, k = group_rows(cell_keys // 2)
+        inv = coarse[inv]
+    return pts, inv, k
+
+
+def _summed(pts: np.ndarray, inv: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Count, mean and scatter (float64) of the points of each of the ``k`` cells ``inv`` numbers."""
     count = np.bincount(inv, minlength=k).astype(np.float64)
     mean = np.stack([np.bincount(inv, pts[:, a], minlength=k) for a in range(3)], 1) / count[:, None]
     d = pts - mean[inv]
-    outer = d[:, _SCATTER[0]] * d[:, _SCATTER[1]]
-    return count, mean, _sum(inv, outer, k)
+    scatter = np.stack([np.bincount(inv, d[:, i] * d[:, j], minlength=k) for i, j in zip(*_SCATTER, strict=True)],
+                       1)
+    return count, mean, scatter.reshape(k, 6)
 
 
 def cells_from_scans(scans: ScanSequence, size: float, per_frame: int, max_cells: int, seed: int = 0,
                      progress: bool = False) -> Cells:
     """Every scan compressed into cells (scans on threads), at most ``per_frame`` a frame and ``max_cells`` in
     all (at least 64 a frame): a frame with more is summed into cells twice as large (once), and keeps a random
-    subset of those if still too many (each kept cell exact). ``Cells.size`` is the smallest cell."""
+    subset of those if still too many (each kept cell exact: only its points are summed). ``Cells.size`` is the
+    smallest cell."""
     share = min(per_frame, max(64, max_cells // max(len(scans), 1)))
     rng = np.random.default_rng(seed)
 
-    def fitted(scan) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        cells = compress(scan.points, size)
-        return cells if len(cells[0]) <= share else compress(scan.points, 2 * size)
+    def fitted(scan) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray] | None, np.ndarray, np.ndarray, int]:
+        """The scan's cells where they fit the share, else None (a subset is drawn in order); its points' ids."""
+        pts, inv, k = _grouped(scan.points, size, share)
+        return (_summed(pts, inv, k) if k <= share else None), pts, inv, k
 
     bar = progress_of(scans, "dense cells", total=len(scans), unit="scan", enabled=progress)
     parts = []
-    for i, (count, mean, scatter) in enumerate(ordered_map(fitted, bar)):
-        if len(count) > share:
-            keep = np.sort(rng.choice(len(count), share, replace=False))
-            count, mean, scatter = count[keep], mean[keep], scatter[keep]
+    for i, (cells, pts, inv, k) in enumerate(ordered_map(fitted, bar)):
+        if cells is None:
+            kept = np.zeros(k, bool)
+            kept[rng.choice(k, share, replace=False)] = True
+            on = kept[inv]
+            cells = _summed(pts[on], (np.cumsum(kept) - 1)[inv[on]], share)
+        count, mean, scatter = cells
         parts.append((np.full(len(count), i, np.int32), count.astype(np.float32), mean.astype(np.float32),
                       scatter.astype(np.float32)))
     if not parts:
@@ -119,9 +140,10 @@ def cells_from_scans(scans: ScanSequence, size: float, per_frame: int, max_cells
 @dataclass
 class Assignment:
     """Which cells lie on which plane, fixed for a few rounds: per (frame, voxel) pair its ``frame`` (P,),
-    ``voxel`` (P,) and ``moment`` (P,4,4), the robust-weighted sum of [p 1]^T [p 1] over the frame's points in
-    the voxel (sensor frame); ``centre`` (V,3) a point of each voxel (the fits are made about it); ``sigma`` the
-    noise scale (m) at the poses of the assignment, ``cells`` the cells on planes."""
+    ``voxel`` (P,) and ``moment`` (P,10), the robust-weighted sum of [p 1]^T [p 1] over the frame's points in
+    the voxel (sensor frame), as its distinct entries (:func:`_expand` makes the 4x4 of a few pairs at a time);
+    ``centre`` (V,3) a point of each voxel (the fits are made about it); ``sigma`` the noise scale (m) at the
+    poses of the assignment, ``cells`` the cells on planes."""
 
     frame: np.ndarray
     voxel: np.ndarray
@@ -166,13 +188,6 @@ def _pairs(frame: np.ndarray, voxel: np.ndarray, voxels: int) -> tuple[np.ndarra
     return inv.ravel(), first
 
 
-def _sum_rows(inv: np.ndarray, rows: np.ndarray, values: np.ndarray, n: int,
-              weight: np.ndarray | None = None) -> np.ndarray:
-    """Sums of ``values[rows]`` (times ``weight``) by group id ``inv``, without copying the rows out."""
-    data = np.ones(len(inv)) if weight is None else weight
-    return np.asarray(csr_matrix((data, (inv, rows)), shape=(n, len(values))) @ values)
-
-
 #: pairs (or cells) handled at a time where each needs a few 4x4 and 6x4 temporaries (bounds the memory)
 CHUNK = 100_000
 
@@ -186,26 +201,28 @@ def _placed_sum(a: Assignment, poses: np.ndarray, keep: np.ndarray | None = None
     (bool per pair): only those pairs."""
     M = np.zeros((a.voxels, 4, 4))
     for c in chunks(len(a.frame)):
-        placed = _about(poses, a.frame[c], a.centre[a.voxel[c]], a.moment[c])
+        placed = _about(poses, a.frame[c], a.centre[a.voxel[c]], _expand(a.moment[c]))
         M += _sum(a.voxel[c], placed if keep is None else placed * keep[c, None, None], a.voxels)
     return M
 
 
-def _moments(cells: Cells) -> np.ndarray:
-    """Each cell's homogeneous moment sum [p 1]^T [p 1] (sensor frame), as its 10 distinct entries (K,10) in
-    the order of ``_UPPER``."""
-    N = cells.count.astype(np.float64)
-    mu = cells.mean.astype(np.float64)
-    C = cells.scatter.astype(np.float64)
-    Nmu = N[:, None] * mu
-    out = np.empty((len(cells), 10))
-    out[:, [0, 1, 2]] = C[:, [0, 1, 2]] + Nmu[:, [0]] * mu
-    out[:, 3] = Nmu[:, 0]
-    out[:, [4, 5]] = C[:, [3, 4]] + Nmu[:, [1]] * mu[:, 1:]
-    out[:, 6] = Nmu[:, 1]
-    out[:, 7] = C[:, 5] + Nmu[:, 2] * mu[:, 2]
-    out[:, 8] = Nmu[:, 2]
-    out[:, 9] = N
+def _moment_sums(cells: Cells, rows: np.ndarray, group: np.ndarray, n: int,
+                 weight: np.ndarray | None = None) -> np.ndarray:
+    """Sums by ``group`` (into ``n``) of the homogeneous moments [p 1]^T [p 1] (sensor frame) of cells ``rows``
+    (times ``weight``), as their 10 distinct entries (n,10) in the order of ``_UPPER``: one entry at a time, no
+    (K,10) array of every cell's moment."""
+    N = cells.count[rows].astype(np.float64)
+    mu = cells.mean[rows].astype(np.float64)
+    scatter = cells.scatter[rows]
+    out = np.empty((n, 10))
+    for j, (r, c) in enumerate(zip(*_UPPER, strict=True)):
+        if r == 3:
+            v = N
+        elif c == 3:
+            v = N * mu[:, r]
+        else:  # the scatter about the mean plus N mu_r mu_c
+            v = scatter[:, _SCATTER_AT[r, c]].astype(np.float64) + (N * mu[:, r]) * mu[:, c]
+        out[:, j] = np.bincount(group, v if weight is None else weight * v, minlength=n)
     return out
 
 
@@ -249,7 +266,6 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
         f = cells.frame[c]
         mean[c] = (poses[f, :3, :3] @ cells.mean[c].astype(np.float64)[:, :, None])[:, :, 0] + poses[f, :3, 3]
     frame_of = cells.frame.astype(np.int64)
-    moments = cells.moments
     todo = np.arange(len(cells))
     chosen, plane_ids, normals, offsets, centres, sizes = [], [], [], [], [], []
     voxels = 0
@@ -257,39 +273,20 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
         if len(todo) == 0:
             break
         size = voxel / 2**level
-        key = np.floor(mean[todo] / size).astype(np.int64)
-        inv, n = group_rows(key)
-        centre = (key + 0.5) * size
-        pair, first = _pairs(frame_of[todo], inv, n)
-        n_pairs = len(first)
-        pair_voxel = inv[first]
-        level_centre = np.zeros((n, 3))
-        level_centre[inv] = centre
-        level_pairs = Assignment(frame_of[todo][first], pair_voxel,
-                                 _expand(_sum_rows(pair, todo, moments, n_pairs, ref_cell[todo])), level_centre, 1.0, 0)
-        M = _placed_sum(level_pairs, poses)
-        M[M[:, 3, 3] <= 0] = np.eye(4)  # no reference frame's point here: no plane (N = 1 < MIN_POINTS)
-        N, mu, lam, vec = _plane_of(M)
-        several = np.bincount(pair_voxel, ref_cell[todo][first], minlength=n) >= 2  # seen by two frames or more
-        flat = ((lam[:, 0] < FLATNESS * lam[:, 1]) & (lam[:, 1] >= (MIN_WIDTH * size) ** 2)
-                & (N >= MIN_POINTS) & several)
-        on = flat[inv]
-        ids = np.cumsum(flat) - 1
-        normal = vec[flat, :, 0]
-        vox_centre = level_centre[flat]
+        on, ids, normal, offset, centre = _flat_voxels(cells, todo, mean[todo], frame_of, ref_cell, poses, size)
         chosen.append(todo[on])
-        plane_ids.append(voxels + ids[inv[on]])
-        normals.append(normal[ids[inv[on]]])
-        offsets.append((normal * (mu[flat] + vox_centre)).sum(1)[ids[inv[on]]])
-        centres.append(vox_centre)
-        sizes.append(np.full(len(vox_centre), size))
-        voxels += int(flat.sum())
+        plane_ids.append(voxels + ids)
+        normals.append(normal)
+        offsets.append(offset)
+        centres.append(centre)
+        sizes.append(np.full(len(centre), size))
+        voxels += len(centre)
         todo = todo[~on]
     cell = np.concatenate(chosen) if chosen else np.zeros(0, int)
     plane = np.concatenate(plane_ids) if plane_ids else np.zeros(0, int)
-    normal = np.concatenate(normals) if normals else np.zeros((0, 3))
-    offset = np.concatenate(offsets) if offsets else np.zeros(0)
-    r = (normal * mean[cell]).sum(1) - offset
+    normal = (np.concatenate(normals) if normals else np.zeros((0, 3)))[plane]
+    r = (normal * mean[cell]).sum(1) - (np.concatenate(offsets) if offsets else np.zeros(0))[plane]
+    del normal, mean
     z = np.sqrt(cells.count[cell].astype(np.float64)) * np.abs(r)  # ~ |N(0, sigma^2)| on an exact plane
     z_ref = z[ref_cell[cell] > 0]
     sigma = max(1.4826 * float(np.median(z_ref)) if len(z_ref) else 0.0, 1e-6)
@@ -298,10 +295,40 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
     pair, first = _pairs(frames, plane, voxels)
     n = len(first)
     centre = np.concatenate(centres) if centres else np.zeros((0, 3))
-    moment = _expand(_sum_rows(pair, cell, moments, n, weight))
+    moment = _moment_sums(cells, cell, pair, n, weight)
     points = np.bincount(pair, cells.count[cell].astype(np.float64), minlength=n)
     edge = np.concatenate(sizes) if sizes else np.zeros(0)
     return Assignment(frames[first], plane[first], moment, centre, sigma, len(cell), points, edge)
+
+
+def _flat_voxels(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.ndarray, ref_cell: np.ndarray,
+                 poses: np.ndarray, size: float) -> tuple[np.ndarray, ...]:
+    """The flat voxels of edge ``size`` that cells ``todo`` (placed means ``mean``) fall in: which of the cells
+    are on one (bool), the plane of each of those (numbered from 0), and per plane its normal, offset (world)
+    and voxel centre. A function of its own: one level's arrays are released before the next level's."""
+    key = np.floor(mean / size).astype(np.int64)
+    inv, n = group_rows(key)
+    level_centre = np.zeros((n, 3))
+    level_centre[inv] = key
+    level_centre = (level_centre + 0.5) * size
+    del key
+    pair, first = _pairs(frame_of[todo], inv, n)
+    pair_voxel = inv[first]
+    level_pairs = Assignment(frame_of[todo][first], pair_voxel,
+                             _moment_sums(cells, todo, pair, len(first), ref_cell[todo]), level_centre, 1.0, 0)
+    del pair
+    M = _placed_sum(level_pairs, poses)
+    del level_pairs
+    several = np.bincount(pair_voxel, ref_cell[todo][first], minlength=n) >= 2  # seen by two frames or more
+    candidate = np.flatnonzero((M[:, 3, 3] >= MIN_POINTS) & several)  # (no reference frame's point: N = 0)
+    _, mu, lam, vec = _plane_of(M[candidate])
+    is_flat = (lam[:, 0] < FLATNESS * lam[:, 1]) & (lam[:, 1] >= (MIN_WIDTH * size) ** 2)
+    flat = np.zeros(n, bool)
+    flat[candidate[is_flat]] = True
+    on = flat[inv]
+    normal = vec[is_flat, :, 0]
+    centre = level_centre[flat]
+    return on, (np.cumsum(flat) - 1)[inv[on]], normal, (normal * (mu[is_flat] + centre)).sum(1), centre
 
 
 def fit(a: Assignment, poses: np.ndarray) -> Planes:
@@ -360,9 +387,10 @@ def linearise(a: Assignment, planes: Planes, poses: np.ndarray) -> Linear:
     scale = 1.0 / a.sigma**2
     across = _across(planes.normal)
     cost, H, g = 0.0, np.zeros((frames, 6, 6)), np.zeros((frames, 6))
-    S, g_plane, B = np.zeros((voxels, 3, 3)), np.zeros((voxels, 3)), np.empty((pairs, 6, 3))
+    S, g_plane = np.zeros((voxels, 3, 3)), np.zeros((voxels, 3))
+    coupling = _BlockRows(a.frame, frames, 6, 3)
     for c in chunks(pairs):
-        frame, voxel, Q = a.frame[c], a.voxel[c], a.moment[c]
+        frame, voxel, Q = a.frame[c], a.voxel[c], _expand(a.moment[c])
         n, d = planes.normal[voxel], planes.offset[voxel]
         R, t = poses[frame, :3, :3], poses[frame, :3, 3]
         m = (n[:, None, :] @ R)[:, 0]  # R^T n: the normal in the sensor frame
@@ -382,15 +410,40 @@ def linearise(a: Assignment, planes: Planes, poses: np.ndarray) -> Linear:
         g += _sum(frame, (A @ Qu[:, :, None])[:, :, 0] * scale, frames)
         S += _sum(voxel, G @ Q @ G.transpose(0, 2, 1) * scale, voxels)
         g_plane += _sum(voxel, (G @ Qu[:, :, None])[:, :, 0] * scale, voxels)
-        B[c] = AQ @ G.transpose(0, 2, 1) * scale
+        coupling.put(c, voxel, AQ @ G.transpose(0, 2, 1) * scale)
     S_inv = np.linalg.pinv(S, rcond=1e-9, hermitian=True)  # a plane of few points may leave a direction free
-    # pairs are ordered by frame (see assign): the (6,3) blocks of B by block row
-    indptr = np.searchsorted(a.frame, np.arange(frames + 1))
-    coupling = bsr_matrix((B, a.voxel, indptr), shape=(6 * frames, 3 * voxels)).tocsr()
-    del B
-    return Linear(cost, H, g, coupling,
+    return Linear(cost, H, g, coupling.matrix(3 * voxels),
                   bsr_matrix((S_inv, np.arange(voxels), np.arange(voxels + 1)), shape=(3 * voxels, 3 * voxels)),
                   g_plane)
+
+
+class _BlockRows:
+    """A sparse matrix of (r,c) blocks, one per pair (block row ``frame``, block column its voxel), written in
+    CSR form a few pairs at a time (no dense copy of all the blocks, no conversion). Pairs are ordered by
+    frame (see :func:`assign`), then voxel: ``bsr_matrix((blocks, voxel, indptr)).tocsr()``'s layout."""
+
+    def __init__(self, frame: np.ndarray, frames: int, r: int, c: int) -> None:
+        self.r, self.c = r, c
+        self.first = np.searchsorted(frame, np.arange(frames + 1))  # each frame's first pair
+        self.per = np.diff(self.first)
+        n = r * c * len(frame)
+        index = np.int32 if n < 2**31 else np.int64
+        self.data, self.indices = np.empty(n), np.empty(n, index)
+        rows = r * c * self.first[:-1, None] + c * np.arange(r) * self.per[:, None]  # each row's first entry
+        self.indptr = np.append(rows.ravel(), n).astype(index)
+        self.frame, self.frames = frame, frames
+
+    def put(self, pairs: slice, column: np.ndarray, blocks: np.ndarray) -> None:
+        """The (P,r,c) ``blocks`` of ``pairs`` (a slice), in block columns ``column`` (P,)."""
+        f = self.frame[pairs]
+        p = np.arange(pairs.start, pairs.stop)
+        at = ((self.r * self.c * self.first[f] + self.c * (p - self.first[f]))[:, None, None]
+              + (self.c * self.per[f])[:, None, None] * np.arange(self.r)[:, None] + np.arange(self.c))
+        self.data[at] = blocks
+        self.indices[at] = (self.c * column)[:, None, None] + np.arange(self.c)
+
+    def matrix(self, columns: int) -> csr_matrix:
+        return csr_matrix((self.data, self.indices, self.indptr), shape=(self.r * self.frames, columns))
 
 
 def _across(normal: np.ndarray) -> np.ndarray:
@@ -414,7 +467,7 @@ def disagreement(a: Assignment, poses: np.ndarray, cap: float = KERNEL,
     frames = int(poses.shape[0])
     sq_sum, own_sum = np.zeros(frames), np.zeros(frames)
     for c in chunks(len(a.frame)):
-        M_pair = _about(poses, a.frame[c], a.centre[a.voxel[c]], a.moment[c])
+        M_pair = _about(poses, a.frame[c], a.centre[a.voxel[c]], _expand(a.moment[c]))
         rest = total[a.voxel[c]] - M_pair * ref_pair[c, None, None]
         keep = rest[:, 3, 3] > 0
         N, mu, _, vec = _plane_of(np.where(keep[:, None, None], rest, np.eye(4)))
