@@ -69,8 +69,8 @@ def run_case(out: Path, log: str, case: str) -> ClosureRow:
 
 def table(results: dict) -> str:
     pct = lambda v: "n/a" if v is None else f"{100 * v:.1f} %"  # noqa: E731
-    rows = ["| log | case | scans | candidates | accepted | rejected as ambiguous | recall | precision (counted) | s |",
-            "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    rows = ["| log | case | scans | candidates | accepted | rejected as ambiguous | recall | precision (counted) "
+            "| precision, median relation | s |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for log, by_case in results.items():
         for case, r in by_case.items():
             rows.append(f"| {log} | {case} | {r['scans']} | {r['candidates']} | {r['accepted']} | {r['ambiguous']} | "
