@@ -46,7 +46,8 @@ def floor_with_long_returns():
 
 
 def test_loops_close_revisits_among_isolated_long_returns(floor_with_long_returns):
-    """Without the support rule every candidate here scores under 0.5 and most are ambiguous (0 accepted)."""
+    """Without the support rule (``support=0``) all 39 candidates here score under 0.5 (at most 0.42), 29 of them
+    ambiguous too: none is accepted."""
     frames, truth = floor_with_long_returns
     drifted = drifting_odometry(truth, 1, 0.001, 0.01, 0.0015)
     topo = LoopsTopology(progress=False).run(frames, drifted)
