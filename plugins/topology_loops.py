@@ -72,6 +72,9 @@ class LoopsTopology:
     submap_half_length: float | None = None
     #: matching grid cell (m; default 2 point spacings)
     resolution: float | None = None
+    #: a submap point is kept only when another lies within this (m; default 2 cells, twice the likelihood's sigma):
+    #: isolated returns (glass, open doors) match nothing and let different alignments score alike; 0 keeps all
+    support: float | None = None
     #: search window: translation (m) and yaw (degrees) at a fresh closure, growing by ``drift`` m and
     #: ``yaw_drift`` degrees per metre travelled since the last accepted closure, capped
     window: float | None = None
@@ -125,6 +128,7 @@ class LoopsTopology:
         lengths_ = ("radius", "keyframe_distance", "submap_half_length", "resolution", "window", "max_window",
                     "min_path_gap", "cycle_tolerance")
         bad = [f"{n}={getattr(self, n)}" for n in lengths_ if getattr(self, n) is not None and not getattr(self, n) > 0]
+        bad += [f"support={self.support}"] if self.support is not None and self.support < 0 else []
         bad += [f"{n}={getattr(self, n)}" for n in ("candidates", "consistency_window") if getattr(self, n) < 1]
         bad += [f"{n}={getattr(self, n)}" for n in ("drift", "yaw_drift", "cycle_drift") if getattr(self, n) < 0]
         if not 0 < self.max_ambiguity <= 1:
@@ -143,6 +147,7 @@ class LoopsTopology:
             "keyframe_distance": self.keyframe_distance or 0.5 * s.range_median,
             "submap_half_length": half,
             "resolution": res,
+            "support": 2.0 * res if self.support is None else self.support,
             "window": self.window or 0.5 * s.range_median,
             "max_window": self.max_window or 4.0 * s.range_p90,
             "min_path_gap": self.min_path_gap or 4.0 * half,
@@ -158,8 +163,8 @@ class LoopsTopology:
         L = self._lengths
         keys = kf.select(poses, L["keyframe_distance"], np.radians(self.keyframe_angle))
         path = path_length(poses)
-        self._maps = [kf.submap(frames, poses, path, int(f), L["submap_half_length"], L["resolution"] / 2)
-                      for f in keys]
+        self._maps = [kf.submap(frames, poses, path, int(f), L["submap_half_length"], L["resolution"] / 2,
+                                L["support"]) for f in keys]
         self._origins = [kf.origins(poses, path, int(f), L["submap_half_length"]) for f in keys]
         self._keys, self._frames = keys, frames
         odo = se3.to_xy_yaw(poses[keys])

@@ -2,12 +2,16 @@
 
 A keyframe is placed every ``spacing`` metres of travel (or ``angle`` of turn); its submap gathers the
 scans within ``half_length`` metres of path on either side, moved into the keyframe's frame with the
-(locally accurate) input poses, so matching uses a few metres of structure instead of one scan.
+(locally accurate) input poses, so matching uses a few metres of structure instead of one scan. A submap keeps only
+points that another of its points supports (lies within ``support``): a surface is seen by several beams or scans,
+a spurious return (an isolated long return through glass or an open door) by one, and scattered points that match
+nothing would otherwise let many different alignments score alike.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from dm2_backend.algorithms.common import path_length
 from dm2_backend.geometry import se3
@@ -52,6 +56,14 @@ def thin(xy: np.ndarray, cell: float, limit: int, rng: np.random.Generator) -> n
     return xy
 
 
+def supported(xy: np.ndarray, radius: float) -> np.ndarray:
+    """Mask of the points with another point within ``radius`` (all of them when ``radius`` is 0)."""
+    if radius <= 0 or len(xy) < 2:
+        return np.ones(len(xy), dtype=bool)
+    d = cKDTree(xy).query(xy, k=2, distance_upper_bound=radius)[0][:, 1]
+    return np.isfinite(d)
+
+
 def origins(poses: np.ndarray, path: np.ndarray, key: int, half_length: float) -> np.ndarray:
     """(F, 2) sensor positions of the scans of frame ``key``'s submap (see :func:`submap`), in its frame: where
     that visit could see from."""
@@ -61,8 +73,9 @@ def origins(poses: np.ndarray, path: np.ndarray, key: int, half_length: float) -
 
 
 def submap(frames: Frames, poses: np.ndarray, path: np.ndarray, key: int, half_length: float,
-           cell: float) -> np.ndarray:
-    """Bird's-eye points of the scans within ``half_length`` of path around frame ``key``, in its frame."""
+           cell: float, support: float = 0.0) -> np.ndarray:
+    """Bird's-eye points of the scans within ``half_length`` of path around frame ``key``, in its frame, one per
+    ``cell``, those without another within ``support`` dropped (:func:`supported`)."""
     lo, hi = np.searchsorted(path, [path[key] - half_length, path[key] + half_length], side="left")
     inv = se3.inverse(poses[key])
     parts = []
@@ -71,4 +84,7 @@ def submap(frames: Frames, poses: np.ndarray, path: np.ndarray, key: int, half_l
         xy = bird_eye(frames.points[f], frames.planar)
         parts.append(xy @ rel[:2, :2].T + rel[:2, 3])
     xy = np.concatenate(parts) if parts else np.zeros((0, 2))
-    return xy[first_per_cell(xy, cell)] if len(xy) else xy
+    if not len(xy):
+        return xy
+    xy = xy[first_per_cell(xy, cell)]
+    return xy[supported(xy, support)]
