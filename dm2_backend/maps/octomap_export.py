@@ -5,6 +5,8 @@ miss 0.4, clamping 0.12 / 0.97)."""
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -46,8 +48,26 @@ def write_octomap(path: Path, scans: Iterable[tuple[np.ndarray, np.ndarray]], re
     with atomic_path(path) as tmp:
         if not tree.writeBinary(str(tmp)):
             raise OSError(f"pyoctomap could not write {path}")
-    return {"resolution": float(resolution), "scans": n_scans, "points": n_points,
-            "leaf_nodes": int(tree.getNumLeafNodes())}
+    summary = {"resolution": float(resolution), "scans": n_scans, "points": n_points,
+               "leaf_nodes": int(tree.getNumLeafNodes())}
+    del tree
+    release_freed_memory()
+    return summary
+
+
+def release_freed_memory() -> bool:
+    """Hand the heap's freed pages back to the system (glibc ``malloc_trim``): an OcTree's millions of small
+    nodes, once freed, otherwise stay in the process (1.1 GiB for 8 M leaves) under whatever runs next. False
+    where the C library has no such call."""
+    name = ctypes.util.find_library("c")
+    try:
+        trim = ctypes.CDLL(name).malloc_trim if name else None
+    except (OSError, AttributeError):
+        trim = None
+    if trim is None:
+        return False
+    trim(0)
+    return True
 
 
 def read_octomap(path: Path):

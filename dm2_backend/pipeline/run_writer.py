@@ -111,8 +111,6 @@ def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, fina
                                               stem="poses_full_rate")
         log.info("full rate: %d input poses corrected (poses_full_rate_*), %d outside the scans' span keep the "
                  "nearest scan's correction", len(full_rate.trajectory), full_rate.outside)
-    outputs.write_map(out / "map.ply", prep.frames, final, 2 * (prep.frames.scale.spacing or 0.0))
-    written += write_run_maps(out, inputs.scans, final, prep.frames.planar)  # map.pgm/.yaml, octomap.bt, M-Net maps
     outputs.write_prior_files(out / "prior", prep.warm_start, prep.topology, prep.pairwise)
     per_frame = None
     if inputs.gt is not None:
@@ -120,11 +118,14 @@ def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, fina
     drawn = {"warm start": inputs.at_gt(prep.warm_start), method: inputs.at_gt(final)}  # where gt is known
     outputs.write_plots(out, drawn, inputs.gt, per_frame, None)
     written += outputs.write_topology(out, prep.topology, final)
+    # the profiles before the maps: each stage's memory peak alone, not one on top of the other's leftovers
     profiles = consistency_profiles(inputs.scans, {"warm start": prep.warm_start, method: final},
                                     output_timestamps(inputs), prep.frames.planar)
     written += write_profiles(out, profiles, final[:, :3, 3])
     log.info("consistency: %s", "; ".join(f"{name} {len(p.segments)} flagged stretch(es), {int(p.flagged.sum())} "
                                           f"frames" for name, p in profiles.items()))
+    outputs.write_map(out / "map.ply", prep.frames, final, 2 * (prep.frames.scale.spacing or 0.0))
+    written += write_run_maps(out, inputs.scans, final, prep.frames.planar)  # map.pgm/.yaml, octomap.bt, M-Net maps
     if prep.warm_report:  # e.g. the icp warm start's source of every step (scan match or odometry) and why
         outputs.write_report(out / "warm_start.json", prep.warm_report)
         written.append("warm_start.json")
