@@ -11,6 +11,7 @@ from scipy.spatial import cKDTree
 
 from dm2_backend.geometry import se3
 from dm2_backend.maps import octomap_export, run_maps
+from dm2_backend.memory import release_freed_memory
 from dm2_backend.optim import mnet_file
 
 WALL = 0.2  # thickness of the simulated walls, floor and ceiling
@@ -96,7 +97,7 @@ def _rss_mib() -> float:
         return int(fh.read().split()[1]) * 4096 / 2**20
 
 
-@pytest.mark.skipif(not octomap_export.release_freed_memory(), reason="no malloc_trim in this C library")
+@pytest.mark.skipif(not release_freed_memory(), reason="no malloc_trim in this C library")
 def test_octomap_gives_its_memory_back(tmp_path):
     """An OcTree of half a million leaves takes about 60 MiB of small nodes; once written and freed, the process
     keeps none of it (without handing the freed pages back it kept all of it, under the run's next stages)."""

@@ -35,6 +35,7 @@ from dm2_backend.atomic import atomic_write
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.report_writers import safe_name
 from dm2_backend.geometry.voxels import group_rows
+from dm2_backend.memory import release_freed_memory
 from dm2_backend.optim.planes import Cells, assign, cells_from_scans, chunks, disagreement, fit
 from dm2_backend.progress import progress as progress_of
 from dm2_backend.scan_scale import derive_scale
@@ -230,6 +231,7 @@ def consistency_profiles(scans: ScanSequence, candidates: dict[str, np.ndarray],
     longer than the cell budget holds at ``CELLS_PER_FRAME``: :func:`_stretched_views`). ``planar``: 2D scans,
     their lines seen as vertical walls."""
     voxel = voxel or profile_voxel(scans)
+    release_freed_memory()
     candidates = {name: np.asarray(poses, dtype=np.float64) for name, poses in candidates.items()}
     cells = _cells(scans, voxel, MAX_CELLS, seed, planar, progress)
     if len(scans) * CELLS_PER_FRAME <= MAX_CELLS:
@@ -271,6 +273,7 @@ def _stretched_views(scans: ScanSequence, sparse: Cells, candidates: dict[str, n
     sparse_keys = {name: _voxel_keys(sparse, poses, voxel) for name, poses in candidates.items()}
     for s in progress_of(range(0, n, length), "profile stretches", total=-(-n // length), unit="stretch",
                          enabled=progress):
+        release_freed_memory()  # the last stretch's blocks
         e = min(n, s + length)
         a, b = max(0, s - margin), min(n, e + margin)
         dense = _cells(scans.subset(np.arange(a, b)), voxel, (b - a) * CELLS_PER_FRAME, seed + s, planar, False)

@@ -5,14 +5,13 @@ miss 0.4, clamping 0.12 / 0.97)."""
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
 
 from dm2_backend.atomic import atomic_path
+from dm2_backend.memory import release_freed_memory
 
 INSTALL_HINT = "pip install 'dm2[maps]' (or: pip install pyoctomap)"
 
@@ -53,21 +52,6 @@ def write_octomap(path: Path, scans: Iterable[tuple[np.ndarray, np.ndarray]], re
     del tree
     release_freed_memory()
     return summary
-
-
-def release_freed_memory() -> bool:
-    """Hand the heap's freed pages back to the system (glibc ``malloc_trim``): an OcTree's millions of small
-    nodes, once freed, otherwise stay in the process (1.1 GiB for 8 M leaves) under whatever runs next. False
-    where the C library has no such call."""
-    name = ctypes.util.find_library("c")
-    try:
-        trim = ctypes.CDLL(name).malloc_trim if name else None
-    except (OSError, AttributeError):
-        trim = None
-    if trim is None:
-        return False
-    trim(0)
-    return True
 
 
 def read_octomap(path: Path):

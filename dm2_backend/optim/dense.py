@@ -23,12 +23,13 @@ from pathlib import Path
 
 import gtsam
 import numpy as np
-from scipy.sparse import bsr_matrix, coo_matrix, csr_matrix, diags
+from scipy.sparse import bsr_matrix, coo_matrix, csr_matrix
 from scipy.sparse.linalg import LinearOperator, cg, splu
 
 from dm2_backend.baselines import gtsam_backend
 from dm2_backend.baselines.options import SolverOptions
 from dm2_backend.geometry import se3
+from dm2_backend.memory import release_freed_memory
 from dm2_backend.optim import dense_checkpoint
 from dm2_backend.optim import planes as plane_term
 from dm2_backend.optim.planes import Cells
@@ -79,12 +80,19 @@ def _graph_system(lin: gtsam.GaussianFactorGraph, keys: np.ndarray) -> tuple[csr
     """The linearised graph factors as a sparse Hessian J^T J (6N x 6N, in the order of the ascending ``keys``)
     and gradient (N,6)."""
     frames = len(keys)
-    rows, cols, vals = lin.sparseJacobian_()
-    a = cols <= 6 * frames  # the last column (6N + 1, 1-indexed) holds the right-hand side b (zeros omitted)
-    if len(np.unique(cols[a])) != 6 * frames:  # every pose is in a factor (the prior holds the first)
-        raise ValueError(f"the graph's linear system covers {len(np.unique(cols[a]))} of {6 * frames} columns")
-    J = coo_matrix((vals[a], (rows[a].astype(np.int64) - 1, cols[a].astype(np.int64) - 1)),
-                   shape=(int(rows.max()), 6 * frames)).tocsr()
+    rows, cols, vals = lin.sparseJacobian_()  # float64 triplets, 1-indexed (kept lean: 7 M of them at 20,000 frames)
+    shape = (int(rows.max()), 6 * frames)
+    keep = np.flatnonzero(cols <= 6 * frames)  # the last column (6N + 1) holds the right-hand side b
+    vals = vals[keep]
+    rows, cols = rows[keep].astype(np.int32), cols[keep].astype(np.int32)
+    rows -= 1
+    cols -= 1
+    del keep
+    covered = int(np.count_nonzero(np.bincount(cols, minlength=6 * frames)))
+    if covered != 6 * frames:  # every pose is in a factor (the prior holds the first)
+        raise ValueError(f"the graph's linear system covers {covered} of {6 * frames} columns")
+    J = coo_matrix((vals, (rows, cols)), shape=shape).tocsr()
+    del rows, cols, vals
     grad = lin.gradientAtZero()
     return (J.T @ J).tocsr(), np.stack([grad.at(int(k)) for k in keys])
 
@@ -96,7 +104,9 @@ def _solve(Hg: csr_matrix, gg: np.ndarray, plane: plane_term.Linear, lam: float,
     n = len(gg)
     blocks = bsr_matrix((plane.H, np.arange(n), np.arange(n + 1)), shape=(6 * n, 6 * n))
     held = Hg + blocks
-    held = (held + diags(lam * held.diagonal() + 1e-12)).tocsc()
+    diagonal = held.diagonal()
+    held.setdiag(diagonal + (lam * diagonal + 1e-12))  # in place: every diagonal entry is stored (6x6 blocks)
+    held = held.tocsc()
     factor = splu(held)
     reduced = LinearOperator(held.shape, matvec=lambda x: held @ x - plane.coupling(x), dtype=np.float64)
     iterations = [0]
@@ -150,6 +160,7 @@ def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float
 
     bar = progress_of(range(state.rounds_done, rounds), "dense", unit="round", enabled=progress)
     for r in bar:
+        release_freed_memory()  # the preparation's and the last round's freed blocks: each round peaks alone
         assignment = plane_term.assign(cells, poses, voxel)
         plane = plane_term.linearise(assignment, plane_term.fit(assignment, poses), poses)
         current, _, _ = objective(assignment, values)
