@@ -3,6 +3,8 @@ an M-Net trained in a frame other than the world's."""
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 from maps_cases import HALF, HEIGHT, distance, room, train_field
@@ -94,7 +96,7 @@ def test_octomap_missing_is_skipped_with_a_hint(tmp_path, monkeypatch):
 
 def _rss_mib() -> float:
     with open("/proc/self/statm") as fh:
-        return int(fh.read().split()[1]) * 4096 / 2**20
+        return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
 @pytest.mark.skipif(not release_freed_memory(), reason="no malloc_trim in this C library")
