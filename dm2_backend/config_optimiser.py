@@ -105,6 +105,10 @@ class OptimConfig(BaseModel):
     #: cells a frame 0.0010 m, 200 cells a frame (as at 7,500 frames) 0.0027 m
     dense_cells_per_frame: int = Field(2048, ge=1)
     dense_max_cells: int = Field(1_500_000, ge=1)
+    #: once the dense stage has converged, the front end's odometry edges are weighed by their own noise,
+    #: measured against that solution (``dm2_backend.optim.odometry_noise``), and the stage goes on; False: the
+    #: guessed weight of the pose graph throughout
+    dense_odometry_noise: bool = True
     #: the first-order DeepMapping2 epochs (Adam on the M-Net BCE, Chamfer and consistency losses over anchor
     #: groups); None: on, except after the dense stage, from whose result they only make the map blurrier
     #: (simulated 3D LiDAR 200 frames: dense 0.0006 m, the epochs after it 0.0032, the sharpest map the dense one)

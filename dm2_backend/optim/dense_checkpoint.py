@@ -20,6 +20,7 @@ import numpy as np
 
 from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError
+from dm2_backend.optim.odometry_noise import OdometryNoise
 
 DENSE_CHECKPOINT = "checkpoint-dense.npz"
 #: per frame two 4x4 poses of float64 plus the file's own overhead; anything larger is not a checkpoint of ours
@@ -28,25 +29,29 @@ FIXED_BYTES = 1 << 20
 #: largest difference of a pose entry (m, or rotation-matrix units) between the checkpoint's start and this run's
 #: (open3d's threads round a registration differently; measured differences are far below this)
 START_TOLERANCE = 1e-6
+#: the numbers of a round record the stage reads back when it continues (its convergence tests)
+ROW_NUMBERS = ("graph", "sigma", "step_rms_m")
 
 
 @dataclass
 class DenseState:
     """Where the dense stage stands: the poses after ``rounds_done`` rounds, the damping for the next round,
-    the rows of the rounds done, and ``stopped`` once the stage ended (empty while it runs)."""
+    the rows of the rounds done, ``stopped`` once the stage ended (empty while it runs), and the odometry noise
+    weighed from the first convergence on (None: not measured yet)."""
 
     poses: np.ndarray
     rounds_done: int
     damping: float
     history: list[dict]
     stopped: str = ""
+    odometry: OdometryNoise | None = None
 
 
 def save(path: Path, state: DenseState, start: np.ndarray) -> None:
     """Write ``state`` to ``path`` under a temporary name and rename it."""
     buf = io.BytesIO()
     meta = {"rounds_done": state.rounds_done, "damping": state.damping, "stopped": state.stopped,
-            "history": state.history}
+            "history": state.history, "odometry": state.odometry.summary() if state.odometry else None}
     np.savez(buf, poses=np.asarray(state.poses, dtype=np.float64), start=np.asarray(start, dtype=np.float64),
              meta=np.array(json.dumps(meta, default=float)))
     with atomic_write(path, "wb") as fh:
@@ -94,6 +99,26 @@ def _checked(poses: np.ndarray, made_from: np.ndarray, meta: dict, start: np.nda
         raise ValueError(f"damping {damping!r}")
     if not isinstance(history, list) or len(history) > done or not all(isinstance(r, dict) for r in history):
         raise ValueError("its round records do not match its rounds")
+    if not all(isinstance(r.get(k), float | int) and np.isfinite(r[k]) for r in history for k in ROW_NUMBERS):
+        raise ValueError(f"its round records lack one of {', '.join(ROW_NUMBERS)}")
     if not isinstance(stopped, str) or len(stopped) > 500:
         raise ValueError("its end record is not a short text")
-    return DenseState(poses, done, float(damping), history, stopped)
+    return DenseState(poses, done, float(damping), history, stopped, _odometry(meta.get("odometry"), len(start)))
+
+
+def _odometry(record: object, frames: int) -> OdometryNoise | None:
+    """The odometry noise a checkpoint recorded: six positive finite sigmas (and six non-negative ones)."""
+    if record is None:
+        return None
+    if not isinstance(record, dict):
+        raise ValueError("its odometry noise is not a mapping")
+    sigma = np.asarray(record["sigma"], dtype=np.float64)
+    solution = np.asarray(record["solution_sigma"], dtype=np.float64)
+    edges = record["edges"]
+    if sigma.shape != (6,) or not np.all(np.isfinite(sigma) & (sigma > 0)):
+        raise ValueError("its odometry noise is not six positive numbers")
+    if solution.shape != (6,) or not np.all(np.isfinite(solution) & (solution >= 0)):
+        raise ValueError("its solution noise is not six numbers")
+    if not isinstance(edges, int) or not 0 < edges < frames:
+        raise ValueError(f"its odometry edges {edges!r}, not 1 to {frames - 1}")
+    return OdometryNoise(sigma, solution, edges)

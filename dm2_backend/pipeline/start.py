@@ -113,7 +113,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise)
     checkpoint = checkpoint_dir / DENSE_CHECKPOINT if checkpoint_dir is not None else None
     result = refine_dense(cells, graph, start.poses, voxel, cfg.dense_rounds, progress=progress, trace=trace,
-                          checkpoint=checkpoint, resume=resume)
+                          checkpoint=checkpoint, resume=resume, measure_odometry=cfg.dense_odometry_noise)
     # never worse than where it started, judged without ground truth: each frame against the map the others make
     candidates = {"warm start": prep.warm_start, start.name.value: start.poses, "dense": result.poses}
     agreement = agreement_score(cells, candidates, voxel, judges=(start.name.value, "dense"))
@@ -123,6 +123,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     summary = {"voxel_m": voxel, "cells": len(cells), "cells_seconds": t_cells, "seconds": result.seconds,
                "rounds": len(result.history), "stopped": result.stopped, "history": result.history,
                "resumed_after_round": result.resumed_after,
+               "odometry_noise": result.odometry.summary() if result.odometry else None,
                "agreement_m2": agreement, "returned": chosen}
     log.info("dense: %d cells of %.3g m, %s; returned %s (frames' disagreement with the others' planes: %s)",
              len(cells), voxel / 4.0, result.stopped, chosen,

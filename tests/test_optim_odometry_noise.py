@@ -1,0 +1,147 @@
+"""The front end's odometry noise measured against a solution: the per-step sigma of a random walk recovered
+through a solution with its own (larger) error, a finite weight for exact odometry, nothing measured from too
+few edges, only the odometry edges reweighed; the dense stage that measures it, and its checkpoint."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+import pytest
+from optim_cases import one_thread
+from test_optim_dense import VOXEL, odometry_graph
+
+from dm2_backend.errors import InputError
+from dm2_backend.geometry import se3
+from dm2_backend.optim import dense_checkpoint, odometry_noise, planes
+from dm2_backend.optim.dense import refine_dense
+from dm2_backend.pipeline.live import ate_rmse
+from dm2_backend.pose_graph import PoseGraph
+from dm2_backend.scans import Scan, ScanSequence
+from dm2_backend.simulate.sequence import SimSettings, simulate
+
+#: odometry noise per step (m, rad) and the solution's own error per frame, twice as large
+SIGMA = np.array([5e-4, 5e-4, 2e-4, 5e-5, 5e-5, 1e-4])
+SOLUTION = 2 * SIGMA
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _single_thread():
+    yield from one_thread()
+
+
+def _perturbed(T: np.ndarray, sigma: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """``T`` times a random motion with per-component standard deviation ``sigma`` ([t, rotvec])."""
+    xi = rng.normal(0.0, sigma, (len(T), 6))
+    return T @ se3.make_poses(se3.exp_so3(xi[:, 3:]), xi[:, :3])
+
+
+def _chain(frames: int, odometry: np.ndarray, solution: np.ndarray, seed: int = 0,
+           loop: bool = False) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
+    """A 2 cm-per-frame arc, its odometry edges (and one loop edge) with noise ``odometry``, and a solution
+    with independent per-frame error ``solution``: the graph, the solution and the true poses."""
+    rng = np.random.default_rng(seed)
+    s = 0.02 * np.arange(frames)
+    yaw = s / 15.0
+    gt = se3.make_poses(se3.exp_so3(np.stack([0 * s, 0 * s, yaw], 1)),
+                        np.stack([15 * np.sin(yaw), 15 * (1 - np.cos(yaw)), 0.1 * np.sin(s)], 1))
+    relative = _perturbed(se3.relative(gt[:-1], gt[1:]), odometry, rng)
+    edges = np.stack([np.arange(frames - 1), np.arange(1, frames)], 1)
+    if loop:
+        edges = np.concatenate([edges, [[0, frames - 1]]])
+        relative = np.concatenate([relative, se3.relative(gt[:1], gt[-1:])])
+    information = np.repeat(np.diag([1e4] * 3 + [1e6] * 3)[None], len(edges), 0)
+    graph = PoseGraph(ids=np.arange(frames), poses=gt.copy(), edges=edges, relative=relative,
+                      information=information, planar=False)
+    return graph, _perturbed(gt, solution, rng), gt
+
+
+def test_the_per_step_noise_of_a_random_walk_is_recovered_through_a_noisier_solution():
+    graph, solution, _ = _chain(3000, SIGMA, SOLUTION)
+    steps = odometry_noise.consecutive_edges(graph)
+    noise = odometry_noise.estimate(graph, steps, solution)
+    assert noise is not None and noise.edges == 2999
+    np.testing.assert_allclose(noise.sigma, SIGMA, rtol=0.2)
+    # the intercept is the solution's own error (both ends of a run of steps)
+    np.testing.assert_allclose(noise.solution_sigma, np.sqrt(2) * SOLUTION, rtol=0.3)
+    # the discrepancy of a perfect solution is the odometry's own error, step by step
+    _, _, gt = _chain(3000, SIGMA, SOLUTION)
+    exact = odometry_noise.discrepancies(graph.relative[steps], gt)
+    np.testing.assert_allclose(exact.std(0), SIGMA, rtol=0.1)
+
+
+def test_exact_odometry_gets_a_finite_weight():
+    graph, solution, _ = _chain(500, np.zeros(6), SOLUTION)
+    noise = odometry_noise.estimate(graph, odometry_noise.consecutive_edges(graph), solution)
+    assert noise is not None
+    assert np.all(noise.sigma >= odometry_noise.MIN_SIGMA) and np.all(noise.sigma < SOLUTION)
+    assert np.all(np.isfinite(noise.information()))
+
+
+@pytest.mark.parametrize("frames", [odometry_noise.MIN_EDGES, 10])
+def test_too_few_edges_are_not_measured(frames):
+    graph, solution, _ = _chain(frames, SIGMA, SOLUTION)  # MIN_EDGES frames: one edge short
+    assert odometry_noise.estimate(graph, odometry_noise.consecutive_edges(graph), solution) is None
+
+
+def test_a_chain_with_a_gap_is_not_measured():
+    graph, solution, _ = _chain(400, SIGMA, SOLUTION)
+    steps = odometry_noise.consecutive_edges(graph)
+    assert odometry_noise.estimate(graph, np.delete(steps, 200), solution) is None
+
+
+def test_only_the_odometry_edges_are_reweighed():
+    graph, solution, _ = _chain(400, SIGMA, SOLUTION, loop=True)
+    steps = odometry_noise.consecutive_edges(graph)
+    np.testing.assert_array_equal(steps, np.arange(399))  # the loop edge is not a step
+    noise = odometry_noise.estimate(graph, steps, solution)
+    out = odometry_noise.reweighted(graph, steps, noise)
+    np.testing.assert_array_equal(out.information[-1], graph.information[-1])
+    np.testing.assert_allclose(out.information[0], np.diag(1.0 / noise.sigma**2))
+    assert out.meta["odometry_noise"]["edges"] == 399 and "odometry_noise" not in graph.meta
+    np.testing.assert_array_equal(out.relative, graph.relative)
+
+
+@lru_cache(maxsize=1)
+def dense_street() -> tuple[planes.Cells, np.ndarray]:
+    """150 frames 3 cm apart of the simulated 32-beam street (2 cm range noise), as cells, and the true poses."""
+    scans, gt, _ = simulate(SimSettings(frames=150, seed=3, extent=10.0, laps=0.1), progress=False)
+    seq = ScanSequence(lambda i: Scan(scans[i]), len(scans), planar=False)
+    return planes.cells_from_scans(seq, VOXEL / 4, 2048, 10**6), gt
+
+
+def test_the_dense_stage_measures_the_odometry_it_was_given_with_a_guessed_weight(tmp_path):
+    """Odometry 0.5 mm / 0.05 mrad a step, weighed as 2 cm / 1 mrad (the registrations' median, as
+    ``build_graph`` guesses): the stage measures the true noise and keeps the truth's accuracy."""
+    cells, gt = dense_street()
+    graph, _ = odometry_graph(gt, 5e-4, 5e-5, seed=1)
+    graph.information[:] = np.diag([1 / 0.02**2] * 3 + [1 / 0.001**2] * 3)
+    start = gt.copy()
+    start[:, :3, 3] += np.random.default_rng(4).normal(0, 0.005, (len(gt), 3))
+    ckpt = tmp_path / dense_checkpoint.DENSE_CHECKPOINT
+    result = refine_dense(cells, graph, start, VOXEL, measure_odometry=True, checkpoint=ckpt)
+    assert result.odometry is not None and "odometry weighed" in result.stopped
+    truth = np.array([5e-4] * 3 + [5e-5] * 3)
+    assert np.all(result.odometry.sigma > truth / 2) and np.all(result.odometry.sigma < 2 * truth)
+    assert ate_rmse(gt, result.poses) < 0.002  # from 0.0087; the range noise is 0.02 m
+    assert sum("odometry_noise" in row for row in result.history) == 1
+    # resumed after it ended: the measured noise comes back with it
+    again = refine_dense(cells, graph, start, VOXEL, measure_odometry=True, checkpoint=ckpt, resume=True)
+    np.testing.assert_array_equal(again.odometry.sigma, result.odometry.sigma)
+
+
+def test_a_checkpoint_with_a_damaged_odometry_record_is_refused(tmp_path):
+    poses = se3.identity(100)
+    ckpt = tmp_path / dense_checkpoint.DENSE_CHECKPOINT
+    row = {"graph": 1.0, "sigma": 0.01, "step_rms_m": 0.001}
+    good = odometry_noise.OdometryNoise(SIGMA.copy(), SOLUTION.copy(), 99)
+    dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row], "", good), poses)
+    np.testing.assert_array_equal(dense_checkpoint.load(ckpt, poses, 30).odometry.sigma, SIGMA)
+    for bad, match in ((odometry_noise.OdometryNoise(-SIGMA, SOLUTION, 99), "odometry noise"),
+                       (odometry_noise.OdometryNoise(SIGMA, SOLUTION, 100), "odometry edges")):
+        dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row], "", bad), poses)
+        with pytest.raises(InputError, match=match):
+            dense_checkpoint.load(ckpt, poses, 30)
+    dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [{"sigma": 0.01}], "", good), poses)
+    with pytest.raises(InputError, match="round records lack"):
+        dense_checkpoint.load(ckpt, poses, 30)
