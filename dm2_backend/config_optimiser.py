@@ -105,7 +105,7 @@ class OptimConfig(BaseModel):
     #: cells a frame 0.0010 m, 200 cells a frame (as at 7,500 frames) 0.0027 m
     dense_cells_per_frame: int = Field(2048, ge=1)
     dense_max_cells: int = Field(1_500_000, ge=1)
-    #: once the dense stage has converged, the front end's odometry edges are weighed by their own noise,
+    #: once the dense stage's planes settle, the front end's odometry edges are weighed by their own noise,
     #: measured against that solution (``dm2_backend.optim.odometry_noise``), and the stage goes on; False: the
     #: guessed weight of the pose graph throughout
     dense_odometry_noise: bool = True

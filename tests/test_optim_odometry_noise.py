@@ -4,8 +4,10 @@ few edges, only the odometry edges reweighed; the dense stage that measures it, 
 
 from __future__ import annotations
 
+import json
 from functools import lru_cache
 
+import gtsam
 import numpy as np
 import pytest
 from optim_cases import one_thread
@@ -16,7 +18,7 @@ from dm2_backend.geometry import se3
 from dm2_backend.optim import dense_checkpoint, odometry_noise, planes
 from dm2_backend.optim.dense import refine_dense
 from dm2_backend.pipeline.live import ate_rmse
-from dm2_backend.pose_graph import PoseGraph
+from dm2_backend.pose_graph import ROTATION_FIRST, PoseGraph
 from dm2_backend.scans import Scan, ScanSequence
 from dm2_backend.simulate.sequence import SimSettings, simulate
 
@@ -86,8 +88,29 @@ def test_too_few_edges_are_not_measured(frames):
 
 def test_a_chain_with_a_gap_is_not_measured():
     graph, solution, _ = _chain(400, SIGMA, SOLUTION)
-    steps = odometry_noise.consecutive_edges(graph)
-    assert odometry_noise.estimate(graph, np.delete(steps, 200), solution) is None
+    keep = np.delete(np.arange(len(graph.edges)), 200)  # the graph itself lacks the edge 200 -> 201
+    gapped = PoseGraph(graph.ids, graph.poses, graph.edges[keep], graph.relative[keep], graph.information[keep])
+    steps = odometry_noise.consecutive_edges(gapped)
+    assert len(steps) == 398 and odometry_noise.estimate(gapped, steps, solution) is None
+
+
+def test_the_discrepancy_is_gtsams_between_factor_error_in_g2o_order():
+    graph, solution, _ = _chain(100, SIGMA, SOLUTION)
+    mine = odometry_noise.discrepancies(graph.relative, solution)
+    for i in (0, 37, 98):
+        factor = gtsam.BetweenFactorPose3(0, 1, gtsam.Pose3(graph.relative[i]),
+                                          gtsam.noiseModel.Isotropic.Sigma(6, 1.0))
+        theirs = factor.unwhitenedError(_values(solution[i], solution[i + 1]))  # rotation first
+        # equal to first order: GTSAM's Logmap translation differs from ours by the rotation times the translation
+        np.testing.assert_allclose(mine[i], theirs[ROTATION_FIRST.argsort()], atol=2e-6)
+        assert np.abs(mine[i]).max() > 1e-4
+
+
+def _values(a: np.ndarray, b: np.ndarray) -> gtsam.Values:
+    values = gtsam.Values()
+    values.insert(0, gtsam.Pose3(a))
+    values.insert(1, gtsam.Pose3(b))
+    return values
 
 
 def test_only_the_odometry_edges_are_reweighed():
@@ -128,6 +151,24 @@ def test_the_dense_stage_measures_the_odometry_it_was_given_with_a_guessed_weigh
     # resumed after it ended: the measured noise comes back with it
     again = refine_dense(cells, graph, start, VOXEL, measure_odometry=True, checkpoint=ckpt, resume=True)
     np.testing.assert_array_equal(again.odometry.sigma, result.odometry.sigma)
+    # interrupted in the round after the measurement and resumed: where the uninterrupted stage ends
+    marked = next(i for i, row in enumerate(result.history) if "odometry_noise" in row)
+    assert marked + 1 < len(result.history)  # rounds ran with the measured weight
+    calls = []
+
+    def interrupt(_poses: np.ndarray) -> float:
+        calls.append(1)
+        if len(calls) == marked + 2:
+            raise KeyboardInterrupt
+        return 0.0
+
+    ckpt.unlink()
+    with pytest.raises(KeyboardInterrupt):
+        refine_dense(cells, graph, start, VOXEL, trace=interrupt, checkpoint=ckpt, measure_odometry=True)
+    assert dense_checkpoint.load(ckpt, start, 30).odometry is not None
+    resumed = refine_dense(cells, graph, start, VOXEL, measure_odometry=True, checkpoint=ckpt, resume=True)
+    assert resumed.stopped == result.stopped and len(resumed.history) == len(result.history)
+    np.testing.assert_allclose(resumed.poses, result.poses, atol=1e-9)
 
 
 def test_a_checkpoint_with_a_damaged_odometry_record_is_refused(tmp_path):
@@ -138,10 +179,24 @@ def test_a_checkpoint_with_a_damaged_odometry_record_is_refused(tmp_path):
     dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row], "", good), poses)
     np.testing.assert_array_equal(dense_checkpoint.load(ckpt, poses, 30).odometry.sigma, SIGMA)
     for bad, match in ((odometry_noise.OdometryNoise(-SIGMA, SOLUTION, 99), "odometry noise"),
+                       (odometry_noise.OdometryNoise(SIGMA * 1e-200, SOLUTION, 99), "odometry noise"),
+                       (odometry_noise.OdometryNoise(SIGMA * 1e200, SOLUTION, 99), "odometry noise"),
                        (odometry_noise.OdometryNoise(SIGMA, SOLUTION, 100), "odometry edges")):
         dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row], "", bad), poses)
         with pytest.raises(InputError, match=match):
             dense_checkpoint.load(ckpt, poses, 30)
     dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [{"sigma": 0.01}], "", good), poses)
     with pytest.raises(InputError, match="round records lack"):
+        dense_checkpoint.load(ckpt, poses, 30)
+    huge = odometry_noise.OdometryNoise(SIGMA, SOLUTION, 99)
+    dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row], "", huge), poses)
+    text = ckpt.read_bytes()
+    with np.load(ckpt) as data:  # a sigma written as a 400-digit integer: too large for a float
+        meta = json.loads(str(data["meta"]))
+        meta["odometry"]["sigma"][0] = 10**400
+        np.savez(ckpt.with_suffix(".tmp.npz"), poses=data["poses"], start=data["start"],
+                 meta=np.array(json.dumps(meta)))
+    ckpt.with_suffix(".tmp.npz").replace(ckpt)
+    assert ckpt.read_bytes() != text
+    with pytest.raises(InputError, match="does not fit"):
         dense_checkpoint.load(ckpt, poses, 30)

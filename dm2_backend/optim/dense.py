@@ -59,7 +59,7 @@ class DenseResult:
     stopped: str = ""
     #: rounds a checkpoint had done before this run continued it (0: started afresh)
     resumed_after: int = 0
-    #: the odometry noise measured after the first convergence and weighed from then on (None: not measured)
+    #: the odometry noise measured once the planes settled and weighed from then on (None: not measured)
     odometry: odometry_noise.OdometryNoise | None = None
 
 
@@ -141,12 +141,14 @@ def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float
                  resume: bool = False, measure_odometry: bool = False) -> DenseResult:
     """Poses minimising plane term + graph factors from ``start``; stops when a round moves the poses by less
     than ``tolerance`` noise sigmas (root mean square: a cell changing voxel moves a frame or two a little every
-    round), after ``rounds`` rounds, or when no step lowers the objective. ``trace``:
+    round; once the odometry is reweighed, when the graph factors' cost changes by less than ``tolerance`` of
+    itself), after ``rounds`` rounds, or when no step lowers the objective. ``trace``:
     accuracy against ground truth, recorded per round (never used to
     decide). ``checkpoint``: the state is written there after every round; with ``resume`` the stage continues
     from the state found there (:mod:`dm2_backend.optim.dense_checkpoint`), or returns it when it had ended.
-    ``measure_odometry``: at the first convergence (or the first round no step improves), the odometry edges
-    (frame i to i+1) are weighed by their noise measured against the poses there, and the rounds go on."""
+    ``measure_odometry``: once the planes settle (:func:`_settled`), the rounds converge or no step improves,
+    whichever comes first, with a round left, the odometry edges (frame i to i+1) are weighed by their noise
+    measured against the poses there, and the rounds go on."""
     t0 = time.perf_counter()
     start = np.asarray(start, dtype=np.float64)
     state = dense_checkpoint.DenseState(start.copy(), 0, 1e-4, [])
@@ -175,8 +177,8 @@ def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float
         """At a minimum with the guessed odometry weight: weigh the odometry edges by their noise measured at
         the current poses and go on (once; False: not asked for, done, or too few edges)."""
         nonlocal odometry, graph, fg, objective, values, lam
-        if not measure_odometry or odometry is not None:
-            return False
+        if not measure_odometry or odometry is not None or not history or rounds_done >= rounds:
+            return False  # measured once, against a round's poses, with a round left to use it
         odometry = odometry_noise.estimate(graph, steps, poses)
         if odometry is None:
             return False

@@ -20,7 +20,7 @@ import numpy as np
 
 from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError
-from dm2_backend.optim.odometry_noise import OdometryNoise
+from dm2_backend.optim.odometry_noise import MAX_SIGMA, MIN_SIGMA, OdometryNoise
 
 DENSE_CHECKPOINT = "checkpoint-dense.npz"
 #: per frame two 4x4 poses of float64 plus the file's own overhead; anything larger is not a checkpoint of ours
@@ -37,7 +37,7 @@ ROW_NUMBERS = ("graph", "sigma", "step_rms_m")
 class DenseState:
     """Where the dense stage stands: the poses after ``rounds_done`` rounds, the damping for the next round,
     the rows of the rounds done, ``stopped`` once the stage ended (empty while it runs), and the odometry noise
-    weighed from the first convergence on (None: not measured yet)."""
+    weighed since the planes settled (None: not measured yet)."""
 
     poses: np.ndarray
     rounds_done: int
@@ -71,11 +71,11 @@ def load(path: Path, start: np.ndarray, rounds: int) -> DenseState:
             poses = np.array(data["poses"], dtype=np.float64)
             made_from = np.array(data["start"], dtype=np.float64)
             meta = json.loads(str(data["meta"]))
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+    except (OSError, ValueError, KeyError, EOFError, RecursionError, zipfile.BadZipFile) as exc:
         raise InputError(path, f"not a dm2 dense-stage checkpoint, or a damaged one ({str(exc)[:160]})") from None
     try:
         return _checked(poses, made_from, meta, start, rounds)
-    except (TypeError, ValueError, KeyError) as exc:
+    except (TypeError, ValueError, KeyError, OverflowError) as exc:
         raise InputError(path, f"--resume: this dense-stage checkpoint does not fit this run: {exc}") from None
 
 
@@ -115,8 +115,8 @@ def _odometry(record: object, frames: int) -> OdometryNoise | None:
     sigma = np.asarray(record["sigma"], dtype=np.float64)
     solution = np.asarray(record["solution_sigma"], dtype=np.float64)
     edges = record["edges"]
-    if sigma.shape != (6,) or not np.all(np.isfinite(sigma) & (sigma > 0)):
-        raise ValueError("its odometry noise is not six positive numbers")
+    if sigma.shape != (6,) or not np.all((sigma >= MIN_SIGMA) & (sigma <= MAX_SIGMA)):
+        raise ValueError(f"its odometry noise is not six numbers from {MIN_SIGMA:g} to {MAX_SIGMA:g}")
     if solution.shape != (6,) or not np.all(np.isfinite(solution) & (solution >= 0)):
         raise ValueError("its solution noise is not six numbers")
     if not isinstance(edges, int) or not 0 < edges < frames:

@@ -8,7 +8,9 @@ Against a solution ``P``, edge ``i`` (frame i to i+1, measured ``Z_i``) has the 
 error of that step minus the change of the solution's error between the two frames. Summed over ``k``
 consecutive steps, the odometry's errors add up (variance ``k sigma^2``: the random walk a chain of between
 factors models) while the solution's telescope to the difference of two frames' errors (a variance that does
-not grow with ``k``). So the variance of the k-step sums, regressed on ``k``, has the odometry's per-step
+not grow with ``k``; nearly so for short steps, as on the dense sequences where the weight matters: each
+frame's rotation error times the step's length and rotation is left over and adds to the slope).
+So the variance of the k-step sums, regressed on ``k``, has the odometry's per-step
 variance as its slope and the solution's as its intercept, per component.
 """
 
@@ -26,15 +28,17 @@ from dm2_backend.pose_graph import PoseGraph
 WINDOW = 8
 #: the fewest odometry edges to estimate from (below that the graph keeps its weights)
 MIN_EDGES = 10 * WINDOW
-#: the smallest per-step standard deviation taken (m or rad): exact odometry still gets a finite weight
+#: the smallest and largest per-step standard deviation taken (m or rad): exact odometry still gets a finite
+#: weight, odometry that says nothing a non-zero one
 MIN_SIGMA = 1e-6
+MAX_SIGMA = 1e3
 
 
 @dataclass
 class OdometryNoise:
-    """Per-step standard deviation of the odometry edges (g2o order ``[x y z rx ry rz]``, m and rad, in the
-    frame of the step's first pose), the solution's own error scale (the intercept, same units), and the
-    edges measured."""
+    """Per-step standard deviation of the odometry edges (g2o order ``[x y z rx ry rz]``, m and rad, on the
+    right of the measured step: the tangent of GTSAM's BetweenFactor error), the solution's own error scale (the
+    intercept, same units), and the edges measured."""
 
     sigma: np.ndarray
     solution_sigma: np.ndarray
@@ -74,7 +78,7 @@ def estimate(graph: PoseGraph, edges: np.ndarray, poses: np.ndarray) -> Odometry
     dof = WINDOW - 2
     slope_var = (resid**2).sum(0) / dof * np.linalg.inv(design.T @ design)[1, 1]
     slope = np.maximum(coef[1], np.sqrt(slope_var))
-    sigma = np.maximum(np.sqrt(np.maximum(slope, 0.0)), MIN_SIGMA)
+    sigma = np.clip(np.sqrt(np.maximum(slope, 0.0)), MIN_SIGMA, MAX_SIGMA)
     return OdometryNoise(sigma, np.sqrt(np.maximum(coef[0], 0.0)), len(edges))
 
 
