@@ -175,20 +175,20 @@ def test_a_checkpoint_with_a_damaged_odometry_record_is_refused(tmp_path):
     poses = se3.identity(100)
     ckpt = tmp_path / dense_checkpoint.DENSE_CHECKPOINT
     row = {"graph": 1.0, "sigma": 0.01, "step_rms_m": 0.001}
-    good = odometry_noise.OdometryNoise(SIGMA.copy(), SOLUTION.copy(), 99)
+    good = odometry_noise.MeasuredNoise(SIGMA.copy(), SOLUTION.copy(), 99)
     dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row], "", good), poses)
     np.testing.assert_array_equal(dense_checkpoint.load(ckpt, poses, 30).odometry.sigma, SIGMA)
-    for bad, match in ((odometry_noise.OdometryNoise(-SIGMA, SOLUTION, 99), "odometry noise"),
-                       (odometry_noise.OdometryNoise(SIGMA * 1e-200, SOLUTION, 99), "odometry noise"),
-                       (odometry_noise.OdometryNoise(SIGMA * 1e200, SOLUTION, 99), "odometry noise"),
-                       (odometry_noise.OdometryNoise(SIGMA, SOLUTION, 100), "odometry edges")):
+    for bad, match in ((odometry_noise.MeasuredNoise(-SIGMA, SOLUTION, 99), "odometry noise"),
+                       (odometry_noise.MeasuredNoise(SIGMA * 1e-200, SOLUTION, 99), "odometry noise"),
+                       (odometry_noise.MeasuredNoise(SIGMA * 1e200, SOLUTION, 99), "odometry noise"),
+                       (odometry_noise.MeasuredNoise(SIGMA, SOLUTION, 100), "odometry edges")):
         dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row], "", bad), poses)
         with pytest.raises(InputError, match=match):
             dense_checkpoint.load(ckpt, poses, 30)
     dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [{"sigma": 0.01}], "", good), poses)
     with pytest.raises(InputError, match="round records lack"):
         dense_checkpoint.load(ckpt, poses, 30)
-    huge = odometry_noise.OdometryNoise(SIGMA, SOLUTION, 99)
+    huge = odometry_noise.MeasuredNoise(SIGMA, SOLUTION, 99)
     dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row], "", huge), poses)
     text = ckpt.read_bytes()
     with np.load(ckpt) as data:  # a sigma written as a 400-digit integer: too large for a float

@@ -60,7 +60,7 @@ class DenseResult:
     #: rounds a checkpoint had done before this run continued it (0: started afresh)
     resumed_after: int = 0
     #: the odometry noise measured once the planes settled and weighed from then on (None: not measured)
-    odometry: odometry_noise.OdometryNoise | None = None
+    odometry: odometry_noise.MeasuredNoise | None = None
 
 
 def _step(a: np.ndarray, b: np.ndarray) -> tuple[float, float, float]:
@@ -261,7 +261,7 @@ def _settled(history: list[dict]) -> bool:
     return len(history) >= 2 and abs(history[-1]["sigma"] - history[-2]["sigma"]) < SETTLED * history[-2]["sigma"]
 
 
-def _reweighed(graph: PoseGraph, steps: np.ndarray, noise: odometry_noise.OdometryNoise, poses: np.ndarray
+def _reweighed(graph: PoseGraph, steps: np.ndarray, noise: odometry_noise.MeasuredNoise, poses: np.ndarray
                ) -> tuple[PoseGraph, gtsam.NonlinearFactorGraph, _Objective, gtsam.Values]:
     """The graph with its odometry ``steps`` weighed by ``noise``, its factors, objective and values at ``poses``."""
     log.info("dense stage: odometry noise per step %s (m, rad; the graph had guessed %s)",

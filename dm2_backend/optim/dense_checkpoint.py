@@ -20,7 +20,7 @@ import numpy as np
 
 from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError
-from dm2_backend.optim.odometry_noise import MAX_SIGMA, MIN_SIGMA, OdometryNoise
+from dm2_backend.optim.odometry_noise import MAX_SIGMA, MIN_SIGMA, MeasuredNoise
 
 DENSE_CHECKPOINT = "checkpoint-dense.npz"
 #: per frame two 4x4 poses of float64 plus the file's own overhead; anything larger is not a checkpoint of ours
@@ -44,7 +44,7 @@ class DenseState:
     damping: float
     history: list[dict]
     stopped: str = ""
-    odometry: OdometryNoise | None = None
+    odometry: MeasuredNoise | None = None
 
 
 def save(path: Path, state: DenseState, start: np.ndarray) -> None:
@@ -106,8 +106,9 @@ def _checked(poses: np.ndarray, made_from: np.ndarray, meta: dict, start: np.nda
     return DenseState(poses, done, float(damping), history, stopped, _odometry(meta.get("odometry"), len(start)))
 
 
-def _odometry(record: object, frames: int) -> OdometryNoise | None:
-    """The odometry noise a checkpoint recorded: six positive finite sigmas (and six non-negative ones)."""
+def _odometry(record: object, frames: int) -> MeasuredNoise | None:
+    """The odometry noise a checkpoint recorded: six sigmas within what :func:`odometry_noise.estimate` gives,
+    six finite non-negative solution sigmas, and an edge count below the frames'."""
     if record is None:
         return None
     if not isinstance(record, dict):
@@ -121,4 +122,4 @@ def _odometry(record: object, frames: int) -> OdometryNoise | None:
         raise ValueError("its solution noise is not six numbers")
     if not isinstance(edges, int) or not 0 < edges < frames:
         raise ValueError(f"its odometry edges {edges!r}, not 1 to {frames - 1}")
-    return OdometryNoise(sigma, solution, edges)
+    return MeasuredNoise(sigma, solution, edges)

@@ -16,7 +16,7 @@ variance as its slope and the solution's as its intercept, per component.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -35,10 +35,11 @@ MAX_SIGMA = 1e3
 
 
 @dataclass
-class OdometryNoise:
-    """Per-step standard deviation of the odometry edges (g2o order ``[x y z rx ry rz]``, m and rad, on the
-    right of the measured step: the tangent of GTSAM's BetweenFactor error), the solution's own error scale (the
-    intercept, same units), and the edges measured."""
+class MeasuredNoise:
+    """The odometry edges' noise measured against a solution (not the planar warm start's translation and yaw
+    spread, ``drift_windows.OdometryNoise``): per-step standard deviation (g2o order ``[x y z rx ry rz]``, m and
+    rad, on the right of the measured step: the tangent of GTSAM's BetweenFactor error), the solution's own error
+    scale (the intercept, same units), and the edges measured."""
 
     sigma: np.ndarray
     solution_sigma: np.ndarray
@@ -62,7 +63,7 @@ def _robust_variance(x: np.ndarray) -> np.ndarray:
     return (1.4826 * np.median(np.abs(x - np.median(x, 0)), 0)) ** 2
 
 
-def estimate(graph: PoseGraph, edges: np.ndarray, poses: np.ndarray) -> OdometryNoise | None:
+def estimate(graph: PoseGraph, edges: np.ndarray, poses: np.ndarray) -> MeasuredNoise | None:
     """The per-step noise of the graph's odometry ``edges`` (frame i to i+1 for every i, in order) against the
     solution ``poses``, or None with fewer than :data:`MIN_EDGES` of them. A slope that the data do not tell
     from zero is taken at its standard error (never an infinite weight)."""
@@ -79,7 +80,7 @@ def estimate(graph: PoseGraph, edges: np.ndarray, poses: np.ndarray) -> Odometry
     slope_var = (resid**2).sum(0) / dof * np.linalg.inv(design.T @ design)[1, 1]
     slope = np.maximum(coef[1], np.sqrt(slope_var))
     sigma = np.clip(np.sqrt(np.maximum(slope, 0.0)), MIN_SIGMA, MAX_SIGMA)
-    return OdometryNoise(sigma, np.sqrt(np.maximum(coef[0], 0.0)), len(edges))
+    return MeasuredNoise(sigma, np.sqrt(np.maximum(coef[0], 0.0)), len(edges))
 
 
 def consecutive_edges(graph: PoseGraph) -> np.ndarray:
@@ -90,10 +91,8 @@ def consecutive_edges(graph: PoseGraph) -> np.ndarray:
     return steps[first]
 
 
-def reweighted(graph: PoseGraph, edges: np.ndarray, noise: OdometryNoise) -> PoseGraph:
+def reweighted(graph: PoseGraph, edges: np.ndarray, noise: MeasuredNoise) -> PoseGraph:
     """A copy of ``graph`` whose ``edges`` carry the information of ``noise``."""
     information = graph.information.copy()
     information[edges] = noise.information()
-    meta = {**graph.meta, "odometry_noise": noise.summary()}
-    return PoseGraph(graph.ids, graph.poses, graph.edges, graph.relative, information, graph.planar,
-                     list(graph.fixed), meta)
+    return replace(graph, information=information, meta={**graph.meta, "odometry_noise": noise.summary()})
