@@ -308,3 +308,49 @@ def test_block_rows_are_the_csr_of_the_blocks():
     built.put(slice(4, 6), voxel[4:], blocks[4:])
     expected = bsr_matrix((blocks, voxel, np.searchsorted(frame, np.arange(6))), shape=(30, 15)).toarray()
     assert np.array_equal(built.matrix(15).toarray(), expected)
+
+
+def panel_seen_from_both_sides() -> tuple[planes.Cells, np.ndarray, np.ndarray]:
+    """A 4 cm thick panel (faces at x = 0.38 and 0.42 m, inside one 0.8 m voxel), four frames in front of each
+    face seeing only that face (2 mm noise): the cells, the true poses and each frame's side (-1, +1)."""
+    rng = np.random.default_rng(5)
+    side = np.repeat([-1, 1], 4)
+    poses = np.tile(np.eye(4), (8, 1, 1))
+    poses[:, 0, 3] = np.where(side < 0, -0.6, 1.4)
+    poses[:, 1, 3] = np.tile(np.linspace(0.1, 0.7, 4), 2)
+    scans = []
+    for s, T in zip(side, poses, strict=True):
+        yz = rng.uniform([0.05, 0.05], [0.75, 0.75], (3000, 2))
+        face = np.column_stack([np.full(3000, 0.4 + 0.02 * s), yz]) + rng.normal(0, 0.002, (3000, 3))
+        scans.append(face - T[:3, 3])
+    seq = ScanSequence(lambda i: Scan(scans[i]), 8, planar=False)
+    return planes.cells_from_scans(seq, 0.1, 2048, 10**6, thin=True), poses, side
+
+
+def test_the_two_faces_of_a_panel_are_two_planes(monkeypatch):
+    cells, poses, side = panel_seen_from_both_sides()
+    a = planes.assign(cells, poses, 0.8)
+    sides = {v: set(side[a.frame[a.voxel == v]]) for v in np.unique(a.voxel)}
+    assert len(sides) >= 2 and all(len(s) == 1 for s in sides.values()), sides
+    assert np.nanmax(planes.disagreement(a, poses)) < 0.004**2  # each frame on its face's plane, to the noise
+    # one plane for both faces (what the split prevents) puts every frame 2 cm off it
+    monkeypatch.setattr(planes, "_behind", lambda todo, *args: np.zeros(len(todo), bool))
+    merged = planes.assign(cells, poses, 0.8)
+    assert any(len(set(side[merged.frame[merged.voxel == v]])) == 2 for v in np.unique(merged.voxel))
+    assert np.nanmin(planes.disagreement(merged, poses)) > 0.015**2
+
+
+def test_a_thinned_cell_keeps_its_extent_along_the_surface_not_its_thickness():
+    rng = np.random.default_rng(6)
+    ray = np.array([0.6, 0.0, 0.8])  # depth noise along an oblique ray, 2 cm, on the plane z = 0.5 (one cell)
+    pts = np.column_stack([rng.uniform(0.3, 0.7, (500, 2)), np.full(500, 0.5)]) + rng.normal(0, 0.02, (500, 1)) * ray
+    count, _, scatter = planes.compress(pts, 1.0)
+    assert count.tolist() == [500]
+    thin = planes.thinned(scatter)[0]
+    S = np.zeros((3, 3))
+    S[np.triu_indices(3)] = thin
+    S = S + np.triu(S, 1).T
+    full = (pts - pts.mean(0)).T @ (pts - pts.mean(0))
+    lam, vec = np.linalg.eigh(full)
+    np.testing.assert_allclose(np.linalg.eigvalsh(S), [0.0, *lam[1:]], atol=1e-9)
+    np.testing.assert_allclose(S @ vec[:, 1:], vec[:, 1:] * lam[1:], atol=1e-9)

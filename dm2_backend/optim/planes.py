@@ -107,11 +107,11 @@ def _summed(pts: np.ndarray, inv: np.ndarray, k: int) -> tuple[np.ndarray, np.nd
 
 
 def cells_from_scans(scans: ScanSequence, size: float, per_frame: int, max_cells: int, seed: int = 0,
-                     progress: bool = False) -> Cells:
+                     progress: bool = False, thin: bool = False) -> Cells:
     """Every scan compressed into cells (scans on threads), at most ``per_frame`` a frame and ``max_cells`` in
     all (at least 64 a frame): a frame with more is summed into cells twice as large (once), and keeps a random
     subset of those if still too many (each kept cell exact: only its points are summed). ``Cells.size`` is the
-    smallest cell."""
+    smallest cell. ``thin``: each cell's scatter without its thinnest direction (:func:`thinned`)."""
     share = min(per_frame, max(64, max_cells // max(len(scans), 1)))
     rng = np.random.default_rng(seed)
 
@@ -129,12 +129,30 @@ def cells_from_scans(scans: ScanSequence, size: float, per_frame: int, max_cells
             on = kept[inv]
             cells = _summed(pts[on], (np.cumsum(kept) - 1)[inv[on]], share)
         count, mean, scatter = cells
+        if thin:
+            scatter = thinned(scatter)
         parts.append((np.full(len(count), i, np.int32), count.astype(np.float32), mean.astype(np.float32),
                       scatter.astype(np.float32)))
     if not parts:
         return Cells(np.zeros(0, np.int32), np.zeros(0, np.float32), np.zeros((0, 3), np.float32),
                      np.zeros((0, 6), np.float32), size)
     return Cells(*(np.concatenate(a) for a in zip(*parts, strict=True)), size)
+
+
+def thinned(scatter: np.ndarray) -> np.ndarray:
+    """Cell scatters (K,6) less their smallest eigen-component ``lambda_min v v^T``: the extent of a cell's points
+    along the surface, not their spread across it. Within a small cell that spread is mostly the sensor's noise,
+    and a depth camera's lies along its rays and grows with the square of the depth (1 mm at 0.5 m, 3 cm at 4 m):
+    taken as the surface's shape it tilts the planes fitted through far cells and pulls each frame to turn its
+    rays along them. A simulated hand-held depth camera started from the true poses (300 frames, median range
+    2.7 m): the dense stage ended 2.5 cm away with the full scatter, 6 mm with the means alone, 4 mm thinned;
+    from a scan-matching start in a cluttered room (1-2.5 m): 1.7, 3.0 and 1.4 mm."""
+    S = np.zeros((len(scatter), 3, 3))
+    S[:, _SCATTER[0], _SCATTER[1]] = scatter
+    S[:, _SCATTER[1], _SCATTER[0]] = scatter
+    lam, vec = np.linalg.eigh(S)
+    S -= np.maximum(lam[:, 0], 0.0)[:, None, None] * vec[:, :, 0, None] * vec[:, None, :, 0]
+    return S[:, _SCATTER[0], _SCATTER[1]]
 
 
 @dataclass
@@ -302,12 +320,15 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
 
 
 def _flat_voxels(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.ndarray, ref_cell: np.ndarray,
-                 poses: np.ndarray, size: float) -> tuple[np.ndarray, ...]:
+                 poses: np.ndarray, size: float, back: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """The flat voxels of edge ``size`` that cells ``todo`` (placed means ``mean``) fall in: which of the cells
     are on one (bool), the plane of each of those (numbered from 0), and per plane its normal, offset (world)
-    and voxel centre. A function of its own: one level's arrays are released before the next level's."""
+    and voxel centre. A surface is seen from one side: the cells whose sensor lies behind their voxel's plane
+    (``back``, found by a first pass) are grouped apart, so the two faces of a thin panel seen from both sides
+    (a chair's back, a door, a garden wall) are two planes, not one between them that pulls the frames of either
+    side towards the other. A function of its own: one level's arrays are released before the next level's."""
     key = np.floor(mean / size).astype(np.int64)
-    inv, n = group_rows(key)
+    inv, n = group_rows(key if back is None else np.concatenate([key, back[:, None].astype(np.int64)], 1))
     level_centre = np.zeros((n, 3))
     level_centre[inv] = key
     level_centre = (level_centre + 0.5) * size
@@ -322,6 +343,10 @@ def _flat_voxels(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.
     several = np.bincount(pair_voxel, ref_cell[todo][first], minlength=n) >= 2  # seen by two frames or more
     candidate = np.flatnonzero((M[:, 3, 3] >= MIN_POINTS) & several)  # (no reference frame's point: N = 0)
     _, mu, lam, vec = _plane_of(M[candidate])
+    if back is None:
+        back = _behind(todo, mean, frame_of, poses, candidate, vec[:, :, 0], inv, n)
+        if back.any():
+            return _flat_voxels(cells, todo, mean, frame_of, ref_cell, poses, size, back)
     is_flat = (lam[:, 0] < FLATNESS * lam[:, 1]) & (lam[:, 1] >= (MIN_WIDTH * size) ** 2)
     flat = np.zeros(n, bool)
     flat[candidate[is_flat]] = True
@@ -329,6 +354,18 @@ def _flat_voxels(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.
     normal = vec[is_flat, :, 0]
     centre = level_centre[flat]
     return on, (np.cumsum(flat) - 1)[inv[on]], normal, (normal * (mu[is_flat] + centre)).sum(1), centre
+
+
+def _behind(todo: np.ndarray, mean: np.ndarray, frame_of: np.ndarray, poses: np.ndarray, candidate: np.ndarray,
+            normal: np.ndarray, inv: np.ndarray, n: int) -> np.ndarray:
+    """Per cell of ``todo``: its sensor lies on the other side of its voxel's plane (``normal`` of the
+    ``candidate`` voxels, turned towards the sensors of most of the voxel's cells) than most of the voxel's
+    cells' sensors (False in voxels that are not candidates)."""
+    oriented = np.zeros((n, 3))
+    oriented[candidate] = normal
+    facing = ((poses[frame_of[todo], :3, 3] - mean) * oriented[inv]).sum(1)
+    flip = np.bincount(inv, np.sign(facing), minlength=n) < 0
+    return np.where(flip[inv], facing > 0, facing < 0)
 
 
 def fit(a: Assignment, poses: np.ndarray) -> Planes:
