@@ -14,17 +14,20 @@ from dm2_backend.pipeline.run_folder import run_folder
 @click.option("--out", "-o", type=click.Path(path_type=Path), required=True, help="Folder to write.")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
               help="Scene, path, noise and drift seed.")
-@click.option("--path", "path_kind", type=click.Choice(["loop", "eight"]), default="loop", show_default=True,
-              help="Drive laps of a loop or of a figure-eight.")
-@click.option("--scene", type=click.Choice(["street", "corridors", "hospital"]), default="street",
+@click.option("--path", "path_kind", type=click.Choice(["loop", "eight", "walk", "rpy"]), default=None,
+              help="street: drive laps of a loop or of a figure-eight [default: loop]; room: walk around the table "
+                   "or turn the camera in place (rpy) [default: walk].")
+@click.option("--scene", type=click.Choice(["street", "corridors", "hospital", "room"]), default="street",
               show_default=True,
               help="street: buildings, walls, poles and cars along a street; corridors: a ring of featureless "
                    "corridors for a front-facing 2D laser (planar; a frame every 0.25 m; --range default 8 m; "
                    "--rate, --seed and the drift options apply, the other path and LiDAR options do not); "
                    "hospital: a CARMEN log like the Freiburg hospital's (ROBOTLASER1, laser 0.22 m ahead, "
                    "interlaced quarter scans, max-range codes, long returns, pauses, drifting odometry; a frame "
-                   "every 0.2 m; --seed only).")
-@click.option("--laps", type=click.FloatRange(min=0, min_open=True), default=2.0, show_default=True)
+                   "every 0.2 m; --seed only); room: a hand-held depth camera (Kinect-like, 30 Hz) in a furnished "
+                   "room, written as a 7-Scenes folder (--path, --laps and --seed apply).")
+@click.option("--laps", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Laps of the path [default: 2; room: one lap around the table per 600 frames].")
 @click.option("--extent", type=click.FloatRange(min=10), default=40.0, show_default=True,
               help="Half size of the scene (m); the street's radius is 0.7 x extent.")
 @click.option("--rate", type=click.FloatRange(min=0, min_open=True), default=10.0, show_default=True,
@@ -65,6 +68,12 @@ def command(frames, out, seed, path_kind, scene, laps, extent, rate, planar, bea
         return corridors(frames, out, seed, rate, max_range, yaw_bias, yaw_noise, trans_noise, force)
     if scene == "hospital":
         return hospital(frames, out, seed, force)
+    if scene == "room":
+        return room(frames, out, seed, path_kind or "walk", laps or frames / 600, force, quiet)
+    path_kind, laps = path_kind or "loop", laps or 2.0
+    if path_kind not in ("loop", "eight"):
+        raise click.BadParameter(f"{path_kind} is a path of --scene room; a street has loop or eight",
+                                 param_hint="--path")
     from dm2_backend.simulate.lidar import LidarModel
     from dm2_backend.simulate.sequence import SimSettings, generate
 
@@ -117,3 +126,20 @@ def hospital(frames, out, seed, force) -> None:
                f"{info['odometry']['max_position_error_m']:.2f} m")
     click.echo(f"wrote {out} (SIMULATED): hospital.clf, truth.tum, hospital.relations; refine it with "
                f"dm2 refine --scans {out}/hospital.clf --relations {out}/hospital.relations --gt {out}/truth.tum")
+
+
+def room(frames, out, seed, path_kind, laps, force, quiet) -> None:
+    """``--scene room``: the hand-held depth camera of :mod:`dm2_backend.simulate.depth_room`."""
+    from dm2_backend.simulate.depth_room import PATHS, write_depth_room
+
+    if path_kind not in PATHS:
+        raise click.BadParameter(f"{path_kind} is a street's path; a room has {' or '.join(PATHS)}",
+                                 param_hint="--path")
+    with run_folder(out, "simulate", force=force):
+        click.echo(f"simulating {frames} depth frames in a room ({path_kind}, seed {seed}) into {out}")
+        info = write_depth_room(out, frames, path_kind, laps, seed, progress=not quiet)
+    click.echo(f"{frames} frames, {100 * info['valid_pixels']:.0f} % valid pixels, {info['path_length_m']:.1f} m "
+               f"path, {info['median_turn_deg']:.2f} deg a frame; warm start ATE {info['warm_start']['ate_rmse_m']:.3f}"
+               f" m; {info['seconds']:.1f} s")
+    click.echo(f"wrote {out} (SIMULATED): refine it with dm2 refine --scans {out} --poses {out}/warm_start.tum "
+               f"--gt {out}/truth.tum")

@@ -2,9 +2,11 @@
 
 The narrow sensor the 3D simulations lacked: a Kinect-like pinhole camera (640 x 480, fx = fy = 585, 0.4-4 m,
 axial noise 1.2 mm + 1.9 mm x (z - 0.4 m)^2 (Nguyen et al. 2012), depth rounded to the millimetre) ray-cast with
-open3d into a room with a counter, wall cabinets, a fridge, a table with things on it and chairs. Two paths:
+open3d into a room with cabinets, shelves and picture frames along the walls, a table with things on it and
+chairs. Two paths:
 
-- ``walk``: laps around the table, the camera at head height looking at the room's middle (RedKitchen-like);
+- ``walk``: laps around the table, the camera at head height looking ahead at the furniture along the walls
+  (RedKitchen-like);
 - ``rpy``: the camera held at one place and turned about all three axes, tens of degrees a second, a few
   centimetres of hand motion (TUM fr1_rpy-like): almost no translation, so little parallax to hold it.
 
@@ -62,31 +64,56 @@ class DepthCamera:
         return np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones_like(u, float)], -1).reshape(-1, 3)
 
 
+def _along_walls(rng: np.random.Generator) -> list[o3d.geometry.TriangleMesh]:
+    """Cabinets, shelves and things on them along every wall, picture frames on the walls between them."""
+    X, Y, _ = ROOM
+    parts = []
+    for wall in range(4):
+        length = X if wall % 2 == 0 else Y
+        u = -length / 2 + rng.uniform(0.1, 0.5)
+        while u < length / 2 - 0.5:
+            width = rng.uniform(0.5, 1.2)
+            if rng.uniform() < 0.7:  # a cabinet, with a few things on it
+                depth, height = rng.uniform(0.35, 0.6), rng.uniform(0.5, 2.0)
+                items = [((u + width / 2, depth / 2, height / 2), (width, depth, height))]
+                for _ in range(rng.integers(0, 3)):
+                    size = rng.uniform(0.08, 0.3, 3)
+                    items.append(((u + rng.uniform(0.1, width - 0.1), depth / 2, height + size[2] / 2), size))
+            else:  # a picture frame
+                items = [((u + width / 2, 0.015, rng.uniform(1.2, 1.8)), (width, 0.03, rng.uniform(0.3, 0.7)))]
+            for (a, b, z), size in items:  # wall coordinates (along, out of the wall) -> room coordinates
+                if wall == 0:
+                    centre, dims = (a, -Y / 2 + b, z), size
+                elif wall == 1:
+                    centre, dims = (X / 2 - b, a, z), (size[1], size[0], size[2])
+                elif wall == 2:
+                    centre, dims = (-a, Y / 2 - b, z), size
+                else:
+                    centre, dims = (-X / 2 + b, -a, z), (size[1], size[0], size[2])
+                parts.append(_box(centre, dims))
+            u += width + rng.uniform(0.1, 0.8)
+    return parts
+
+
 def room_mesh(seed: int) -> o3d.geometry.TriangleMesh:
-    """Floor, ceiling, four walls and furniture placed from ``seed`` (the layout varies, the kind of room not)."""
+    """Floor, ceiling, four walls, furniture along them and a table with chairs in the middle, placed from
+    ``seed`` (the layout varies, the kind of room not)."""
     rng = np.random.default_rng([seed, 31])
     X, Y, H = ROOM
     parts = [_box((0, 0, -0.05), (X + 0.2, Y + 0.2, 0.1)), _box((0, 0, H + 0.05), (X + 0.2, Y + 0.2, 0.1)),
              _box((X / 2 + 0.05, 0, H / 2), (0.1, Y, H)), _box((-X / 2 - 0.05, 0, H / 2), (0.1, Y, H)),
              _box((0, Y / 2 + 0.05, H / 2), (X, 0.1, H)), _box((0, -Y / 2 - 0.05, H / 2), (X, 0.1, H))]
-    along = rng.uniform(-0.6, 0.6)
-    parts += [_box((along, Y / 2 - 0.3, 0.45), (2.6, 0.6, 0.9)),            # counter
-              _box((along, Y / 2 - 0.18, 1.85), (2.2, 0.35, 0.7)),          # wall cabinets
-              _box((X / 2 - 0.4, Y / 2 - 0.9, 0.9), (0.7, 0.7, 1.8)),        # fridge
-              _box((-X / 2 + 0.2, rng.uniform(-1, 1), 1.0), (0.4, 1.2, 2.0))]  # shelf
-    tx, ty, yaw = rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.2), rng.uniform(-0.3, 0.3)
+    parts += _along_walls(rng)
+    tx, ty, yaw = rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), rng.uniform(-0.3, 0.3)
     c, s = np.cos(yaw), np.sin(yaw)
-    parts.append(_box((tx, ty, 0.74), (1.4, 0.8, 0.04), yaw))                # table top
-    for lx, ly in ((0.65, 0.35), (-0.65, 0.35), (0.65, -0.35), (-0.65, -0.35)):
+    parts.append(_box((tx, ty, 0.74), (1.2, 0.7, 0.04), yaw))                # table top
+    for lx, ly in ((0.55, 0.3), (-0.55, 0.3), (0.55, -0.3), (-0.55, -0.3)):
         parts.append(_box((tx + c * lx - s * ly, ty + s * lx + c * ly, 0.36), (0.05, 0.05, 0.72), yaw))
     for _ in range(5):  # things on the table
-        lx, ly, size = rng.uniform(-0.55, 0.55), rng.uniform(-0.28, 0.28), rng.uniform(0.08, 0.3, 3)
+        lx, ly, size = rng.uniform(-0.45, 0.45), rng.uniform(-0.22, 0.22), rng.uniform(0.08, 0.3, 3)
         parts.append(_box((tx + c * lx - s * ly, ty + s * lx + c * ly, 0.76 + size[2] / 2), size, rng.uniform(0, 3)))
-    for _ in range(4):  # things on the counter
-        size = rng.uniform(0.1, 0.35, 3)
-        parts.append(_box((along + rng.uniform(-1.1, 1.1), Y / 2 - 0.3, 0.9 + size[2] / 2), size, rng.uniform(0, 3)))
     for side in (-1, 1):  # chairs: a seat and a back
-        cx, cy = tx + side * 1.0 * c, ty + side * 1.0 * s
+        cx, cy = tx + side * 0.85 * c, ty + side * 0.85 * s
         parts += [_box((cx, cy, 0.45), (0.45, 0.45, 0.05), yaw),
                   _box((cx + side * 0.22 * c, cy + side * 0.22 * s, 0.7), (0.04, 0.45, 0.5), yaw)]
     mesh = o3d.geometry.TriangleMesh()
@@ -111,11 +138,11 @@ def camera_path(kind: str, frames: int, laps: float, seed: int) -> np.ndarray:
     phase = rng.uniform(0, 2 * np.pi, 6)
     t = np.arange(frames) / 30.0
     poses = np.tile(np.eye(4), (frames, 1, 1))
-    if kind == "walk":
+    if kind == "walk":  # around the table, looking at the furniture along the walls ahead and outwards
         a = np.linspace(0, 2 * np.pi * laps, frames, endpoint=False)
-        eye = np.stack([1.9 * np.cos(a), 1.5 * np.sin(a), 1.45 + 0.1 * np.sin(0.7 * t + phase[0])], -1)
-        target = np.stack([0.6 * np.cos(0.31 * t + phase[1]), 0.5 * np.sin(0.23 * t + phase[2]),
-                           0.8 + 0.2 * np.sin(0.4 * t + phase[3])], -1)
+        eye = np.stack([1.1 * np.cos(a), 0.8 * np.sin(a), 1.45 + 0.1 * np.sin(0.7 * t + phase[0])], -1)
+        look = a + np.pi / 2 - 0.5 + 0.3 * np.sin(0.5 * t + phase[1])  # ahead, turned towards the walls
+        target = eye + np.stack([2.5 * np.cos(look), 2.5 * np.sin(look), -0.9 + 0.3 * np.sin(0.4 * t + phase[2])], -1)
         for i in range(frames):
             poses[i, :3, :3] = _look(eye[i], target[i])
         poses[:, :3, 3] = eye
@@ -157,9 +184,10 @@ def write_depth_room(out: Path, frames: int, path: str = "walk", laps: float = 1
     times = np.arange(frames) / 30.0
     steps = np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1)
     turn = se3.rotation_angle(se3.relative(gt[:-1], gt[1:])[:, :3, :3])
-    # a visual odometry's drift: per frame 2 % of the step, 0.5 mrad of yaw, 0.3 mrad of tilt
-    warm = drifting_odometry(gt, seed + 1, yaw_sigma=0.0005, trans_sigma=0.02, yaw_bias=0.0001,
-                             z_sigma=0.02, tilt_sigma=0.0003)
+    # a visual odometry's drift (per frame, 30 a second): 5 % of the step, 2 mrad about the optical axis and 1 mrad
+    # about the others, 0.5 mrad of bias
+    warm = drifting_odometry(gt, seed + 1, yaw_sigma=0.002, trans_sigma=0.05, yaw_bias=0.0005, z_sigma=0.05,
+                             tilt_sigma=0.001)
     out.mkdir(parents=True, exist_ok=True)
     rays = camera.rays()
     valid = np.zeros(frames)
