@@ -320,13 +320,32 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
 
 
 def _flat_voxels(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.ndarray, ref_cell: np.ndarray,
-                 poses: np.ndarray, size: float, back: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+                 poses: np.ndarray, size: float) -> tuple[np.ndarray, ...]:
     """The flat voxels of edge ``size`` that cells ``todo`` (placed means ``mean``) fall in: which of the cells
     are on one (bool), the plane of each of those (numbered from 0), and per plane its normal, offset (world)
     and voxel centre. A surface is seen from one side: the cells whose sensor lies behind their voxel's plane
-    (``back``, found by a first pass) are grouped apart, so the two faces of a thin panel seen from both sides
+    (:func:`_behind`, from a first pass) are grouped apart, so the two faces of a thin panel seen from both sides
     (a chair's back, a door, a garden wall) are two planes, not one between them that pulls the frames of either
     side towards the other. A function of its own: one level's arrays are released before the next level's."""
+    inv, n, _, candidate, _, _, vec = _voxel_planes(cells, todo, mean, frame_of, ref_cell, poses, size)
+    back = _behind(todo, mean, frame_of, poses, candidate, vec[:, :, 0], inv, n)
+    del inv, candidate, vec  # the first pass's arrays go before the second pass makes its own
+    inv, n, level_centre, candidate, mu, lam, vec = _voxel_planes(cells, todo, mean, frame_of, ref_cell, poses, size,
+                                                                  back)
+    is_flat = (lam[:, 0] < FLATNESS * lam[:, 1]) & (lam[:, 1] >= (MIN_WIDTH * size) ** 2)
+    flat = np.zeros(n, bool)
+    flat[candidate[is_flat]] = True
+    on = flat[inv]
+    normal = vec[is_flat, :, 0]
+    centre = level_centre[flat]
+    return on, (np.cumsum(flat) - 1)[inv[on]], normal, (normal * (mu[is_flat] + centre)).sum(1), centre
+
+
+def _voxel_planes(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.ndarray, ref_cell: np.ndarray,
+                  poses: np.ndarray, size: float, back: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+    """The voxels of edge ``size`` of cells ``todo`` (and of their side, ``back``, where given): each cell's voxel,
+    their number, centres, the candidates for a plane (points enough, seen by two reference frames) and those
+    candidates' mean, eigenvalues and eigenvectors (:func:`_plane_of`)."""
     key = np.floor(mean / size).astype(np.int64)
     inv, n = group_rows(key if back is None else np.concatenate([key, back[:, None].astype(np.int64)], 1))
     level_centre = np.zeros((n, 3))
@@ -343,17 +362,7 @@ def _flat_voxels(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.
     several = np.bincount(pair_voxel, ref_cell[todo][first], minlength=n) >= 2  # seen by two frames or more
     candidate = np.flatnonzero((M[:, 3, 3] >= MIN_POINTS) & several)  # (no reference frame's point: N = 0)
     _, mu, lam, vec = _plane_of(M[candidate])
-    if back is None:
-        back = _behind(todo, mean, frame_of, poses, candidate, vec[:, :, 0], inv, n)
-        if back.any():
-            return _flat_voxels(cells, todo, mean, frame_of, ref_cell, poses, size, back)
-    is_flat = (lam[:, 0] < FLATNESS * lam[:, 1]) & (lam[:, 1] >= (MIN_WIDTH * size) ** 2)
-    flat = np.zeros(n, bool)
-    flat[candidate[is_flat]] = True
-    on = flat[inv]
-    normal = vec[is_flat, :, 0]
-    centre = level_centre[flat]
-    return on, (np.cumsum(flat) - 1)[inv[on]], normal, (normal * (mu[is_flat] + centre)).sum(1), centre
+    return inv, n, level_centre, candidate, mu, lam, vec
 
 
 def _behind(todo: np.ndarray, mean: np.ndarray, frame_of: np.ndarray, poses: np.ndarray, candidate: np.ndarray,
