@@ -336,6 +336,9 @@ DATASETS: dict[str, Dataset] = {d.name: d for d in [
     Dataset("sim-room-walk", "SIMULATED hand-held depth camera (Kinect-like, 30 Hz) walking one lap around a "
             "furnished room, 600 frames (dm2 simulate --scene room --path walk), drifting visual odometry warm "
             "start", "ape", room(600, "walk"), real=False),
+    Dataset("sim-room-across", "SIMULATED hand-held depth camera going round the room near the walls, looking "
+            "across it (median depth 2.7 m: the noisiest depth), 600 frames (dm2 simulate --scene room --path "
+            "across), drifting visual odometry warm start", "ape", room(600, "across"), real=False),
     Dataset("sim-room-rpy", "SIMULATED hand-held depth camera turned in place about all three axes (TUM "
             "fr1_rpy-like), 300 frames (dm2 simulate --scene room --path rpy), drifting visual odometry warm "
             "start", "ape", room(300, "rpy"), real=False,

@@ -73,8 +73,8 @@ SETS: dict[str, dict] = {
     },
     "3d": {
         "cases": {name: ["dm2 refine", "from truth", "gtsam", "g2o"]
-                  for name in ("sim-3d-500", "sim-3d-2000", "sim-realmap", "sim-room-walk", "sim-room-rpy",
-                               "redkitchen", "kitti00-6", "balm")},
+                  for name in ("sim-3d-500", "sim-3d-2000", "sim-realmap", "sim-room-walk", "sim-room-across",
+                               "sim-room-rpy", "redkitchen", "kitti00-6", "balm")},
         "epochs": None,
         "timeout": 3600,
     },

@@ -56,7 +56,7 @@ def test_rpy_turns_in_place_and_walk_goes_round():
 
 def test_a_path_of_another_scene_is_refused(tmp_path):
     result = invoke(["simulate", "--scene", "room", "--path", "loop", "-n", "3", "-o", str(tmp_path / "r")])
-    assert result.exit_code == 2 and "a room has walk or rpy" in result.output
+    assert result.exit_code == 2 and "a room has walk, rpy, across" in result.output
     result = invoke(["simulate", "--path", "rpy", "-n", "3", "-o", str(tmp_path / "s")])
     assert result.exit_code == 2 and "a street has loop or eight" in result.output
     assert not (tmp_path / "r").exists() or not any((tmp_path / "r").glob("frame-*"))

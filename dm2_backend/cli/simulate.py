@@ -14,9 +14,10 @@ from dm2_backend.pipeline.run_folder import run_folder
 @click.option("--out", "-o", type=click.Path(path_type=Path), required=True, help="Folder to write.")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
               help="Scene, path, noise and drift seed.")
-@click.option("--path", "path_kind", type=click.Choice(["loop", "eight", "walk", "rpy"]), default=None,
-              help="street: drive laps of a loop or of a figure-eight [default: loop]; room: walk around the table "
-                   "or turn the camera in place (rpy) [default: walk].")
+@click.option("--path", "path_kind", type=click.Choice(["loop", "eight", "walk", "rpy", "across"]), default=None,
+              help="street: laps of a loop or of a figure-eight [default: loop]; room: walk round the table "
+                   "looking at the walls, turn the camera in place (rpy) or go round near the walls looking across "
+                   "the room (across) [default: walk].")
 @click.option("--scene", type=click.Choice(["street", "corridors", "hospital", "room"]), default="street",
               show_default=True,
               help="street: buildings, walls, poles and cars along a street; corridors: a ring of featureless "
@@ -133,7 +134,7 @@ def room(frames, out, seed, path_kind, laps, force, quiet) -> None:
     from dm2_backend.simulate.depth_room import PATHS, write_depth_room
 
     if path_kind not in PATHS:
-        raise click.BadParameter(f"{path_kind} is a street's path; a room has {' or '.join(PATHS)}",
+        raise click.BadParameter(f"{path_kind} is a street's path; a room has {', '.join(PATHS)}",
                                  param_hint="--path")
     with run_folder(out, "simulate", force=force):
         click.echo(f"simulating {frames} depth frames in a room ({path_kind}, seed {seed}) into {out}")

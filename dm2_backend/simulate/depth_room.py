@@ -8,7 +8,9 @@ chairs. Two paths:
 - ``walk``: laps around the table, the camera at head height looking ahead at the furniture along the walls
   (RedKitchen-like);
 - ``rpy``: the camera held at one place and turned about all three axes, tens of degrees a second, a few
-  centimetres of hand motion (TUM fr1_rpy-like): almost no translation, so little parallax to hold it.
+  centimetres of hand motion (TUM fr1_rpy-like): almost no translation, so little parallax to hold it;
+- ``across``: round the room near the walls, looking across it at the table (median depth about 2.7 m, up to
+  4 m: the noisiest depth).
 
 Written: ``frame-NNNNNN.depth.png`` (16-bit, millimetres), ``frame-NNNNNN.pose.txt`` (the true camera-to-world
 pose), ``camera-intrinsics.txt``, ``truth.tum``, ``warm_start.tum`` (a drifting visual odometry), ``info.json``.
@@ -36,7 +38,7 @@ from dm2_backend.simulate.path import drifting_odometry
 from dm2_backend.simulate.scene import _box
 from dm2_backend.trajectory import Trajectory
 
-PATHS = ("walk", "rpy")
+PATHS = ("walk", "rpy", "across")
 ROOM = (6.0, 5.0, 2.8)  # x, y, height (m); the floor at z = 0, the room centred on x = y = 0
 
 
@@ -143,6 +145,15 @@ def camera_path(kind: str, frames: int, laps: float, seed: int) -> np.ndarray:
         eye = np.stack([1.1 * np.cos(a), 0.8 * np.sin(a), 1.45 + 0.1 * np.sin(0.7 * t + phase[0])], -1)
         look = a + np.pi / 2 - 0.5 + 0.3 * np.sin(0.5 * t + phase[1])  # ahead, turned towards the walls
         target = eye + np.stack([2.5 * np.cos(look), 2.5 * np.sin(look), -0.9 + 0.3 * np.sin(0.4 * t + phase[2])], -1)
+        for i in range(frames):
+            poses[i, :3, :3] = _look(eye[i], target[i])
+        poses[:, :3, 3] = eye
+        return poses
+    if kind == "across":  # round the room near the walls, looking across it at the table: far, noisy depth
+        a = np.linspace(0, 2 * np.pi * laps, frames, endpoint=False)
+        eye = np.stack([1.9 * np.cos(a), 1.5 * np.sin(a), 1.45 + 0.1 * np.sin(0.7 * t + phase[0])], -1)
+        target = np.stack([0.6 * np.cos(0.31 * t + phase[1]), 0.5 * np.sin(0.23 * t + phase[2]),
+                           0.8 + 0.2 * np.sin(0.4 * t + phase[3])], -1)
         for i in range(frames):
             poses[i, :3, :3] = _look(eye[i], target[i])
         poses[:, :3, 3] = eye
