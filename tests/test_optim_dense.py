@@ -324,7 +324,7 @@ def panel_seen_from_both_sides() -> tuple[planes.Cells, np.ndarray, np.ndarray]:
         face = np.column_stack([np.full(3000, 0.4 + 0.02 * s), yz]) + rng.normal(0, 0.002, (3000, 3))
         scans.append(face - T[:3, 3])
     seq = ScanSequence(lambda i: Scan(scans[i]), 8, planar=False)
-    return planes.cells_from_scans(seq, 0.1, 2048, 10**6, thin=True), poses, side
+    return planes.cells_from_scans(seq, 0.1, 2048, 10**6), poses, side
 
 
 def test_the_two_faces_of_a_panel_are_two_planes(monkeypatch):
@@ -339,18 +339,3 @@ def test_the_two_faces_of_a_panel_are_two_planes(monkeypatch):
     assert any(len(set(side[merged.frame[merged.voxel == v]])) == 2 for v in np.unique(merged.voxel))
     assert np.nanmin(planes.disagreement(merged, poses)) > 0.015**2
 
-
-def test_a_thinned_cell_keeps_its_extent_along_the_surface_not_its_thickness():
-    rng = np.random.default_rng(6)
-    ray = np.array([0.6, 0.0, 0.8])  # depth noise along an oblique ray, 2 cm, on the plane z = 0.5 (one cell)
-    pts = np.column_stack([rng.uniform(0.3, 0.7, (500, 2)), np.full(500, 0.5)]) + rng.normal(0, 0.02, (500, 1)) * ray
-    count, _, scatter = planes.compress(pts, 1.0)
-    assert count.tolist() == [500]
-    thin = planes.thinned(scatter)[0]
-    S = np.zeros((3, 3))
-    S[np.triu_indices(3)] = thin
-    S = S + np.triu(S, 1).T
-    full = (pts - pts.mean(0)).T @ (pts - pts.mean(0))
-    lam, vec = np.linalg.eigh(full)
-    np.testing.assert_allclose(np.linalg.eigvalsh(S), [0.0, *lam[1:]], atol=1e-9)
-    np.testing.assert_allclose(S @ vec[:, 1:], vec[:, 1:] * lam[1:], atol=1e-9)

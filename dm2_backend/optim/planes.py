@@ -107,11 +107,11 @@ def _summed(pts: np.ndarray, inv: np.ndarray, k: int) -> tuple[np.ndarray, np.nd
 
 
 def cells_from_scans(scans: ScanSequence, size: float, per_frame: int, max_cells: int, seed: int = 0,
-                     progress: bool = False, thin: bool = False) -> Cells:
+                     progress: bool = False) -> Cells:
     """Every scan compressed into cells (scans on threads), at most ``per_frame`` a frame and ``max_cells`` in
     all (at least 64 a frame): a frame with more is summed into cells twice as large (once), and keeps a random
     subset of those if still too many (each kept cell exact: only its points are summed). ``Cells.size`` is the
-    smallest cell. ``thin``: each cell's scatter without its thinnest direction (:func:`thinned`)."""
+    smallest cell."""
     share = min(per_frame, max(64, max_cells // max(len(scans), 1)))
     rng = np.random.default_rng(seed)
 
@@ -129,30 +129,12 @@ def cells_from_scans(scans: ScanSequence, size: float, per_frame: int, max_cells
             on = kept[inv]
             cells = _summed(pts[on], (np.cumsum(kept) - 1)[inv[on]], share)
         count, mean, scatter = cells
-        if thin:
-            scatter = thinned(scatter)
         parts.append((np.full(len(count), i, np.int32), count.astype(np.float32), mean.astype(np.float32),
                       scatter.astype(np.float32)))
     if not parts:
         return Cells(np.zeros(0, np.int32), np.zeros(0, np.float32), np.zeros((0, 3), np.float32),
                      np.zeros((0, 6), np.float32), size)
     return Cells(*(np.concatenate(a) for a in zip(*parts, strict=True)), size)
-
-
-def thinned(scatter: np.ndarray) -> np.ndarray:
-    """Cell scatters (K,6) less their smallest eigen-component ``lambda_min v v^T``: the extent of a cell's points
-    along the surface, not their spread across it. Within a small cell that spread is mostly the sensor's noise,
-    and a depth camera's lies along its rays and grows with the square of the depth (1 mm at 0.5 m, 3 cm at 4 m):
-    taken as the surface's shape it tilts the planes fitted through far cells and pulls each frame to turn its
-    rays along them. A simulated hand-held depth camera started from the true poses (300 frames, median range
-    2.7 m): the dense stage ended 2.5 cm away with the full scatter, 6 mm with the means alone, 4 mm thinned;
-    from a scan-matching start in a cluttered room (1-2.5 m): 1.7, 3.0 and 1.4 mm."""
-    S = np.zeros((len(scatter), 3, 3))
-    S[:, _SCATTER[0], _SCATTER[1]] = scatter
-    S[:, _SCATTER[1], _SCATTER[0]] = scatter
-    lam, vec = np.linalg.eigh(S)
-    S -= np.maximum(lam[:, 0], 0.0)[:, None, None] * vec[:, :, 0, None] * vec[:, None, :, 0]
-    return S[:, _SCATTER[0], _SCATTER[1]]
 
 
 @dataclass
