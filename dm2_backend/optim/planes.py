@@ -10,9 +10,10 @@ Planes come from many frames, never one scan (a 16-beam LiDAR's ground is a set 
 scan): the cells are placed in the world by the current poses, grouped into voxels, and a voxel whose merged
 points are flat (smallest eigenvalue of their covariance well below the middle one) and seen by at least two
 frames gives a plane; a voxel that is not flat is split into eight, down to ``levels`` sizes (BALM's adaptive
-voxelisation). Each cell then pulls its frame towards its voxel's plane; its weight is a Cauchy kernel of its
-mean's distance in units of the robust noise scale, so a moving object or a corner that slipped into a flat
-voxel pulls with bounded force.
+voxelisation). A surface is seen from one side: the cells of a voxel whose sensors lie on either side of its plane
+make a plane per side (the two faces of a thin panel). Each cell then pulls its frame towards its voxel's plane;
+its weight is a Cauchy kernel of its mean's distance in units of the robust noise scale, so a moving object or a
+corner that slipped into a flat voxel pulls with bounded force.
 """
 
 from __future__ import annotations
