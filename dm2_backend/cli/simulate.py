@@ -72,8 +72,10 @@ def command(frames, out, seed, path_kind, scene, laps, extent, rate, planar, bea
     if scene == "room":
         return room(frames, out, seed, path_kind or "walk", laps or frames / 600, force, quiet)
     path_kind, laps = path_kind or "loop", laps or 2.0
-    if path_kind not in ("loop", "eight"):
-        raise click.BadParameter(f"{path_kind} is a path of --scene room; a street has loop or eight",
+    from dm2_backend.simulate.path import PATHS
+
+    if path_kind not in PATHS:
+        raise click.BadParameter(f"{path_kind} is a path of --scene room; a street has {' or '.join(PATHS)}",
                                  param_hint="--path")
     from dm2_backend.simulate.lidar import LidarModel
     from dm2_backend.simulate.sequence import SimSettings, generate

@@ -36,6 +36,7 @@ from dm2_backend.geometry import se3
 from dm2_backend.progress import progress as progress_of
 from dm2_backend.simulate.path import drifting_odometry
 from dm2_backend.simulate.scene import _box
+from dm2_backend.simulate.sequence import _ate
 from dm2_backend.trajectory import Trajectory
 
 PATHS = ("walk", "rpy", "across")
@@ -140,32 +141,27 @@ def camera_path(kind: str, frames: int, laps: float, seed: int) -> np.ndarray:
     phase = rng.uniform(0, 2 * np.pi, 6)
     t = np.arange(frames) / 30.0
     poses = np.tile(np.eye(4), (frames, 1, 1))
+    if kind == "rpy":  # about 40 deg/s in each axis, the hand drifting a few centimetres
+        eye = np.array([-1.6, -0.4, 1.4]) + 0.03 * np.sin(np.outer(t, [0.9, 1.3, 1.1]) + phase[:3])
+        base = _look(eye[0], np.array([0.5, 0.3, 0.9]))
+        angles = np.stack([0.35 * np.sin(2 * np.pi * t / 3.1 + phase[3]),    # roll about the optical axis
+                           0.25 * np.sin(2 * np.pi * t / 2.3 + phase[4]),    # pitch
+                           0.45 * np.sin(2 * np.pi * t / 4.2 + phase[5])], -1)  # yaw
+        turn = Rotation.from_euler("zxy", angles).as_matrix()  # about the camera's z (roll), x (pitch), y (yaw)
+        poses[:, :3, :3] = base @ turn
+        poses[:, :3, 3] = eye
+        return poses
+    a = np.linspace(0, 2 * np.pi * laps, frames, endpoint=False)
+    rx, ry = (1.1, 0.8) if kind == "walk" else (1.9, 1.5)
+    eye = np.stack([rx * np.cos(a), ry * np.sin(a), 1.45 + 0.1 * np.sin(0.7 * t + phase[0])], -1)
     if kind == "walk":  # around the table, looking at the furniture along the walls ahead and outwards
-        a = np.linspace(0, 2 * np.pi * laps, frames, endpoint=False)
-        eye = np.stack([1.1 * np.cos(a), 0.8 * np.sin(a), 1.45 + 0.1 * np.sin(0.7 * t + phase[0])], -1)
         look = a + np.pi / 2 - 0.5 + 0.3 * np.sin(0.5 * t + phase[1])  # ahead, turned towards the walls
         target = eye + np.stack([2.5 * np.cos(look), 2.5 * np.sin(look), -0.9 + 0.3 * np.sin(0.4 * t + phase[2])], -1)
-        for i in range(frames):
-            poses[i, :3, :3] = _look(eye[i], target[i])
-        poses[:, :3, 3] = eye
-        return poses
-    if kind == "across":  # round the room near the walls, looking across it at the table: far, noisy depth
-        a = np.linspace(0, 2 * np.pi * laps, frames, endpoint=False)
-        eye = np.stack([1.9 * np.cos(a), 1.5 * np.sin(a), 1.45 + 0.1 * np.sin(0.7 * t + phase[0])], -1)
+    else:  # across: round the room near the walls, looking across it at the table (far, noisy depth)
         target = np.stack([0.6 * np.cos(0.31 * t + phase[1]), 0.5 * np.sin(0.23 * t + phase[2]),
                            0.8 + 0.2 * np.sin(0.4 * t + phase[3])], -1)
-        for i in range(frames):
-            poses[i, :3, :3] = _look(eye[i], target[i])
-        poses[:, :3, 3] = eye
-        return poses
-    # rpy: about 40 deg/s in each axis, the hand drifting a few centimetres
-    eye = np.array([-1.6, -0.4, 1.4]) + 0.03 * np.sin(np.outer(t, [0.9, 1.3, 1.1]) + phase[:3])
-    base = _look(eye[0], np.array([0.5, 0.3, 0.9]))
-    angles = np.stack([0.35 * np.sin(2 * np.pi * t / 3.1 + phase[3]),    # roll about the optical axis
-                       0.25 * np.sin(2 * np.pi * t / 2.3 + phase[4]),    # pitch
-                       0.45 * np.sin(2 * np.pi * t / 4.2 + phase[5])], -1)  # yaw
-    turn = Rotation.from_euler("zxy", angles).as_matrix()  # about the camera's z (roll), x (pitch), y (yaw)
-    poses[:, :3, :3] = base @ turn
+    for i in range(frames):
+        poses[i, :3, :3] = _look(eye[i], target[i])
     poses[:, :3, 3] = eye
     return poses
 
@@ -213,8 +209,6 @@ def write_depth_room(out: Path, frames: int, path: str = "walk", laps: float = 1
         np.savetxt(fh, [[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]], fmt="%.6f")
     write_tum(Trajectory(gt, times), out / "truth.tum", ReadOptions())
     write_tum(Trajectory(warm, times), out / "warm_start.tum", ReadOptions())
-    from dm2_backend.simulate.sequence import _ate
-
     info = {"simulated": True, "generator": f"dm2 simulate --scene room (dm2 {__version__})",
             "frames": frames, "path": path, "laps": laps, "seed": seed, "camera": asdict(camera),
             "room_m": list(ROOM), "valid_pixels": float(valid.mean()),
