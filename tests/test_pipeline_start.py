@@ -11,6 +11,7 @@ from dm2_backend.baselines import gtsam_backend
 from dm2_backend.baselines.graph import build_graph
 from dm2_backend.baselines.options import GraphResult
 from dm2_backend.evaluation.map_quality import MapSampler
+from dm2_backend.geometry import se3
 from dm2_backend.optim.config import OptimConfig
 from dm2_backend.pipeline import start as start_module
 from dm2_backend.pipeline.start import GRAPH_SOLVER, StartKind, choose_start
@@ -52,6 +53,26 @@ def test_a_blurrier_graph_solution_is_not_taken(prepared, sampler, monkeypatch):
     start = choose_start(prepared, OptimConfig(start="graph"), sampler)
     assert start.name is StartKind.PREPARED and "blurrier" in start.why
     np.testing.assert_array_equal(start.poses, prepared.initial)
+
+
+def test_a_graph_solution_that_cuts_the_sequence_is_not_taken(prepared, sampler, monkeypatch):
+    """A clique of wrong registrations that cut one odometry edge (both stretches kept whole, so their maps stay
+    sharp): the steps show it, and the prepared poses start."""
+    def cut(graph, options):
+        poses = graph.poses.copy()
+        poses[31:] = se3.from_xy_yaw(np.array([1.0, 0.5, 0.4])) @ poses[31:]
+        return GraphResult(poses, None, None, None, 0.0, "gtsam")
+
+    monkeypatch.setattr(start_module.gtsam_backend, "optimize", cut)
+    start = choose_start(prepared, OptimConfig(start="graph"), sampler)
+    assert start.name is StartKind.PREPARED and "cuts the sequence at step 30 (" in start.why
+    assert start.cuts["graph"]["steps"] == [30] and start.summary()["cuts"] == start.cuts
+    np.testing.assert_array_equal(start.poses, prepared.initial)
+    # the unbroken graph solution is judged and kept
+    monkeypatch.undo()
+    kept = choose_start(prepared, OptimConfig(start="graph"), sampler)
+    assert kept.name is StartKind.GRAPH and kept.cuts["graph"] == {"judged": True, "steps": [], "offset_m": [],
+                                                                    "offset_deg": []}
 
 
 def test_prepared_and_auto_on_planar_data(prepared, sampler):

@@ -4,8 +4,10 @@ A pose graph (odometry + the pairwise registrations, solved by GTSAM with a Cauc
 baseline gtsam``) converges in a few Levenberg-Marquardt iterations to what the constraints say; first-order
 DeepMapping2 steps from the loop-closed poses do not get that far (simulated 3D LiDAR, 500 frames: gtsam 0.038 m,
 refine from the loop-closed poses 0.055 m). Starting from the graph's solution lets the map losses refine what the
-constraints got wrong. The graph start is taken only when its map is sharper than the prepared poses' (mean map
-entropy, no ground truth), so a graph bent by a wrong registration does not start the optimiser.
+constraints got wrong. The graph start is taken only when it keeps the sequence's steps (no step that both the
+front end's odometry and the two frames' registration contradict: :mod:`dm2_backend.evaluation.continuity`) and
+its map is sharper than the prepared poses' (mean map entropy), both judged without ground truth, so a graph that a
+clique of wrong registrations cut or bent does not start the optimiser; nor is a dense result that cuts a step kept.
 """
 
 from __future__ import annotations
@@ -19,10 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
+from dm2_backend.algorithms.common import lengths
 from dm2_backend.baselines import gtsam_backend
-from dm2_backend.baselines.graph import build_graph
+from dm2_backend.baselines.graph import build_graph, valid_pairs
 from dm2_backend.baselines.options import SolverOptions
 from dm2_backend.errors import InputError
+from dm2_backend.evaluation import continuity
 from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.optim.config import OptimConfig, dense_voxel
 from dm2_backend.optim.dense import refine_dense
@@ -54,6 +58,7 @@ class Start:
     why: str
     map_entropy: dict[str, float] = field(default_factory=dict)  # candidate -> mean map entropy
     dense: dict = field(default_factory=dict)
+    cuts: dict[str, dict] = field(default_factory=dict)  # candidate -> its cut steps (``continuity.Cuts.summary``)
 
     @property
     def refined(self) -> bool:
@@ -66,7 +71,19 @@ class Start:
         return self.name is StartKind.GRAPH or self.refined
 
     def summary(self) -> dict:
-        return {"name": self.name.value, "why": self.why, "map_entropy": self.map_entropy, "dense": self.dense}
+        return {"name": self.name.value, "why": self.why, "map_entropy": self.map_entropy, "dense": self.dense,
+                "cuts": self.cuts}
+
+
+def sequence_cuts(prep: Prepared, poses: np.ndarray) -> continuity.Cuts:
+    """The steps of ``poses`` that neither the front end's odometry (the warm start) nor the valid registration of
+    the two frames explains (:func:`dm2_backend.evaluation.continuity.cuts`; the map's resolution, the larger of
+    the voxel and the point spacing, is the smallest cut)."""
+    registered = {a: edge.relative for (a, b), edge in valid_pairs(prep.topology, prep.pairwise, prep.frames).items()
+                  if b == a + 1}
+    scale = lengths(prep.frames)
+    return continuity.cuts(poses, prep.warm_start, registered, max(scale.voxel or 0.0, scale.spacing or 0.0),
+                           scale.range_median or 1.0)
 
 
 def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None) -> Start:
@@ -88,12 +105,19 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None) -
     except InputError as exc:
         log.warning("pose-graph start failed (%s); starting from the prepared poses", exc.message)
         return Start(prepared, StartKind.PREPARED, f"the pose graph could not be solved: {exc.message}")
+    cut = sequence_cuts(prep, solved)
+    if cut:
+        log.warning("pose-graph start not taken: it cuts the sequence at %s", cut.describe())
+        why = (f"the pose-graph solution cuts the sequence at {cut.describe()}, which neither the odometry nor the "
+               "registration of those frames says")
+        return Start(prepared, StartKind.PREPARED, why, cuts={"graph": cut.summary()})
+    cuts = {"graph": cut.summary()}
     if sampler is None:
-        return Start(solved, StartKind.GRAPH, "pose-graph solution (no map to compare)")
+        return Start(solved, StartKind.GRAPH, "pose-graph solution (no map to compare)", cuts=cuts)
     scores = {"prepared": sampler.evaluate(prepared).entropy, "graph": sampler.evaluate(solved).entropy}
     if scores["graph"] <= scores["prepared"]:
-        return Start(solved, StartKind.GRAPH, "the pose-graph solution makes the sharper map", scores)
-    return Start(prepared, StartKind.PREPARED, "the pose-graph solution makes a blurrier map", scores)
+        return Start(solved, StartKind.GRAPH, "the pose-graph solution makes the sharper map", scores, cuts=cuts)
+    return Start(prepared, StartKind.PREPARED, "the pose-graph solution makes a blurrier map", scores, cuts=cuts)
 
 
 def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimConfig, seed: int = 0,
@@ -120,16 +144,21 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     finite = {name: score for name, score in agreement.items() if np.isfinite(score)}
     # no plane seen by two frames (too few or too sparse scans): nothing to judge by, the start stands
     chosen = min(finite, key=finite.get) if len(finite) == len(agreement) else start.name.value
+    reason = f"{chosen} agrees better"
+    cut = sequence_cuts(prep, result.poses)
+    if chosen == "dense" and cut:  # its frames agree, its steps do not: the start stands
+        log.warning("dense stage's result not kept: it cuts the sequence at %s", cut.describe())
+        chosen, reason = start.name.value, f"it cuts the sequence at {cut.describe()}"
     summary = {"voxel_m": voxel, "cells": len(cells), "cells_seconds": t_cells, "seconds": result.seconds,
                "rounds": len(result.history), "stopped": result.stopped, "history": result.history,
                "resumed_after_round": result.resumed_after,
                "odometry_noise": result.odometry.summary() if result.odometry else None,
-               "agreement_m2": agreement, "returned": chosen}
+               "agreement_m2": agreement, "cuts": cut.summary(), "returned": chosen}
     log.info("dense: %d cells of %.3g m, %s; returned %s (frames' disagreement with the others' planes: %s)",
              len(cells), voxel / 4.0, result.stopped, chosen,
              ", ".join(f"{k} {v:.3g} m2" for k, v in agreement.items()))
     if chosen != "dense":
         return Start(candidates[chosen], start.name if chosen == start.name.value else StartKind.PREPARED,
-                     f"{start.why}; the dense stage's result was not kept ({chosen} agrees better)",
-                     start.map_entropy, summary)
-    return Start(result.poses, start.name, start.why, start.map_entropy, summary)
+                     f"{start.why}; the dense stage's result was not kept ({reason})",
+                     start.map_entropy, summary, start.cuts)
+    return Start(result.poses, start.name, start.why, start.map_entropy, summary, start.cuts)
