@@ -307,28 +307,62 @@ def _flat_voxels(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.
     """The flat voxels of edge ``size`` that cells ``todo`` (placed means ``mean``) fall in: which of the cells
     are on one (bool), the plane of each of those (numbered from 0), and per plane its normal, offset (world)
     and voxel centre. A surface is seen from one side: the cells whose sensor lies behind their voxel's plane
-    (:func:`_behind`, from a first pass) are grouped apart, so the two faces of a thin panel seen from both sides
-    (a chair's back, a door, a garden wall) are two planes, not one between them that pulls the frames of either
-    side towards the other. A function of its own: one level's arrays are released before the next level's."""
-    inv, n, _, candidate, _, _, vec = _voxel_planes(cells, todo, mean, frame_of, ref_cell, poses, size)
-    back = _behind(todo, mean, frame_of, poses, candidate, vec[:, :, 0], inv, n)
-    del inv, candidate, vec  # the first pass's arrays go before the second pass makes its own
-    inv, n, level_centre, candidate, mu, lam, vec = _voxel_planes(cells, todo, mean, frame_of, ref_cell, poses, size,
-                                                                  back)
-    is_flat = (lam[:, 0] < FLATNESS * lam[:, 1]) & (lam[:, 1] >= (MIN_WIDTH * size) ** 2)
-    flat = np.zeros(n, bool)
-    flat[candidate[is_flat]] = True
-    on = flat[inv]
-    normal = vec[is_flat, :, 0]
-    centre = level_centre[flat]
-    return on, (np.cumsum(flat) - 1)[inv[on]], normal, (normal * (mu[is_flat] + centre)).sum(1), centre
+    (:func:`_behind`, from a first pass) are grouped apart (:func:`_split_sides`), so the two faces of a thin
+    panel seen from both sides (a chair's back, a door, a garden wall) are two planes, not one between them that
+    pulls the frames of either side towards the other. A function of its own: one level's arrays are released
+    before the next level's."""
+    first = _voxel_planes(cells, todo, mean, frame_of, ref_cell, poses, size)
+    back = _behind(todo, mean, frame_of, poses, first.candidate, first.vec[:, :, 0], first.inv, first.n)
+    v = _split_sides(cells, todo, mean, frame_of, ref_cell, poses, size, first, back)
+    del first, back
+    is_flat = (v.lam[:, 0] < FLATNESS * v.lam[:, 1]) & (v.lam[:, 1] >= (MIN_WIDTH * size) ** 2)
+    flat = np.zeros(v.n, bool)
+    flat[v.candidate[is_flat]] = True
+    on = flat[v.inv]
+    normal = v.vec[is_flat, :, 0]
+    centre = v.centre[flat]
+    return on, (np.cumsum(flat) - 1)[v.inv[on]], normal, (normal * (v.mu[is_flat] + centre)).sum(1), centre
+
+
+@dataclass
+class _VoxelPlanes:
+    """The voxels of one level: each cell's voxel ``inv``, their number ``n`` and centres, the candidates for a
+    plane (ascending voxel numbers) and those candidates' mean (about the centre), eigenvalues and eigenvectors."""
+
+    inv: np.ndarray
+    n: int
+    centre: np.ndarray
+    candidate: np.ndarray
+    mu: np.ndarray
+    lam: np.ndarray
+    vec: np.ndarray
+
+
+def _split_sides(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.ndarray, ref_cell: np.ndarray,
+                 poses: np.ndarray, size: float, first: _VoxelPlanes, back: np.ndarray) -> _VoxelPlanes:
+    """``first``'s voxels with those that hold cells of both sides (``back``) regrouped by side: only their cells
+    are grouped again (a few percent of them), the others keep the first pass's planes (and numbers, in order)."""
+    split = np.bincount(first.inv, back, minlength=first.n) > 0
+    if not split.any():
+        return first
+    sub = np.flatnonzero(split[first.inv])
+    second = _voxel_planes(cells, todo[sub], mean[sub], frame_of, ref_cell, poses, size, back[sub])
+    keep = ~split
+    number = np.cumsum(keep) - 1
+    kept = int(keep.sum())
+    inv = number[first.inv]
+    inv[sub] = kept + second.inv
+    stays = keep[first.candidate]
+    return _VoxelPlanes(inv, kept + second.n, np.concatenate([first.centre[keep], second.centre]),
+                        np.concatenate([number[first.candidate[stays]], kept + second.candidate]),
+                        *(np.concatenate([a[stays], b]) for a, b in ((first.mu, second.mu), (first.lam, second.lam),
+                                                                     (first.vec, second.vec))))
 
 
 def _voxel_planes(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.ndarray, ref_cell: np.ndarray,
-                  poses: np.ndarray, size: float, back: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
-    """The voxels of edge ``size`` of cells ``todo`` (and of their side, ``back``, where given): each cell's voxel,
-    their number, centres, the candidates for a plane (points enough, seen by two reference frames) and those
-    candidates' mean, eigenvalues and eigenvectors (:func:`_plane_of`)."""
+                  poses: np.ndarray, size: float, back: np.ndarray | None = None) -> _VoxelPlanes:
+    """The voxels of edge ``size`` of cells ``todo`` (and of their side, ``back``, where given), and their
+    candidates for a plane (points enough, seen by two reference frames; :func:`_plane_of`)."""
     key = np.floor(mean / size).astype(np.int64)
     inv, n = group_rows(key if back is None else np.concatenate([key, back[:, None].astype(np.int64)], 1))
     level_centre = np.zeros((n, 3))
@@ -345,7 +379,7 @@ def _voxel_planes(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np
     several = np.bincount(pair_voxel, ref_cell[todo][first], minlength=n) >= 2  # seen by two frames or more
     candidate = np.flatnonzero((M[:, 3, 3] >= MIN_POINTS) & several)  # (no reference frame's point: N = 0)
     _, mu, lam, vec = _plane_of(M[candidate])
-    return inv, n, level_centre, candidate, mu, lam, vec
+    return _VoxelPlanes(inv, n, level_centre, candidate, mu, lam, vec)
 
 
 def _behind(todo: np.ndarray, mean: np.ndarray, frame_of: np.ndarray, poses: np.ndarray, candidate: np.ndarray,
