@@ -36,6 +36,10 @@ from dm2_backend.geometry import se3
 from dm2_backend.progress import progress
 from dm2_backend.stages import Frames, Pairwise, Topology
 
+#: the coarse pass's correspondence distance, in fine distances: the farthest a registration reaches for a
+#: correspondence, so the largest error of a step that slid into a wrong local minimum
+COARSE = 4.0
+
 
 @dataclass
 class PairwiseRegistration:
@@ -177,7 +181,7 @@ class PairwiseRegistration:
         m = register(src, tgt, init, (fine,), self._method, self.iterations, **kw)
         if m.fitness >= 0.8:
             return m
-        return register(src, tgt, init, (4.0 * fine, fine), self._method, self.iterations, **kw)
+        return register(src, tgt, init, (COARSE * fine, fine), self._method, self.iterations, **kw)
 
     def _inits(self, poses: np.ndarray, pairs: list[tuple[int, int]], topology: Topology) -> dict:
         """T_b^a for each pair (a < b): the verified loop transform if any, else inv(T_a) @ T_b."""

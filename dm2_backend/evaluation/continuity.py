@@ -13,8 +13,11 @@ registration) or what the front end said (its odometry), within the noise the tr
 Each step ``i -> i+1`` of a candidate is compared with the odometry step and, where valid, the registration of
 the pair: its offset from each (translation, rotation angle). A source explains a step whose offset is within
 :data:`RATIO` times that source's median offset over the sequence (a robust scale: a cut or two do not move it)
-or within the map's resolution (``floor_m``; ``floor_m`` over the scans' median range in rotation). A step is cut
-when neither source explains it.
+or within the farthest a scan-matching step can slip (``slip_m``, the registration's coarse correspondence
+distance; ``slip_m`` over the scans' median range in rotation). A step is cut when neither source explains it. The
+slip matters: a scan-matching front end slides now and then where the scans leave a direction free (the simulated
+camera walking round a room, dm2's own ICP warm start: steps 0.1-0.27 m off), the registration of the same pair
+slides the same way, and a solution that repairs such a step must not be called a cut.
 """
 
 from __future__ import annotations
@@ -65,31 +68,31 @@ def _offsets(measured: np.ndarray, poses: np.ndarray, steps: np.ndarray) -> tupl
     return np.linalg.norm(d[:, :3, 3], axis=1), se3.rotation_angle(d[:, :3, :3])
 
 
-def _unexplained(measured: np.ndarray, poses: np.ndarray, steps: np.ndarray, floor_t: float, floor_r: float
+def _unexplained(measured: np.ndarray, poses: np.ndarray, steps: np.ndarray, slip_t: float, slip_r: float
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Which of ``steps`` the ``measured`` relative poses do not explain, and the offsets from them."""
     t, r = _offsets(measured, poses, steps)
-    return (t > max(RATIO * np.median(t), floor_t)) | (r > max(RATIO * np.median(r), floor_r)), t, r
+    return (t > max(RATIO * np.median(t), slip_t)) | (r > max(RATIO * np.median(r), slip_r)), t, r
 
 
-def cuts(poses: np.ndarray, odometry: np.ndarray, registered: dict[int, np.ndarray], floor_m: float,
+def cuts(poses: np.ndarray, odometry: np.ndarray, registered: dict[int, np.ndarray], slip_m: float,
          lever_m: float) -> Cuts:
     """The steps of ``poses`` that neither the front end's ``odometry`` (its poses: their steps are the
     measurements) nor ``registered`` (step i -> the registered pose of frame i+1 in frame i, where valid)
-    explain; ``floor_m`` (the map's resolution) and ``floor_m / lever_m`` (rad) the smallest offsets called a
-    cut. Fewer than :data:`MIN_STEPS` steps: nothing is judged."""
+    explain; ``slip_m`` and ``slip_m / lever_m`` (rad) the smallest offsets called a cut. Fewer than
+    :data:`MIN_STEPS` steps: nothing is judged."""
     n = len(poses) - 1
     empty = np.zeros(0)
     if n < MIN_STEPS:
         return Cuts(np.zeros(0, int), empty, empty, judged=False)
-    floor_r = floor_m / max(lever_m, 1e-9)
+    slip_r = slip_m / max(lever_m, 1e-9)
     steps = np.arange(n)
     odometry = np.asarray(odometry, dtype=np.float64)
-    cut, t, r = _unexplained(se3.relative(odometry[:-1], odometry[1:]), poses, steps, floor_m, floor_r)
+    cut, t, r = _unexplained(se3.relative(odometry[:-1], odometry[1:]), poses, steps, slip_m, slip_r)
     with_reg = np.array(sorted(i for i in registered if 0 <= i < n), dtype=int)
     if len(with_reg) >= MIN_STEPS:
         measured = np.stack([registered[int(i)] for i in with_reg])
-        off_reg, _, _ = _unexplained(measured, poses, with_reg, floor_m, floor_r)
+        off_reg, _, _ = _unexplained(measured, poses, with_reg, slip_m, slip_r)
         cut[with_reg[~off_reg]] = False
     found = np.flatnonzero(cut)
     return Cuts(found, t[found], np.degrees(r[found]))

@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.algorithms.common import lengths
+from dm2_backend.algorithms.common import fine_distance, lengths
+from dm2_backend.algorithms.pairwise import COARSE
 from dm2_backend.baselines import gtsam_backend
 from dm2_backend.baselines.graph import build_graph, valid_pairs
 from dm2_backend.baselines.options import SolverOptions
@@ -77,13 +78,13 @@ class Start:
 
 def sequence_cuts(prep: Prepared, poses: np.ndarray) -> continuity.Cuts:
     """The steps of ``poses`` that neither the front end's odometry (the warm start) nor the valid registration of
-    the two frames explains (:func:`dm2_backend.evaluation.continuity.cuts`; the map's resolution, the larger of
-    the voxel and the point spacing, is the smallest cut)."""
+    the two frames explains (:func:`dm2_backend.evaluation.continuity.cuts`; the smallest cut: the registration's
+    coarse correspondence distance, beyond which no scan-matching step slides)."""
     registered = {a: edge.relative for (a, b), edge in valid_pairs(prep.topology, prep.pairwise, prep.frames).items()
                   if b == a + 1}
     scale = lengths(prep.frames)
-    return continuity.cuts(poses, prep.warm_start, registered, max(scale.voxel or 0.0, scale.spacing or 0.0),
-                           scale.range_median or 1.0)
+    slip = COARSE * fine_distance(scale)
+    return continuity.cuts(poses, prep.warm_start, registered, slip, scale.range_median or 1.0)
 
 
 def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None) -> Start:
