@@ -3,10 +3,11 @@
     python benchmarks/dense_scale.py SIM OUT.json [ROUNDS]
 
 SIM is a ``dm2 simulate`` folder (velodyne/, warm_start.txt, poses.txt). The stages as ``dm2 refine`` runs them
-(cells of a quarter of the profile voxel, 2048 a frame and 1.5 M in all, the same voxel for the planes), but the
-graph is the warm start's odometry chain (1 cm, 1 mrad), not the pipeline's registrations, so no preparation is
-needed; ROUNDS caps the dense rounds (default 30). RSS is sampled every 0.1 s; ``peak_mib`` of a stage is the
-highest RSS from its start to its end. Used for ``benchmarks/results/2026-12-03-dense-scale.md``.
+(cells of a quarter of the profile voxel, 2048 a frame and 1.5 M in all, the thin ones with their scatter, the
+same voxel for the planes), but the graph is the warm start's odometry chain (1 cm, 1 mrad), not the pipeline's
+registrations, so no preparation is needed; ROUNDS caps the dense rounds (default 30). RSS is sampled every
+0.1 s; ``peak_mib`` of a stage is the highest RSS from its start to its end. Used for
+``benchmarks/results/2026-12-03-dense-scale.md``.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from dm2_backend.evaluation.consistency_profile import consistency_profiles, pro
 from dm2_backend.formats import open_scans
 from dm2_backend.geometry import se3
 from dm2_backend.optim import planes
+from dm2_backend.optim.config import OptimConfig
 from dm2_backend.optim.dense import refine_dense
 from dm2_backend.pose_graph import PoseGraph
 
@@ -64,7 +66,7 @@ def main(sim: str, out: str, rounds: int = 30) -> None:
     warm = kitti(sim + "/warm_start.txt")
     voxel = profile_voxel(scans)
     stages.end("setup")
-    cells = planes.cells_from_scans(scans, voxel / 4, 2048, 1_500_000, 0)
+    cells = planes.cells_from_scans(scans, voxel / 4, 2048, 1_500_000, 0, scatter=OptimConfig().dense_cell_scatter)
     stages.end("dense_cells")
     n = len(warm)
     info = np.diag([1e4] * 3 + [1e6] * 3)

@@ -339,3 +339,55 @@ def test_the_two_faces_of_a_panel_are_two_planes(monkeypatch):
     assert any(len(set(side[merged.frame[merged.voxel == v]])) == 2 for v in np.unique(merged.voxel))
     assert np.nanmin(planes.disagreement(merged, poses)) > 0.015**2
 
+
+
+def _corner_seen_obliquely(sigma: float, n: int = 30, seed: int = 0) -> tuple[ScanSequence, np.ndarray]:
+    """A floor and two walls (2.5 m) seen from 2.6 m by ``n`` cameras on an arc, each point's range noisy by
+    ``sigma`` along its beam (as a depth camera's or a LiDAR's), and the true poses."""
+    rng = np.random.default_rng(seed)
+    angle = np.linspace(0.3, 1.27, n)
+    eyes = np.stack([0.3 + 2.6 * np.cos(angle), 0.3 + 2.6 * np.sin(angle), np.full(n, 1.4)], 1)
+    gt = np.tile(np.eye(4), (n, 1, 1))
+    for T, eye in zip(gt, eyes, strict=True):
+        z = (np.array([0.6, 0.6, 0.5]) - eye) / np.linalg.norm(np.array([0.6, 0.6, 0.5]) - eye)
+        x = np.cross(z, [0.0, 0.0, 1.0])
+        x /= np.linalg.norm(x)
+        T[:3, :3], T[:3, 3] = np.stack([x, np.cross(z, x), z], 1), eye
+    a, b = (g.ravel() for g in np.meshgrid(np.linspace(0.02, 2.5, 90), np.linspace(0.02, 2.5, 90)))
+    zero = np.zeros_like(a)
+    world = np.concatenate([np.stack(c, 1) for c in ((a, b, zero), (zero, a, b), (a, zero, b))])
+    scans = []
+    for T in gt:
+        p = se3.transform_points(se3.inverse(T), world)
+        p = p[p[:, 2] > 0.3]
+        beam = p / np.linalg.norm(p, axis=1, keepdims=True)
+        scans.append((p + beam * rng.normal(0, sigma, (len(p), 1))).astype(np.float32))
+    return ScanSequence(lambda i: Scan(scans[i]), n, planar=False), gt
+
+
+def test_beam_noise_does_not_turn_the_frames_when_thick_cells_are_taken_at_their_means():
+    """From the truth, with 5 cm of range noise along the beams: the cells' scatter (their thickness, here mostly
+    that noise) turns the frames away from the truth round after round; without it in the thick cells (all of
+    them here) the frames stay."""
+    seq, gt = _corner_seen_obliquely(0.05)
+    graph, _ = odometry_graph(gt, 0.05, 0.02)
+    graph.relative = se3.relative(gt[:-1], gt[1:])  # exact odometry, weakly weighed: the planes decide
+    moved = {}
+    for which in ("all", "thin", "none"):
+        cells = planes.cells_from_scans(seq, 0.1, 2048, 10**6, scatter=which)
+        with_scatter = (np.abs(cells.scatter).max(1) > 0).mean()  # ("all": a cell of one point has none)
+        assert {"all": with_scatter > 0.8, "thin": with_scatter < 0.2, "none": with_scatter == 0}[which]
+        moved[which] = ate_rmse(gt, refine_dense(cells, graph, gt, 0.4).poses)
+    assert moved["thin"] < 0.005 and moved["all"] > 5 * moved["thin"]
+
+
+def test_thin_cells_keep_their_scatter_and_thick_ones_do_not():
+    rng = np.random.default_rng(0)
+    width = rng.uniform(-0.05, 0.05, (200, 2))
+    cells = []
+    for thickness in (0.002, 0.005, 0.012, 0.05):  # a 10 cm square (its width's std 2.9 cm) this thick
+        pts = np.column_stack([width, rng.normal(0, thickness, 200)])
+        cells.append(planes.compress(pts, 1.0)[2][0])
+    kept = planes.kept_scatter(np.stack(cells), "thin")
+    assert kept.tolist() == [True, True, False, False]  # thin: under a quarter of the width's std, 7 mm
+    assert planes.kept_scatter(np.stack(cells), "all").all() and not planes.kept_scatter(np.stack(cells), "none").any()

@@ -4,7 +4,11 @@ Each scan is compressed once, in its sensor frame, into small cells holding the 
 (sum of outer products about the mean) of their points (:class:`Cells`). These sums are all a point-to-plane
 cost needs: for a plane ``n . x = d`` and a frame at pose (R, t), the squared distances of a cell's N points
 sum to ``N (n . (R mu + t) - d)^2 + m^T C m`` with ``m = R^T n`` (BALM2's point clusters, Liu et al. TRO 2023),
-so cost, gradient and Gauss-Newton Hessian are independent of the number of points.
+so cost, gradient and Gauss-Newton Hessian are independent of the number of points. The second term measures a
+cell's thickness; where that is mostly the sensor's range noise, which lies along the beam (a depth camera's
+cells, a millimetre thick near it, centimetres across a room), it turns each frame to lay its beams along the
+planes: from the truth, frames drift round after round. The dense stage therefore keeps the scatter of thin
+cells only and takes a thick cell's points at its mean (:func:`kept_scatter`, ``optimiser.dense_cell_scatter``).
 
 Planes come from many frames, never one scan (a 16-beam LiDAR's ground is a set of rings, lines, in one
 scan): the cells are placed in the world by the current poses, grouped into voxels, and a voxel whose merged
@@ -19,6 +23,7 @@ corner that slipped into a flat voxel pulls with bounded force.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from scipy.sparse import bsr_matrix, csr_matrix
@@ -37,6 +42,8 @@ MIN_WIDTH = 1.0 / 8.0
 MIN_POINTS = 10
 #: Cauchy kernel width on a cell mean's distance to its plane, in noise sigmas
 KERNEL = 3.0
+#: which cells keep their scatter (:func:`kept_scatter`)
+CellScatter = Literal["all", "thin", "none"]
 
 
 @dataclass
@@ -108,11 +115,12 @@ def _summed(pts: np.ndarray, inv: np.ndarray, k: int) -> tuple[np.ndarray, np.nd
 
 
 def cells_from_scans(scans: ScanSequence, size: float, per_frame: int, max_cells: int, seed: int = 0,
-                     progress: bool = False) -> Cells:
+                     progress: bool = False, scatter: CellScatter = "all") -> Cells:
     """Every scan compressed into cells (scans on threads), at most ``per_frame`` a frame and ``max_cells`` in
     all (at least 64 a frame): a frame with more is summed into cells twice as large (once), and keeps a random
     subset of those if still too many (each kept cell exact: only its points are summed). ``Cells.size`` is the
-    smallest cell."""
+    smallest cell. ``scatter``: which cells keep theirs (:func:`kept_scatter`); the others' points are taken at
+    their mean."""
     share = min(per_frame, max(64, max_cells // max(len(scans), 1)))
     rng = np.random.default_rng(seed)
 
@@ -129,13 +137,30 @@ def cells_from_scans(scans: ScanSequence, size: float, per_frame: int, max_cells
             kept[rng.choice(k, share, replace=False)] = True
             on = kept[inv]
             cells = _summed(pts[on], (np.cumsum(kept) - 1)[inv[on]], share)
-        count, mean, scatter = cells
+        count, mean, spread = cells
+        spread = np.where(kept_scatter(spread, scatter)[:, None], spread, 0.0)
         parts.append((np.full(len(count), i, np.int32), count.astype(np.float32), mean.astype(np.float32),
-                      scatter.astype(np.float32)))
+                      spread.astype(np.float32)))
     if not parts:
         return Cells(np.zeros(0, np.int32), np.zeros(0, np.float32), np.zeros((0, 3), np.float32),
                      np.zeros((0, 6), np.float32), size)
     return Cells(*(np.concatenate(a) for a in zip(*parts, strict=True)), size)
+
+
+def kept_scatter(scatter: np.ndarray, which: CellScatter) -> np.ndarray:
+    """Which cells (their (K,6) scatter) keep it: "all", "none", or "thin": those thinner than a quarter of their
+    width (smallest scatter eigenvalue under :data:`FLATNESS` of the middle one, the voxels' flatness test). A
+    thicker cell's thickness is mostly the sensor's range noise, which lies along the beam; in the cost its scatter
+    turns the frame to lay its beams along the plane (see the module docstring)."""
+    if which == "all":
+        return np.ones(len(scatter), bool)
+    if which == "none":
+        return np.zeros(len(scatter), bool)
+    full = np.zeros((len(scatter), 3, 3))
+    full[:, _SCATTER[0], _SCATTER[1]] = scatter
+    full[:, _SCATTER[1], _SCATTER[0]] = scatter
+    lam = np.linalg.eigvalsh(full)
+    return lam[:, 0] < FLATNESS * lam[:, 1]
 
 
 @dataclass

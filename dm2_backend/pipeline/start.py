@@ -133,7 +133,8 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
         return start
     voxel = dense_voxel(cfg, prep.frames.scale)
     t = time.perf_counter()
-    cells = cells_from_scans(scans, voxel / 4.0, cfg.dense_cells_per_frame, cfg.dense_max_cells, seed, progress)
+    cells = cells_from_scans(scans, voxel / 4.0, cfg.dense_cells_per_frame, cfg.dense_max_cells, seed, progress,
+                             cfg.dense_cell_scatter)
     t_cells = time.perf_counter() - t
     graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise)
     checkpoint = checkpoint_dir / DENSE_CHECKPOINT if checkpoint_dir is not None else None
