@@ -66,7 +66,7 @@ def main(sim: str, out: str, rounds: int = 30) -> None:
     warm = kitti(sim + "/warm_start.txt")
     voxel = profile_voxel(scans)
     stages.end("setup")
-    cells = planes.cells_from_scans(scans, voxel / 4, 2048, 1_500_000, 0, scatter=OptimConfig().dense_cell_scatter)
+    cells = planes.cells_from_scans(scans, voxel / 4, 2048, 1_500_000, 0, keep_scatter=OptimConfig().dense_cell_scatter)
     stages.end("dense_cells")
     n = len(warm)
     info = np.diag([1e4] * 3 + [1e6] * 3)

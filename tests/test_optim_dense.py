@@ -195,6 +195,29 @@ def test_a_dense_result_that_agrees_worse_is_not_kept(monkeypatch, scores):
     assert out.name is start_module.StartKind.GRAPH and not out.refined and out.dense["returned"] == "graph"
 
 
+def test_a_dense_result_that_cuts_the_sequence_is_not_kept(monkeypatch):
+    """Its frames agree best with the others' planes, but one of its steps is 2 m and 29 deg from the odometry's:
+    the start stands, and the report says why."""
+    from dm2_backend.config_schema import PluginSection
+    from dm2_backend.optim.dense import DenseResult
+    from dm2_backend.pipeline import start as start_module
+
+    prep, seq, gt = _prepared_3d(30)
+    # the registration's correspondence distance as configured (0.3 m: a 1.2 m slide, 13 deg at the 5.4 m median
+    # range), not the default from these sparse frames' 0.6 m point spacing
+    prep.resolved = {"registration": PluginSection(name="icp", options={"max_distance": 0.3})}
+    cut = gt.copy()
+    cut[16:] = se3.make_poses(Rotation.from_rotvec([0, 0, 0.5]).as_matrix(), np.array([5.0, 0, 0])) @ gt[16:]
+    monkeypatch.setattr(start_module, "refine_dense", lambda *a, **k: DenseResult(cut, [], 0.0, "test"))
+    scores = {"warm start": 1.0, "prepared": 0.5, "dense": 0.1}
+    monkeypatch.setattr(start_module, "agreement_score", lambda *a, **k: dict(scores))
+    given = start_module.Start(prep.warm_start, start_module.StartKind.PREPARED, "the prepared poses")
+    out = start_module.dense_start(seq, prep, given, OptimConfig())
+    np.testing.assert_array_equal(out.poses, prep.warm_start)
+    assert not out.refined and out.dense["returned"] == "prepared" and out.dense["cuts"]["steps"] == [15]
+    assert "cuts the sequence at step 15 (" in out.why
+
+
 def test_the_dense_stage_is_kept_when_it_agrees_best():
     prep, seq, gt = _prepared_3d()
     from dm2_backend.pipeline.start import Start, StartKind, dense_start
@@ -327,6 +350,35 @@ def panel_seen_from_both_sides() -> tuple[planes.Cells, np.ndarray, np.ndarray]:
     return planes.cells_from_scans(seq, 0.1, 2048, 10**6), poses, side
 
 
+def test_only_the_voxels_with_cells_on_both_sides_are_grouped_again():
+    """The side pass regroups the cells of the voxels that hold both sides and keeps the first pass's planes for the
+    others: the same planes, in the same order, as grouping every cell again by voxel and side."""
+    cells, poses, _ = panel_seen_from_both_sides()
+    todo = np.arange(len(cells))
+    frame_of = cells.frame.astype(np.int64)
+    mean = (poses[frame_of, :3, :3] @ cells.mean.astype(np.float64)[:, :, None])[:, :, 0] + poses[frame_of, :3, 3]
+    ref = np.ones(len(cells))
+    size = 0.8
+    first = planes._voxel_planes(cells, todo, mean, frame_of, ref, poses, size)
+    back = planes._behind(todo, mean, frame_of, poses, first.candidate, first.vec[:, :, 0], first.inv, first.n)
+    assert 0 < back.sum() < len(back)  # the panel's two faces: some voxels hold both sides
+    split = planes._split_sides(cells, todo, mean, frame_of, ref, poses, size, first, back)
+    every = planes._voxel_planes(cells, todo, mean, frame_of, ref, poses, size, back)
+    assert split.n == every.n and len(split.candidate) == len(every.candidate)
+    assert np.all(np.diff(split.candidate) > 0)  # ascending: the planes' numbers follow the voxels'
+
+    def planes_of(v):  # each candidate voxel as (its cells, normal up to sign, eigenvalues), in candidate order
+        members = [tuple(np.flatnonzero(v.inv == c)) for c in v.candidate]
+        return members, np.abs(v.vec[:, :, 0]), v.lam
+
+    got, want = planes_of(split), planes_of(every)
+    order = sorted(range(len(want[0])), key=lambda k: want[0][k])
+    mine = sorted(range(len(got[0])), key=lambda k: got[0][k])
+    assert [got[0][k] for k in mine] == [want[0][k] for k in order]
+    np.testing.assert_allclose(got[1][mine], want[1][order], atol=1e-9)
+    np.testing.assert_allclose(got[2][mine], want[2][order], rtol=1e-9, atol=1e-12)
+
+
 def test_the_two_faces_of_a_panel_are_two_planes(monkeypatch):
     cells, poses, side = panel_seen_from_both_sides()
     a = planes.assign(cells, poses, 0.8)
@@ -338,7 +390,6 @@ def test_the_two_faces_of_a_panel_are_two_planes(monkeypatch):
     merged = planes.assign(cells, poses, 0.8)
     assert any(len(set(side[merged.frame[merged.voxel == v]])) == 2 for v in np.unique(merged.voxel))
     assert np.nanmin(planes.disagreement(merged, poses)) > 0.015**2
-
 
 
 def _corner_seen_obliquely(sigma: float, n: int = 30, seed: int = 0) -> tuple[ScanSequence, np.ndarray]:
@@ -367,14 +418,14 @@ def _corner_seen_obliquely(sigma: float, n: int = 30, seed: int = 0) -> tuple[Sc
 
 def test_beam_noise_does_not_turn_the_frames_when_thick_cells_are_taken_at_their_means():
     """From the truth, with 5 cm of range noise along the beams: the cells' scatter (their thickness, here mostly
-    that noise) turns the frames away from the truth round after round; without it in the thick cells (all of
-    them here) the frames stay."""
+    that noise) turns the frames away from the truth round after round; without it in the thick cells the frames
+    stay."""
     seq, gt = _corner_seen_obliquely(0.05)
     graph, _ = odometry_graph(gt, 0.05, 0.02)
     graph.relative = se3.relative(gt[:-1], gt[1:])  # exact odometry, weakly weighed: the planes decide
     moved = {}
     for which in ("all", "thin", "none"):
-        cells = planes.cells_from_scans(seq, 0.1, 2048, 10**6, scatter=which)
+        cells = planes.cells_from_scans(seq, 0.1, 2048, 10**6, keep_scatter=which)
         with_scatter = (np.abs(cells.scatter).max(1) > 0).mean()  # ("all": a cell of one point has none)
         assert {"all": with_scatter > 0.8, "thin": with_scatter < 0.2, "none": with_scatter == 0}[which]
         moved[which] = ate_rmse(gt, refine_dense(cells, graph, gt, 0.4).poses)

@@ -37,7 +37,8 @@ from dm2_backend.progress import progress
 from dm2_backend.stages import Frames, Pairwise, Topology
 
 #: the coarse pass's correspondence distance, in fine distances: the farthest a registration reaches for a
-#: correspondence, so the largest error of a step that slid into a wrong local minimum
+#: correspondence, and so the scale of a step's error where it slid into a wrong local minimum (a tolerance, not a
+#: bound: along a direction the scans leave free ICP can slide further over its iterations)
 COARSE = 4.0
 
 
@@ -50,8 +51,8 @@ class PairwiseRegistration:
 
     #: "auto" (GICP in 3D, 2D point-to-line for planar scans), "point-to-plane", "point-to-point", "gicp"
     method: str = "auto"
-    #: fine correspondence distance (m); default 3 point spacings; a coarse pass at 4x runs first where the
-    #: fine pass alone ends below 0.8 fitness
+    #: fine correspondence distance (m); default 3 point spacings; a coarse pass at :data:`COARSE` times it runs
+    #: first where the fine pass alone ends below 0.8 fitness
     max_distance: float | None = None
     #: gates: overlap (the smaller of the two directions' fractions of points with a correspondence);
     #: inlier rmse (m; default 1.5 point spacings; correspondences spread evenly up to the 3-spacing

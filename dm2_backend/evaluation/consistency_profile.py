@@ -249,7 +249,7 @@ def consistency_profile(scans: ScanSequence, poses: np.ndarray, stamps: np.ndarr
 
 
 def _cells(scans: ScanSequence, voxel: float, budget: int, seed: int, planar: bool, progress: bool) -> Cells:
-    cells = cells_from_scans(scans, voxel / 4.0, CELLS_PER_FRAME, budget, seed, progress)
+    cells = cells_from_scans(scans, voxel / 4.0, CELLS_PER_FRAME, budget, seed, progress, keep_scatter="all")
     return cells.extruded(voxel) if planar else cells
 
 

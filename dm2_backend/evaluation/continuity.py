@@ -1,23 +1,23 @@
-"""Whether a trajectory keeps the sequence's steps, judged without ground truth: a step the front end's odometry
+"""Whether a trajectory keeps the sequence's steps, judged without ground truth: a step that the front end's odometry
 and the scans' own registration of the two frames both contradict is a cut.
-
-A pose graph whose robust kernel meets a clique of wrong registrations can cut the odometry chain: on a
-simulated hand-held depth camera looking across a furnished room (600 frames), a third of the loop registrations
-slid along walls and shelves that look alike, and GTSAM's solution (Cauchy kernel on every edge) gave up one
-odometry edge, 1.36 m and 50 degrees away from the step the front end and the registration measured, and snapped
-each stretch onto the wrong alignments (0.43 m from the truth; the loop-closed poses it started from were 0.033).
-Its map was sharper by entropy and its frames agreed with the others' planes: each stretch is a consistent
-picture of a room whose views look alike. Its steps were not: a step is what the two frames' scans say (their
-registration) or what the front end said (its odometry), within the noise the trajectory's other steps show.
 
 Each step ``i -> i+1`` of a candidate is compared with the odometry step and, where valid, the registration of
 the pair: its offset from each (translation, rotation angle). A source explains a step whose offset is within
 :data:`RATIO` times that source's median offset over the sequence (a robust scale: a cut or two do not move it)
-or within the farthest a scan-matching step can slip (``slip_m``, the registration's coarse correspondence
-distance; ``slip_m`` over the scans' median range in rotation). A step is cut when neither source explains it. The
-slip matters: a scan-matching front end slides now and then where the scans leave a direction free (the simulated
-camera walking round a room, dm2's own ICP warm start: steps 0.1-0.27 m off), the registration of the same pair
-slides the same way, and a solution that repairs such a step must not be called a cut.
+or within how far a scan-matching step slides (``slip_m``, the registration's coarse correspondence distance;
+``slip_m`` over the scans' median range in rotation). A step is cut when neither source explains it. The
+registrations judge only where there are :data:`MIN_STEPS` of them (else the odometry judges alone); a sequence
+of fewer steps is not judged at all.
+
+Why: a pose graph whose robust kernel meets a clique of wrong registrations can cut the odometry chain. A
+simulated hand-held depth camera looking across a furnished room had a third of its loop registrations slide
+along walls and shelves that look alike; GTSAM's solution (Cauchy kernel on every edge) gave up one odometry edge,
+1.36 m and 50 degrees from the step the front end and the registration measured, and snapped each stretch onto the
+wrong alignments (0.43 m from the truth, from loop-closed poses 0.033 away). Its map was sharper by entropy and its
+frames agreed with the others' planes, each stretch being a consistent picture of a room whose views look alike;
+its steps were not. Why the slide allowance: a scan-matching front end (dm2's own ICP warm start, on a camera
+walking round a room) slides now and then by 0.1-0.27 m where the scans leave a direction free, the registration
+of the same pair slides the same way, and a solution that repairs such a step is not a cut.
 """
 
 from __future__ import annotations
@@ -30,10 +30,11 @@ from dm2_backend.geometry import se3
 
 #: a step further from a source than this many times the sequence's median offset from it is not explained by
 #: it. The offset of a step with normal noise is a chi variable of 3 degrees of freedom, whose median is 1.54
-#: sigma: ten medians are 15 sigma, far beyond the largest of a 20,000-frame sequence (about 5.6 sigma), which
-#: leaves room for the heavier tails of a real front end
+#: sigma: ten medians are 15 sigma, far beyond the largest of a 20,000-frame sequence (4.8 sigma typically, 5.7
+#: once in a hundred), which leaves room for the heavier tails of a real front end
 RATIO = 10.0
-#: the fewest steps a robust scale is taken over; a shorter sequence is not judged
+#: the fewest steps (or registrations) a robust scale is taken over; a shorter sequence is not judged, fewer
+#: registrations leave the odometry to judge alone
 MIN_STEPS = 20
 
 
@@ -76,16 +77,17 @@ def _unexplained(measured: np.ndarray, poses: np.ndarray, steps: np.ndarray, sli
 
 
 def cuts(poses: np.ndarray, odometry: np.ndarray, registered: dict[int, np.ndarray], slip_m: float,
-         lever_m: float) -> Cuts:
+         range_m: float) -> Cuts:
     """The steps of ``poses`` that neither the front end's ``odometry`` (its poses: their steps are the
     measurements) nor ``registered`` (step i -> the registered pose of frame i+1 in frame i, where valid)
-    explain; ``slip_m`` and ``slip_m / lever_m`` (rad) the smallest offsets called a cut. Fewer than
-    :data:`MIN_STEPS` steps: nothing is judged."""
+    explain; ``slip_m`` and ``slip_m / range_m`` (rad; ``range_m`` the scans' median range) the smallest offsets
+    called a cut. Fewer than :data:`MIN_STEPS` steps: nothing is judged; fewer valid registrations: the odometry
+    judges alone."""
     n = len(poses) - 1
     empty = np.zeros(0)
     if n < MIN_STEPS:
         return Cuts(np.zeros(0, int), empty, empty, judged=False)
-    slip_r = slip_m / max(lever_m, 1e-9)
+    slip_r = slip_m / max(range_m, 1e-9)
     steps = np.arange(n)
     odometry = np.asarray(odometry, dtype=np.float64)
     cut, t, r = _unexplained(se3.relative(odometry[:-1], odometry[1:]), poses, steps, slip_m, slip_r)

@@ -7,8 +7,8 @@ sum to ``N (n . (R mu + t) - d)^2 + m^T C m`` with ``m = R^T n`` (BALM2's point 
 so cost, gradient and Gauss-Newton Hessian are independent of the number of points. The second term measures a
 cell's thickness; where that is mostly the sensor's range noise, which lies along the beam (a depth camera's
 cells, a millimetre thick near it, centimetres across a room), it turns each frame to lay its beams along the
-planes: from the truth, frames drift round after round. The dense stage therefore keeps the scatter of thin
-cells only and takes a thick cell's points at its mean (:func:`kept_scatter`, ``optimiser.dense_cell_scatter``).
+planes: from the truth, frames drift round after round. The dense stage therefore takes a thick cell's points at
+its mean and keeps the scatter of thin cells only (:func:`kept_scatter`, ``optimiser.dense_cell_scatter``).
 
 Planes come from many frames, never one scan (a 16-beam LiDAR's ground is a set of rings, lines, in one
 scan): the cells are placed in the world by the current poses, grouped into voxels, and a voxel whose merged
@@ -115,12 +115,12 @@ def _summed(pts: np.ndarray, inv: np.ndarray, k: int) -> tuple[np.ndarray, np.nd
 
 
 def cells_from_scans(scans: ScanSequence, size: float, per_frame: int, max_cells: int, seed: int = 0,
-                     progress: bool = False, scatter: CellScatter = "all") -> Cells:
+                     progress: bool = False, keep_scatter: CellScatter = "all") -> Cells:
     """Every scan compressed into cells (scans on threads), at most ``per_frame`` a frame and ``max_cells`` in
     all (at least 64 a frame): a frame with more is summed into cells twice as large (once), and keeps a random
     subset of those if still too many (each kept cell exact: only its points are summed). ``Cells.size`` is the
-    smallest cell. ``scatter``: which cells keep theirs (:func:`kept_scatter`); the others' points are taken at
-    their mean."""
+    smallest cell. ``keep_scatter``: which cells keep their scatter (:func:`kept_scatter`); the others' points are
+    taken at their mean."""
     share = min(per_frame, max(64, max_cells // max(len(scans), 1)))
     rng = np.random.default_rng(seed)
 
@@ -138,7 +138,7 @@ def cells_from_scans(scans: ScanSequence, size: float, per_frame: int, max_cells
             on = kept[inv]
             cells = _summed(pts[on], (np.cumsum(kept) - 1)[inv[on]], share)
         count, mean, spread = cells
-        spread = np.where(kept_scatter(spread, scatter)[:, None], spread, 0.0)
+        spread = np.where(kept_scatter(spread, keep_scatter)[:, None], spread, 0.0)
         parts.append((np.full(len(count), i, np.int32), count.astype(np.float32), mean.astype(np.float32),
                       spread.astype(np.float32)))
     if not parts:

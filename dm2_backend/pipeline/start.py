@@ -59,7 +59,7 @@ class Start:
     why: str
     map_entropy: dict[str, float] = field(default_factory=dict)  # candidate -> mean map entropy
     dense: dict = field(default_factory=dict)
-    cuts: dict[str, dict] = field(default_factory=dict)  # candidate -> its cut steps (``continuity.Cuts.summary``)
+    cuts: dict[str, dict] = field(default_factory=dict)  # "graph" -> its cut steps (``continuity.Cuts.summary``)
 
     @property
     def refined(self) -> bool:
@@ -79,11 +79,13 @@ class Start:
 def sequence_cuts(prep: Prepared, poses: np.ndarray) -> continuity.Cuts:
     """The steps of ``poses`` that neither the front end's odometry (the warm start) nor the valid registration of
     the two frames explains (:func:`dm2_backend.evaluation.continuity.cuts`; the smallest cut: the registration's
-    coarse correspondence distance, beyond which no scan-matching step slides)."""
+    coarse correspondence distance, how far a scan-matching step slides)."""
     registered = {a: edge.relative for (a, b), edge in valid_pairs(prep.topology, prep.pairwise, prep.frames).items()
                   if b == a + 1}
     scale = lengths(prep.frames)
-    slip = COARSE * fine_distance(scale)
+    registration = prep.resolved.get("registration")
+    fine = registration.options.get("max_distance") if registration is not None else None
+    slip = COARSE * float(fine or fine_distance(scale))
     return continuity.cuts(poses, prep.warm_start, registered, slip, scale.range_median or 1.0)
 
 
@@ -134,7 +136,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     voxel = dense_voxel(cfg, prep.frames.scale)
     t = time.perf_counter()
     cells = cells_from_scans(scans, voxel / 4.0, cfg.dense_cells_per_frame, cfg.dense_max_cells, seed, progress,
-                             cfg.dense_cell_scatter)
+                             keep_scatter=cfg.dense_cell_scatter)
     t_cells = time.perf_counter() - t
     graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise)
     checkpoint = checkpoint_dir / DENSE_CHECKPOINT if checkpoint_dir is not None else None
@@ -146,7 +148,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     finite = {name: score for name, score in agreement.items() if np.isfinite(score)}
     # no plane seen by two frames (too few or too sparse scans): nothing to judge by, the start stands
     chosen = min(finite, key=finite.get) if len(finite) == len(agreement) else start.name.value
-    reason = f"{chosen} agrees better"
+    reason = f"{chosen} agrees better" if len(finite) == len(agreement) else "no plane seen by two frames to judge by"
     cut = sequence_cuts(prep, result.poses)
     if chosen == "dense" and cut:  # its frames agree, its steps do not: the start stands
         log.warning("dense stage's result not kept: it cuts the sequence at %s", cut.describe())
