@@ -109,12 +109,12 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None) -
         log.warning("pose-graph start failed (%s); starting from the prepared poses", exc.message)
         return Start(prepared, StartKind.PREPARED, f"the pose graph could not be solved: {exc.message}")
     cut = sequence_cuts(prep, solved)
+    cuts = {"graph": cut.summary()}
     if cut:
         log.warning("pose-graph start not taken: it cuts the sequence at %s", cut.describe())
         why = (f"the pose-graph solution cuts the sequence at {cut.describe()}, which neither the odometry nor the "
                "registration of those frames says")
-        return Start(prepared, StartKind.PREPARED, why, cuts={"graph": cut.summary()})
-    cuts = {"graph": cut.summary()}
+        return Start(prepared, StartKind.PREPARED, why, cuts=cuts)
     if sampler is None:
         return Start(solved, StartKind.GRAPH, "pose-graph solution (no map to compare)", cuts=cuts)
     scores = {"prepared": sampler.evaluate(prepared).entropy, "graph": sampler.evaluate(solved).entropy}
@@ -147,8 +147,9 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     agreement = agreement_score(cells, candidates, voxel, judges=(start.name.value, "dense"))
     finite = {name: score for name, score in agreement.items() if np.isfinite(score)}
     # no plane seen by two frames (too few or too sparse scans): nothing to judge by, the start stands
-    chosen = min(finite, key=finite.get) if len(finite) == len(agreement) else start.name.value
-    reason = f"{chosen} agrees better" if len(finite) == len(agreement) else "no plane seen by two frames to judge by"
+    judged = len(finite) == len(agreement)
+    chosen = min(finite, key=finite.get) if judged else start.name.value
+    reason = f"{chosen} agrees better" if judged else "no plane seen by two frames to judge by"
     cut = sequence_cuts(prep, result.poses)
     if chosen == "dense" and cut:  # its frames agree, its steps do not: the start stands
         log.warning("dense stage's result not kept: it cuts the sequence at %s", cut.describe())
