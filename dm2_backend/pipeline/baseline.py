@@ -22,12 +22,14 @@ from dm2_backend.evaluation.evaluate import EvalOptions, evaluate
 from dm2_backend.evaluation.report import run_metrics
 from dm2_backend.formats import write_trajectory
 from dm2_backend.formats.g2o import read_g2o, write_g2o
+from dm2_backend.memory import peak_rss_mb
 from dm2_backend.pipeline import outputs
 from dm2_backend.pipeline.inputs import RunInputs
 from dm2_backend.pipeline.run_report import RunReport
 from dm2_backend.pipeline.run_writer import write_run
 from dm2_backend.pose_graph import PoseGraph
-from dm2_backend.prepare.steps import prepare
+from dm2_backend.prepare.steps import Prepared, prepare
+from dm2_backend.stage_log import StageLog
 from dm2_backend.trajectory import Trajectory
 
 GRAPH_SOLVERS = {"gtsam": gtsam_backend.optimize, "g2o": g2o_backend.optimize}
@@ -51,27 +53,26 @@ def baseline(method: str, inputs: RunInputs, cfg: RunConfig, out: Path, cache_di
     t_start = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
     prep = prepare(inputs.scans, inputs.given, cfg, cache_dir, progress)
-    t_opt = time.perf_counter()
+    stages = StageLog(dict(prep.stages.seconds), dict(prep.stages.peak_mb))
     extra: dict = {}
+    with stages.stage("optimise"):
+        final, extra["baseline"], files = _solve(method, prep, options, out)
+    return write_run(out, cfg, inputs, prep, final, method, stages, extra, files=files,
+                     started=started if started is not None else t_start)
+
+
+def _solve(method: str, prep: Prepared, options: SolverOptions, out: Path) -> tuple[np.ndarray, dict, list[str]]:
+    """The baseline's poses, its summary for the report and the files it wrote."""
     if method == "icp":
-        final = prep.warm_start
-        extra["baseline"] = {"solver": f"warm start ({cfg.warm_start.name})"}
-    elif method == "multiway":
+        return prep.warm_start, {"solver": f"warm start ({prep.resolved['warm_start'].name})"}, []
+    if method == "multiway":
         result = multiway(prep.frames, prep.initial, prep.topology, prep.pairwise, options)
-        final = result.poses
-        extra["baseline"] = result.summary()
-    else:
-        graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise)
-        write_g2o(graph, out / "graph.g2o")
-        result = solve(method, graph, options)
-        final = result.poses
-        extra["baseline"] = {**result.summary(), "graph": "graph.g2o", "nodes": len(graph),
-                             "edges": len(graph.edges), **graph.meta}
-    timings = dict(prep.timings)
-    timings["optimise"] = time.perf_counter() - t_opt
-    timings["total"] = time.perf_counter() - t_start
-    return write_run(out, cfg, inputs, prep, final, method, timings, extra,
-                     files=["graph.g2o"] if method in GRAPH_SOLVERS else None, started=started)
+        return result.poses, result.summary(), []
+    graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise)
+    write_g2o(graph, out / "graph.g2o")
+    result = solve(method, graph, options)
+    return result.poses, {**result.summary(), "graph": "graph.g2o", "nodes": len(graph), "edges": len(graph.edges),
+                          **graph.meta}, ["graph.g2o"]
 
 
 def optimise_file(method: str, path: Path, out: Path, options: SolverOptions, gt: Trajectory | None = None,
@@ -104,7 +105,7 @@ def optimise_file(method: str, path: Path, out: Path, options: SolverOptions, gt
         "graph_meta": graph.meta,
         "timings": {"read": t_read, "optimise": result.seconds,
                     "total": time.perf_counter() - (t_start if started is None else started)},
-        "peak_rss_mb": outputs.peak_rss_mb(),
+        "peak_rss_mb": peak_rss_mb(),
         "files": ["poses.g2o", "poses_kitti.txt", "poses.npy", "trajectory.png", "report.json"],
     }
     if gt is not None:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import logging
-import resource
 from pathlib import Path
 
 import numpy as np
@@ -22,11 +21,6 @@ from dm2_backend.stages import Frames, Pairwise, Topology
 from dm2_backend.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
-
-
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process so far, MiB."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def write_trajectories(out: Path, traj: Trajectory, given_path: Path | None, given_format: str | None,

@@ -14,7 +14,6 @@ import contextlib
 import enum
 import os
 import pickle
-import resource
 import shutil
 import tempfile
 import time
@@ -30,6 +29,7 @@ from torch.multiprocessing.spawn import ProcessException
 
 from dm2_backend.config_schema import RunConfig
 from dm2_backend.errors import InputError
+from dm2_backend.memory import peak_rss_mb
 from dm2_backend.optim.config import OptimConfig, sampled_points
 from dm2_backend.optim.distributed import Dist, init, rank_device, wait_group
 from dm2_backend.optim.trainer import Optimiser, OptimResult, sample_points
@@ -177,7 +177,7 @@ def run_rank(rank: int, job: Job) -> OptimResult:
         opt = build(prep, job.start, job.cfg, job.watch, job.progress, points, dist)
         result = opt.run(checkpoint_dir=job.out, resume=job.resume)
         if rank == 0:
-            peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+            peak = peak_rss_mb()
             torch.save({"result": result, "device": str(opt.device), "rank_peak_rss_mb": peak}, job.result)
         return result
     finally:

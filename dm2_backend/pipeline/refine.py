@@ -15,6 +15,7 @@ from dm2_backend.pipeline.live import live_metric
 from dm2_backend.pipeline.run_report import RunReport
 from dm2_backend.pipeline.run_writer import map_entropy, map_sampler, output_timestamps, write_run
 from dm2_backend.pipeline.start import choose_start, dense_start
+from dm2_backend.stage_log import StageLog
 
 log = logging.getLogger(__name__)
 
@@ -32,42 +33,36 @@ def refine(inputs: RunInputs, cfg: RunConfig, out: Path, cache_dir: Path | None,
         if lead:
             out.mkdir(parents=True, exist_ok=True)
         prep, samples = parallel.prepare_once(inputs, cfg, sess, progress)
-        t_map = time.perf_counter()
-        sampler = map_sampler(inputs, progress) if lead else None
-        start = choose_start(prep, cfg.optimiser, sampler) if lead else None
-        t_map = time.perf_counter() - t_map
+        stages = StageLog(dict(prep.stages.seconds), dict(prep.stages.peak_mb))
+        with stages.stage("start"):
+            sampler = map_sampler(inputs, progress) if lead else None
+            start = choose_start(prep, cfg.optimiser, sampler) if lead else None
         metric = live_metric(inputs, stamps) if lead else None
-        t_dense = time.perf_counter()
-        if lead:
-            start = dense_start(inputs.scans, prep, start, cfg.optimiser, cfg.seed, progress, metric,
-                                checkpoint_dir=out, resume=resume)
-        if sess.mode is parallel.Mode.TORCHRUN:
-            start = distributed.broadcast(start)
-        t_dense = time.perf_counter() - t_dense
+        with stages.stage("dense"):
+            if lead:
+                start = dense_start(inputs.scans, prep, start, cfg.optimiser, cfg.seed, progress, metric,
+                                    checkpoint_dir=out, resume=resume)
+            if sess.mode is parallel.Mode.TORCHRUN:
+                start = distributed.broadcast(start)
         watch = parallel.Watch(metric, map_entropy(sampler), metric) if lead else None
         extra = {}
         if sess.mode is parallel.Mode.SINGLE:
             opt = parallel.build(prep, start, cfg, watch, progress)
-            t_opt = time.perf_counter()
-            result, device = opt.run(checkpoint_dir=out, resume=resume), str(opt.device)
+            with stages.stage("optimise"):
+                result, device = opt.run(checkpoint_dir=out, resume=resume), str(opt.device)
         elif sess.mode is parallel.Mode.SPAWN:  # timed with starting the processes and building their optimisers
-            t_opt = time.perf_counter()
-            job = parallel.Job(sess.cache, prep.keys, start, samples, cfg, out, resume, progress,
-                               watch, sess.dist.world, sess.scratch)
-            done = parallel.spawn(job)
+            with stages.stage("optimise"):
+                job = parallel.Job(sess.cache, prep.keys, start, samples, cfg, out, resume, progress,
+                                   watch, sess.dist.world, sess.scratch)
+                done = parallel.spawn(job)
             result, device, extra["rank_peak_rss_mb"] = done["result"], done["device"], done["rank_peak_rss_mb"]
         else:
-            t_opt = time.perf_counter()
-            result, device = parallel.optimise_rank(prep, start, samples, cfg, sess, out, resume,
-                                                    progress, watch)
+            with stages.stage("optimise"):
+                result, device = parallel.optimise_rank(prep, start, samples, cfg, sess, out, resume,
+                                                        progress, watch)
         if not lead:
             return None
-        timings = dict(prep.timings)
-        timings["start"] = t_map
-        timings["dense"] = t_dense
-        timings["optimise"] = time.perf_counter() - t_opt
-        timings["total"] = time.perf_counter() - t_start
         extra.update(best_epoch=result.best_epoch, selection=result.selection, start=start.summary(),
                      stopped=result.stopped, derived=asdict(result.derived), device=device, processes=sess.dist.world)
-        return write_run(out, cfg, inputs, prep, result.poses, "dm2 refine", timings, extra, result.history,
-                         sampler=sampler, start=start.poses, started=started)
+        return write_run(out, cfg, inputs, prep, result.poses, "dm2 refine", stages, extra, result.history,
+                         sampler=sampler, start=start.poses, started=started if started is not None else t_start)

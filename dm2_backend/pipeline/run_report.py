@@ -50,6 +50,9 @@ class RunReport:
     epochs: list[dict] | None = None
     #: where the result's metrics are ill-posed or within reach of standing still (``evaluation/cautions.py``)
     cautions: list[str] | None = None
+    #: the process's peak memory when each stage ended (MiB; it only grows: the first stage at ``peak_rss_mb``
+    #: set it)
+    peak_rss_mb_by_stage: dict[str, float] | None = None
     details: dict = field(default_factory=dict)
     dm2_version: str = __version__
 

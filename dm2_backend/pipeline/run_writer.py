@@ -21,11 +21,13 @@ from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.evaluation.paper_ate import paper_ate
 from dm2_backend.evaluation.report import run_metrics
 from dm2_backend.maps.run_maps import write_run_maps
+from dm2_backend.memory import peak_rss_mb
 from dm2_backend.pipeline import outputs
 from dm2_backend.pipeline.full_rate import corrected_full_rate
 from dm2_backend.pipeline.inputs import RunInputs
 from dm2_backend.pipeline.run_report import PrepareSummary, RunReport
 from dm2_backend.prepare.steps import Prepared
+from dm2_backend.stage_log import StageLog
 from dm2_backend.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
@@ -85,53 +87,47 @@ def map_metrics(sampler: MapSampler, poses: np.ndarray) -> dict[str, float]:
 
 
 def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, final: np.ndarray, method: str,
-              timings: dict, details: dict | None = None, epochs: list[dict] | None = None,
+              stages: StageLog, details: dict | None = None, epochs: list[dict] | None = None,
               sampler: MapSampler | None = None, start: np.ndarray | None = None,
               files: list[str] | None = None, started: float | None = None) -> RunReport:
     """The run folder of ``refine`` and ``baseline``: trajectories, maps, priors, plots and ``report.json``
-    (written once). ``details``: the method's own report entries; ``sampler``: the scans prepared for the map
-    metrics (made here when None); ``start``: where the optimiser started; ``files``: files the method wrote;
-    ``started``: when the command started (``time.perf_counter``): ``timings["total"]`` then runs from it to
-    the report, reading the inputs and writing this folder included."""
+    (written once). ``stages``: the run's stages so far (the outputs' are added); ``details``: the method's own
+    report entries; ``sampler``: the scans prepared for the map metrics (made here when None); ``start``: where
+    the optimiser started; ``files``: files the method wrote; ``started``: when the command started
+    (``time.perf_counter``): ``timings["total"]`` then runs from it to the report, reading the inputs and
+    writing this folder included."""
     out.mkdir(parents=True, exist_ok=True)
-    sampler = sampler or map_sampler(inputs)
-    stages = {"warm_start": prep.warm_start, "loop_closed": prep.topology.poses, "start": start, "final": final}
-    maps = {name: map_metrics(sampler, poses) for name, poses in stages.items() if poses is not None}
+    poses_of = {"warm_start": prep.warm_start, "loop_closed": prep.topology.poses, "start": start, "final": final}
+    with stages.stage("map_metrics"):
+        sampler = sampler or map_sampler(inputs)
+        maps = {name: map_metrics(sampler, poses) for name, poses in poses_of.items() if poses is not None}
     config.dump(cfg, out / "config.yaml")
     # the plugins as run: ``auto`` resolved
     config.dump({name: section.model_dump() for name, section in prep.resolved.items()}, out / "resolved.yaml")
-    warm_traj = trajectory_of(prep.warm_start, inputs)
-    final_traj = trajectory_of(final, inputs)
-    written = outputs.write_trajectories(out, final_traj, inputs.given_path, inputs.given_format)
-    written += outputs.write_trajectories(out, warm_traj, None, None, stem="warm_start")
-    full_rate = None
-    if inputs.given_full is not None:  # the input trajectory at its own rate, corrected
-        full_rate = corrected_full_rate(inputs.given_full, inputs.given, final)
-        written += outputs.write_trajectories(out, full_rate.trajectory, inputs.given_path, inputs.given_format,
-                                              stem="poses_full_rate")
-        log.info("full rate: %d input poses corrected (poses_full_rate_*), %d outside the scans' span keep the "
-                 "nearest scan's correction", len(full_rate.trajectory), full_rate.outside)
-    outputs.write_prior_files(out / "prior", prep.warm_start, prep.topology, prep.pairwise)
-    per_frame = None
-    if inputs.gt is not None:
-        per_frame = {"translation error": (paper_ate(inputs.gt.poses, inputs.at_gt(final)).trans_errors, "m")}
-    drawn = {"warm start": inputs.at_gt(prep.warm_start), method: inputs.at_gt(final)}  # where gt is known
-    outputs.write_plots(out, drawn, inputs.gt, per_frame, None)
-    written += outputs.write_topology(out, prep.topology, final)
-    # the profiles before the maps: each stage's memory peak alone, not one on top of the other's leftovers
-    profiles = consistency_profiles(inputs.scans, {"warm start": prep.warm_start, method: final},
-                                    output_timestamps(inputs), prep.frames.planar)
-    written += write_profiles(out, profiles, final[:, :3, 3])
+    details = dict(details or {})
+    with stages.stage("trajectories"):
+        written = _write_trajectories(out, inputs, prep, final, method, details)
+    with stages.stage("consistency"):
+        profiles = consistency_profiles(inputs.scans, {"warm start": prep.warm_start, method: final},
+                                        output_timestamps(inputs), prep.frames.planar)
+        written += write_profiles(out, profiles, final[:, :3, 3])
     log.info("consistency: %s", "; ".join(f"{name} {len(p.segments)} flagged stretch(es), {int(p.flagged.sum())} "
                                           f"frames" for name, p in profiles.items()))
-    outputs.write_map(out / "map.ply", prep.frames, final, 2 * (prep.frames.scale.spacing or 0.0))
-    written += write_run_maps(out, inputs.scans, final, prep.frames.planar)  # map.pgm/.yaml, octomap.bt, M-Net maps
+    with stages.stage("maps"):  # after the profiles: each stage's memory peaks alone, not on the other's leftovers
+        outputs.write_map(out / "map.ply", prep.frames, final, 2 * (prep.frames.scale.spacing or 0.0))
+        written += write_run_maps(out, inputs.scans, final, prep.frames.planar)  # map.pgm/.yaml, octomap.bt, M-Net
     if prep.warm_report:  # e.g. the icp warm start's source of every step (scan match or odometry) and why
         outputs.write_report(out / "warm_start.json", prep.warm_report)
         written.append("warm_start.json")
-    final_metrics, cautions = evaluation_of(final_traj, inputs)
+        details["warm_start"] = _warm_summary(prep.warm_report)
+    details["consistency"] = {name: p.summary() for name, p in profiles.items()}
+    with stages.stage("evaluation"):
+        final_metrics, cautions = evaluation_of(trajectory_of(final, inputs), inputs)
+        metrics = {name: None if poses is None else {**metrics_of(trajectory_of(poses, inputs), inputs), **maps[name]}
+                   for name, poses in poses_of.items() if name != "final"}
+    timings = dict(stages.seconds)
     if started is not None:
-        timings = {**timings, "total": time.perf_counter() - started}
+        timings["total"] = time.perf_counter() - started
     report = RunReport(
         method=method,
         frames=len(prep.frames),
@@ -139,25 +135,44 @@ def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, fina
         ground_truth_scans=len(inputs.gt) if inputs.gt is not None else None,
         metrics={**final_metrics, **maps["final"]},
         cautions=cautions or None,
-        warm_start_metrics={**metrics_of(warm_traj, inputs), **maps["warm_start"]},
-        loop_closed_metrics=None if prep.topology.poses is None else {
-            **metrics_of(trajectory_of(prep.topology.poses, inputs), inputs), **maps["loop_closed"]},
-        start_metrics=None if start is None else {**metrics_of(trajectory_of(start, inputs), inputs),
-                                                  **maps["start"]},
+        warm_start_metrics=metrics["warm_start"],
+        loop_closed_metrics=metrics["loop_closed"],
+        start_metrics=metrics["start"],
         map_quality=sampler.settings_summary(),
         timings=timings,
-        peak_rss_mb=outputs.peak_rss_mb(),
+        peak_rss_mb=peak_rss_mb(),
+        peak_rss_mb_by_stage=dict(stages.peak_mb),
         prepare=PrepareSummary.of(prep),
         files=written + list(files or []),
         epochs=epochs,
-        details={**(details or {}), **({"full_rate": full_rate.summary()} if full_rate else {}),
-                 "consistency": {name: p.summary() for name, p in profiles.items()},
-                 **({"warm_start": _warm_summary(prep.warm_report)} if prep.warm_report else {})},
+        details=details,
     )
     if epochs is not None:
         plots.plot_run_epochs(out / "epochs.png", report.to_dict())  # from the start (epoch 0) on
     report.write(out / "report.json")
     return report
+
+
+def _write_trajectories(out: Path, inputs: RunInputs, prep: Prepared, final: np.ndarray, method: str,
+                        details: dict) -> list[str]:
+    """The result's and the warm start's trajectories (and the input's full rate, corrected, its summary into
+    ``details``), the priors, the trajectory plots and the topology; returns the files written."""
+    written = outputs.write_trajectories(out, trajectory_of(final, inputs), inputs.given_path, inputs.given_format)
+    written += outputs.write_trajectories(out, trajectory_of(prep.warm_start, inputs), None, None, stem="warm_start")
+    if inputs.given_full is not None:  # the input trajectory at its own rate, corrected
+        full_rate = corrected_full_rate(inputs.given_full, inputs.given, final)
+        written += outputs.write_trajectories(out, full_rate.trajectory, inputs.given_path, inputs.given_format,
+                                              stem="poses_full_rate")
+        log.info("full rate: %d input poses corrected (poses_full_rate_*), %d outside the scans' span keep the "
+                 "nearest scan's correction", len(full_rate.trajectory), full_rate.outside)
+        details["full_rate"] = full_rate.summary()
+    outputs.write_prior_files(out / "prior", prep.warm_start, prep.topology, prep.pairwise)
+    per_frame = None
+    if inputs.gt is not None:
+        per_frame = {"translation error": (paper_ate(inputs.gt.poses, inputs.at_gt(final)).trans_errors, "m")}
+    drawn = {"warm start": inputs.at_gt(prep.warm_start), method: inputs.at_gt(final)}  # where gt is known
+    outputs.write_plots(out, drawn, inputs.gt, per_frame, None)
+    return written + outputs.write_topology(out, prep.topology, final)
 
 
 def _warm_summary(warm_report: dict) -> dict:

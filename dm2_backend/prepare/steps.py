@@ -13,7 +13,6 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +27,7 @@ from dm2_backend.plugins.registry import load as load_plugin
 from dm2_backend.prepare import store
 from dm2_backend.prepare.cache_keys import code_fingerprint, source_key, step_key
 from dm2_backend.scans import DEPTH_CAMERA, ScanSequence
+from dm2_backend.stage_log import StageLog
 from dm2_backend.stages import Frames, Pairwise, Topology
 from dm2_backend.trajectory import Trajectory
 
@@ -40,7 +40,8 @@ class Prepared:
     warm_start: np.ndarray
     topology: Topology
     pairwise: Pairwise
-    timings: dict[str, float] = field(default_factory=dict)
+    #: each step's seconds and the peak memory when it ended
+    stages: StageLog = field(default_factory=StageLog)
     cached: dict[str, bool] = field(default_factory=dict)
     #: step -> name of its cache entry (see :func:`load_prepared`)
     keys: dict[str, str] = field(default_factory=dict)
@@ -162,22 +163,20 @@ class Step:
 class _Record:
     """What the steps of one preparation leave besides their results."""
 
-    timings: dict[str, float] = field(default_factory=dict)
+    stages: StageLog = field(default_factory=StageLog)
     cached: dict[str, bool] = field(default_factory=dict)
     keys: dict[str, str] = field(default_factory=dict)
 
     def run(self, step: Step, cache: _Cache) -> Any:
         """The step's result from the cache, or computed and stored; timed and recorded."""
         self.keys[step.name] = step.entry
-        t = time.perf_counter()
-        hit = cache.get(step.entry)
-        self.cached[step.name] = hit is not None
-        if hit is None:
-            value = step.compute()
-            hit = step.save(cache, step.entry, value)
-        result = step.read(hit) if hit is not None else value
-        self.timings[step.name] = time.perf_counter() - t
-        return result
+        with self.stages.stage(step.name):
+            hit = cache.get(step.entry)
+            self.cached[step.name] = hit is not None
+            if hit is None:
+                value = step.compute()
+                hit = step.save(cache, step.entry, value)
+            return step.read(hit) if hit is not None else value
 
 
 def _save_frames(cache: _Cache, name: str, frames: Frames) -> tuple | None:
@@ -255,4 +254,4 @@ def prepare(
                                                                                   topo),
                            _save_pairwise, store.pairwise_from), cache)
     resolved = {"warm_start": ws, "place_recognition": pr, "registration": reg}
-    return Prepared(frames, warm, topo, pair, record.timings, record.cached, record.keys, resolved, warm_report)
+    return Prepared(frames, warm, topo, pair, record.stages, record.cached, record.keys, resolved, warm_report)

@@ -1,0 +1,26 @@
+"""Seconds and memory per stage: what ``report.json``'s ``timings`` and ``peak_rss_mb_by_stage`` hold."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+from dm2_backend.memory import peak_rss_mb
+
+
+@dataclass
+class StageLog:
+    """Each stage's seconds and the process's peak resident memory when it ended (MiB). The peak only grows, so
+    the first stage at the run's peak is the one that set it."""
+
+    seconds: dict[str, float] = field(default_factory=dict)
+    peak_mb: dict[str, float] = field(default_factory=dict)
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        t = time.perf_counter()
+        yield
+        self.seconds[name] = time.perf_counter() - t
+        self.peak_mb[name] = round(peak_rss_mb(), 1)
