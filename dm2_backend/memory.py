@@ -5,7 +5,10 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import functools
+import mmap
 import resource
+
+import numpy as np
 
 
 @functools.cache
@@ -32,3 +35,22 @@ def release_freed_memory() -> bool:
 def peak_rss_mb() -> float:
     """Peak resident memory of this process so far, MiB."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def release_mapped(arrays: list[np.ndarray]) -> int:
+    """Drop the resident pages of the read-only memory-mapped files behind ``arrays`` (views of a ``np.memmap``
+    opened with mode "r", e.g. the cached frames' points): the data stays in the file and is read again where
+    touched, but a stage that does not touch it no longer counts it in the process's memory (20,000 3D frames:
+    234 MiB). Returns the number of mappings released; arrays in memory, or copy-on-write maps, are left alone."""
+    seen: dict[int, mmap.mmap] = {}
+    for a in arrays:
+        base = a
+        while base is not None and not isinstance(base, np.memmap):
+            base = getattr(base, "base", None)
+        if base is not None and base.mode == "r" and isinstance(getattr(base, "_mmap", None), mmap.mmap):
+            seen[id(base._mmap)] = base._mmap
+    if not hasattr(mmap, "MADV_DONTNEED"):
+        return 0
+    for m in seen.values():
+        m.madvise(mmap.MADV_DONTNEED)
+    return len(seen)

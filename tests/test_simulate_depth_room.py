@@ -27,6 +27,8 @@ def test_the_depth_images_agree_with_the_true_poses(tmp_path):
     np.testing.assert_allclose(scans.trajectories["reference"].poses, truth, atol=1e-6)
     info = json.loads((out / "info.json").read_text())
     assert info["simulated"] and info["frames"] == 12 == len(scans)
+    readme = (out / "README.txt").read_text()
+    assert readme.startswith("SIMULATED DATA") and "path 'walk'" in readme and "12 frames" in readme
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(room_mesh(1)))
     camera = DepthCamera()
