@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dm2_backend.evaluation.continuity import MIN_STEPS, cuts
+from dm2_backend.evaluation.continuity import MIN_STEPS, Cuts, cuts
 from dm2_backend.geometry import se3
 
 SLIP, RANGE = 0.3, 2.5  # how far a scan-matching step slides (m) and the scans' median range (m)
@@ -104,3 +104,9 @@ def test_too_short_a_sequence_is_not_judged(truth, odometry):
     assert not found and not found.judged
     just = _cut_at(odometry[: MIN_STEPS + 1], 5, jump)  # MIN_STEPS steps: judged
     assert cuts(just, odometry[: MIN_STEPS + 1], {}, SLIP, RANGE).steps.tolist() == [5]
+
+
+def test_the_description_names_the_largest_cuts_in_translation_or_rotation():
+    found = Cuts(np.array([10, 20, 30]), np.array([1.0, 0.05, 0.5]), np.array([2.0, 60.0, 1.0]))
+    assert found.describe(most=2) == ("step 10 (1 m, 2 deg from the odometry), step 20 (0.05 m, 60 deg from the "
+                                      "odometry) and 1 more")
