@@ -3,7 +3,9 @@ cost, the truth as a fixed point, a drifted start brought to the noise floor, a 
 
 from __future__ import annotations
 
+import re
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -331,12 +333,29 @@ def test_cells_double_as_often_as_allowed_until_a_frame_fits_its_share():
     assert np.bincount(once.frame).tolist() == [30, 8, 1]
 
 
-def test_released_mapped_pages_are_read_again_where_touched(tmp_path):
-    np.save(tmp_path / "points.npy", np.arange(300_000, dtype=np.float32).reshape(-1, 3))
-    mapped = np.asarray(np.load(tmp_path / "points.npy", mmap_mode="r"))
+def _mapped_resident_kib(path: Path) -> int:
+    """Resident KiB of this process's mappings of ``path`` (Linux ``smaps``)."""
+    total, inside = 0, False
+    for line in Path("/proc/self/smaps").read_text().splitlines():
+        if re.match(r"[0-9a-f]+-[0-9a-f]+ ", line):  # a mapping's header: address range, ..., its file
+            inside = line.rstrip().endswith(str(path))
+        elif inside and line.startswith("Rss:"):
+            total += int(line.split()[1])
+    return total
+
+
+def test_released_mapped_pages_leave_the_memory_and_are_read_again_where_touched(tmp_path):
+    path = tmp_path / "points.npy"
+    np.save(path, np.arange(3_000_000, dtype=np.float32).reshape(-1, 3))  # 11 MiB
+    mapped = np.asarray(np.load(path, mmap_mode="r"))
     views = [mapped[i : i + 1000] for i in range(0, len(mapped), 1000)]
     total = float(mapped.sum(dtype=np.float64))
+    linux = Path("/proc/self/smaps").is_file()
+    if linux:
+        assert _mapped_resident_kib(path) > 10_000  # touched: resident
     assert release_mapped(views) == 1  # one file behind all the views
+    if linux:
+        assert _mapped_resident_kib(path) < 1_000
     assert float(mapped.sum(dtype=np.float64)) == total
     copy_on_write = np.load(tmp_path / "points.npy", mmap_mode="c")
     assert release_mapped([np.zeros(3), copy_on_write[:10]]) == 0  # in memory, or possibly written to: left alone

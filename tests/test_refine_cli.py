@@ -109,12 +109,10 @@ def test_report(run):
     assert set(STEPS) | {"optimise", "total"} <= set(report["timings"])
     assert report["timings"]["total"] >= report["timings"]["optimise"] > 0
     assert report["peak_rss_mb"] > 50
-    # every stage, the outputs' too, timed; the peak memory when each ended only grows and ends at the run's
-    stages = [*STEPS, "start", "dense", "optimise", "map_metrics", "trajectories", "consistency", "maps", "evaluation"]
-    by_stage = report["peak_rss_mb_by_stage"]
-    assert list(by_stage) == stages and set(stages) <= set(report["timings"])
-    assert list(by_stage.values()) == sorted(by_stage.values()) and 50 < by_stage["evaluation"]
-    assert by_stage["evaluation"] <= report["peak_rss_mb"] + 0.1
+    # every stage, the outputs' too, timed and its memory peak recorded, in the order they ran
+    stages = [*STEPS, "map_sampler", "start", "dense", "optimise", "map_metrics", "trajectories_and_plots",
+              "consistency", "maps", "evaluation"]
+    assert list(report["peak_rss_mb_by_stage"]) == stages and list(report["timings"]) == [*stages, "total"]
     assert sum(report["timings"][s] for s in stages) <= report["timings"]["total"]
     assert report["prepare"]["cached"] == dict.fromkeys(STEPS, False)
     assert 0 < report["prepare"]["pairs_valid"] <= report["prepare"]["pairs"]

@@ -28,7 +28,6 @@ def test_the_stage_that_allocates_is_the_one_whose_peak_rises():
     seconds, peak = json.loads(out)
     assert list(seconds) == ["small", "large", "after"] and seconds["small"] >= 0.01
     assert peak["large"] - peak["small"] > 200  # the 256 MiB block, in the stage that made it
-    assert peak["after"] == peak["large"]  # freed, but the peak stays where it was
 
 
 def test_a_failing_stage_is_not_recorded():

@@ -51,8 +51,8 @@ class Cuts:
         return len(self.steps) > 0
 
     def describe(self, most: int = 3) -> str:
-        """``step 235 (1.36 m, 50.1 deg from the odometry)`` for the largest ``most`` cuts, in translation or
-        rotation (each against the largest cut's)."""
+        """``step 235 (1.36 m, 50.1 deg from the odometry)`` for the largest ``most`` cuts, ranked by
+        max(translation / largest translation, rotation / largest rotation)."""
         size = np.maximum(self.offset_m / max(self.offset_m.max(initial=0.0), 1e-12),
                           self.offset_deg / max(self.offset_deg.max(initial=0.0), 1e-12))
         order = np.argsort(-size, kind="stable")[:most]

@@ -29,7 +29,6 @@ from dm2_backend.pipeline.run_report import RunReport
 from dm2_backend.pipeline.run_writer import write_run
 from dm2_backend.pose_graph import PoseGraph
 from dm2_backend.prepare.steps import Prepared, prepare
-from dm2_backend.stage_log import StageLog
 from dm2_backend.trajectory import Trajectory
 
 GRAPH_SOLVERS = {"gtsam": gtsam_backend.optimize, "g2o": g2o_backend.optimize}
@@ -53,12 +52,12 @@ def baseline(method: str, inputs: RunInputs, cfg: RunConfig, out: Path, cache_di
     t_start = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
     prep = prepare(inputs.scans, inputs.given, cfg, cache_dir, progress)
-    stages = StageLog(dict(prep.stages.seconds), dict(prep.stages.peak_mb))
+    stages = prep.stages.copy()
     extra: dict = {}
     with stages.stage("optimise"):
         final, extra["baseline"], files = _solve(method, prep, options, out)
     return write_run(out, cfg, inputs, prep, final, method, stages, extra, files=files,
-                     started=started if started is not None else t_start)
+                     started=t_start if started is None else started)
 
 
 def _solve(method: str, prep: Prepared, options: SolverOptions, out: Path) -> tuple[np.ndarray, dict, list[str]]:

@@ -15,7 +15,6 @@ from dm2_backend.pipeline.live import live_metric
 from dm2_backend.pipeline.run_report import RunReport
 from dm2_backend.pipeline.run_writer import map_entropy, map_sampler, output_timestamps, write_run
 from dm2_backend.pipeline.start import choose_start, dense_start
-from dm2_backend.stage_log import StageLog
 
 log = logging.getLogger(__name__)
 
@@ -33,9 +32,10 @@ def refine(inputs: RunInputs, cfg: RunConfig, out: Path, cache_dir: Path | None,
         if lead:
             out.mkdir(parents=True, exist_ok=True)
         prep, samples = parallel.prepare_once(inputs, cfg, sess, progress)
-        stages = StageLog(dict(prep.stages.seconds), dict(prep.stages.peak_mb))
-        with stages.stage("start"):
+        stages = prep.stages.copy()
+        with stages.stage("map_sampler"):
             sampler = map_sampler(inputs, progress) if lead else None
+        with stages.stage("start"):
             start = choose_start(prep, cfg.optimiser, sampler) if lead else None
         metric = live_metric(inputs, stamps) if lead else None
         with stages.stage("dense"):
@@ -47,8 +47,8 @@ def refine(inputs: RunInputs, cfg: RunConfig, out: Path, cache_dir: Path | None,
         watch = parallel.Watch(metric, map_entropy(sampler), metric) if lead else None
         extra = {}
         if sess.mode is parallel.Mode.SINGLE:
-            opt = parallel.build(prep, start, cfg, watch, progress)
-            with stages.stage("optimise"):
+            with stages.stage("optimise"):  # with building the optimiser, as the other modes
+                opt = parallel.build(prep, start, cfg, watch, progress)
                 result, device = opt.run(checkpoint_dir=out, resume=resume), str(opt.device)
         elif sess.mode is parallel.Mode.SPAWN:  # timed with starting the processes and building their optimisers
             with stages.stage("optimise"):
@@ -65,4 +65,4 @@ def refine(inputs: RunInputs, cfg: RunConfig, out: Path, cache_dir: Path | None,
         extra.update(best_epoch=result.best_epoch, selection=result.selection, start=start.summary(),
                      stopped=result.stopped, derived=asdict(result.derived), device=device, processes=sess.dist.world)
         return write_run(out, cfg, inputs, prep, result.poses, "dm2 refine", stages, extra, result.history,
-                         sampler=sampler, start=start.poses, started=started if started is not None else t_start)
+                         sampler=sampler, start=start.poses, started=t_start if started is None else started)

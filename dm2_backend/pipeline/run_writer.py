@@ -89,24 +89,27 @@ def map_metrics(sampler: MapSampler, poses: np.ndarray) -> dict[str, float]:
 def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, final: np.ndarray, method: str,
               stages: StageLog, details: dict | None = None, epochs: list[dict] | None = None,
               sampler: MapSampler | None = None, start: np.ndarray | None = None,
-              files: list[str] | None = None, started: float | None = None) -> RunReport:
+              files: list[str] | None = None, *, started: float) -> RunReport:
     """The run folder of ``refine`` and ``baseline``: trajectories, maps, priors, plots and ``report.json``
     (written once). ``stages``: the run's stages so far (the outputs' are added); ``details``: the method's own
     report entries; ``sampler``: the scans prepared for the map metrics (made here when None); ``start``: where
     the optimiser started; ``files``: files the method wrote; ``started``: when the command started
-    (``time.perf_counter``): ``timings["total"]`` then runs from it to the report, reading the inputs and
-    writing this folder included."""
+    (``time.perf_counter``): ``timings["total"]`` runs from it to the report, reading the inputs and writing this
+    folder included."""
     out.mkdir(parents=True, exist_ok=True)
     poses_of = {"warm_start": prep.warm_start, "loop_closed": prep.topology.poses, "start": start, "final": final}
+    if sampler is None:
+        with stages.stage("map_sampler"):
+            sampler = map_sampler(inputs)
     with stages.stage("map_metrics"):
-        sampler = sampler or map_sampler(inputs)
         maps = {name: map_metrics(sampler, poses) for name, poses in poses_of.items() if poses is not None}
     config.dump(cfg, out / "config.yaml")
     # the plugins as run: ``auto`` resolved
     config.dump({name: section.model_dump() for name, section in prep.resolved.items()}, out / "resolved.yaml")
     details = dict(details or {})
-    with stages.stage("trajectories"):
-        written = _write_trajectories(out, inputs, prep, final, method, details)
+    trajectories = {name: None if poses is None else trajectory_of(poses, inputs) for name, poses in poses_of.items()}
+    with stages.stage("trajectories_and_plots"):
+        written = _write_trajectories_and_plots(out, inputs, prep, trajectories, method, details)
     with stages.stage("consistency"):
         profiles = consistency_profiles(inputs.scans, {"warm start": prep.warm_start, method: final},
                                         output_timestamps(inputs), prep.frames.planar)
@@ -122,12 +125,10 @@ def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, fina
         details["warm_start"] = _warm_summary(prep.warm_report)
     details["consistency"] = {name: p.summary() for name, p in profiles.items()}
     with stages.stage("evaluation"):
-        final_metrics, cautions = evaluation_of(trajectory_of(final, inputs), inputs)
-        metrics = {name: None if poses is None else {**metrics_of(trajectory_of(poses, inputs), inputs), **maps[name]}
-                   for name, poses in poses_of.items() if name != "final"}
-    timings = dict(stages.seconds)
-    if started is not None:
-        timings["total"] = time.perf_counter() - started
+        final_metrics, cautions = evaluation_of(trajectories["final"], inputs)
+        metrics = {name: None if traj is None else {**metrics_of(traj, inputs), **maps[name]}
+                   for name, traj in trajectories.items() if name != "final"}
+    timings = {**stages.seconds, "total": time.perf_counter() - started}
     report = RunReport(
         method=method,
         frames=len(prep.frames),
@@ -153,12 +154,14 @@ def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, fina
     return report
 
 
-def _write_trajectories(out: Path, inputs: RunInputs, prep: Prepared, final: np.ndarray, method: str,
-                        details: dict) -> list[str]:
-    """The result's and the warm start's trajectories (and the input's full rate, corrected, its summary into
-    ``details``), the priors, the trajectory plots and the topology; returns the files written."""
-    written = outputs.write_trajectories(out, trajectory_of(final, inputs), inputs.given_path, inputs.given_format)
-    written += outputs.write_trajectories(out, trajectory_of(prep.warm_start, inputs), None, None, stem="warm_start")
+def _write_trajectories_and_plots(out: Path, inputs: RunInputs, prep: Prepared, trajectories: dict[str, Trajectory],
+                                  method: str, details: dict) -> list[str]:
+    """The result's and the warm start's trajectories (``trajectories["final"]``, ``["warm_start"]``; and the
+    input's full rate, corrected, its summary into ``details``), the priors, the trajectory plots and the
+    topology; returns the files written."""
+    final = trajectories["final"].poses
+    written = outputs.write_trajectories(out, trajectories["final"], inputs.given_path, inputs.given_format)
+    written += outputs.write_trajectories(out, trajectories["warm_start"], None, None, stem="warm_start")
     if inputs.given_full is not None:  # the input trajectory at its own rate, corrected
         full_rate = corrected_full_rate(inputs.given_full, inputs.given, final)
         written += outputs.write_trajectories(out, full_rate.trajectory, inputs.given_path, inputs.given_format,

@@ -41,11 +41,12 @@ log = logging.getLogger(__name__)
 
 #: the pose graph solved for the start: ``dm2 baseline gtsam``'s defaults
 GRAPH_SOLVER = SolverOptions(robust="cauchy")
-#: the dense stage's cells: an eighth of its voxel, doubled (up to twice) in frames with more than their share.
-#: The cost takes a thick cell's points at its mean; the finer the cells, the nearer it is to every point's own
-#: distance: a depth camera looking across a room, refine from the truth ends 6.8 mm away with quarter-voxel
-#: cells, 3.3 mm with eighths (dense stage alone, exact odometry: 6.4 / 4.2 / 2.8 mm with halves, quarters, eighths)
-CELL_FRACTION = 8.0
+#: the dense stage's cells: this many to a voxel's edge (which also makes the finest plane voxel as small), doubled
+#: (up to :data:`CELL_DOUBLINGS` times) in frames with more than their share. The cost takes a thick cell's points
+#: at its mean; the finer the cells, the nearer it is to every point's own distance: a depth camera looking across a
+#: room, refine from the truth ends 6.8 mm away with quarter-voxel cells, 3.3 mm with eighths (the dense stage
+#: alone, from exact odometry: 6.4 / 4.2 / 2.8 mm with halves, quarters, eighths)
+CELLS_PER_VOXEL_EDGE = 8
 CELL_DOUBLINGS = 2
 
 
@@ -142,7 +143,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
         return start
     voxel = dense_voxel(cfg, prep.frames.scale)
     t = time.perf_counter()
-    cells = cells_from_scans(scans, voxel / CELL_FRACTION, cfg.dense_cells_per_frame, cfg.dense_max_cells, seed,
+    cells = cells_from_scans(scans, voxel / CELLS_PER_VOXEL_EDGE, cfg.dense_cells_per_frame, cfg.dense_max_cells, seed,
                              progress, keep_scatter=cfg.dense_cell_scatter, doublings=CELL_DOUBLINGS)
     t_cells = time.perf_counter() - t
     graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise)
@@ -162,9 +163,9 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     if chosen == "dense" and cut:  # its frames agree, its steps do not: the start stands
         log.warning("dense stage's result not kept: it cuts the sequence at %s", cut.describe())
         chosen, reason = start.name.value, f"it cuts the sequence at {cut.describe()}"
-    summary = {"voxel_m": voxel, "cells": len(cells), "cells_seconds": t_cells, "seconds": result.seconds,
-               "rounds": len(result.history), "stopped": result.stopped, "history": result.history,
-               "resumed_after_round": result.resumed_after,
+    summary = {"voxel_m": voxel, "cell_m": cells.size, "cells": len(cells), "cells_seconds": t_cells,
+               "seconds": result.seconds, "rounds": len(result.history), "stopped": result.stopped,
+               "history": result.history, "resumed_after_round": result.resumed_after,
                "odometry_noise": result.odometry.summary() if result.odometry else None,
                "agreement_m2": agreement, "cuts": cut.summary(), "returned": chosen}
     log.info("dense: %d cells of %.3g m and up, %s; returned %s (frames' disagreement with the others' planes: %s)",
