@@ -21,7 +21,7 @@ from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.evaluation.paper_ate import paper_ate
 from dm2_backend.evaluation.report import run_metrics
 from dm2_backend.maps.run_maps import write_run_maps
-from dm2_backend.memory import peak_rss_mb
+from dm2_backend.memory import peak_rss_mb, release_mapped
 from dm2_backend.pipeline import outputs
 from dm2_backend.pipeline.full_rate import corrected_full_rate
 from dm2_backend.pipeline.inputs import RunInputs
@@ -110,6 +110,7 @@ def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, fina
     trajectories = {name: None if poses is None else trajectory_of(poses, inputs) for name, poses in poses_of.items()}
     with stages.stage("trajectories_and_plots"):
         written = _write_trajectories_and_plots(out, inputs, prep, trajectories, method, details)
+    release_mapped(prep.frames.points)  # the profiles read the scans, not the frames (20,000 3D frames: 234 MiB)
     with stages.stage("consistency"):
         profiles = consistency_profiles(inputs.scans, {"warm start": prep.warm_start, method: final},
                                         output_timestamps(inputs), prep.frames.planar)
