@@ -101,7 +101,7 @@ class OptimConfig(BaseModel):
     dense_rounds: int = Field(30, ge=1)
     #: cells (each frame's points summed in cells of an eighth of a voxel) kept per frame and in all (time and
     #: memory grow with them: about 200 MiB and 20 s a round a million); a frame with more is summed into cells
-    #: twice as large, up to twice, then keeps a random subset. Simulated 32-beam LiDAR, 500 frames from gtsam's
+    #: twice as large (once), then keeps a random subset. Simulated 32-beam LiDAR, 500 frames from gtsam's
     #: 0.0275 m (quarter-voxel cells then): 2,048 cells a frame 0.0010 m, 200 cells a frame (as at 7,500 frames)
     #: 0.0027 m
     dense_cells_per_frame: int = Field(2048, ge=1)

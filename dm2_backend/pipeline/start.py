@@ -41,13 +41,14 @@ log = logging.getLogger(__name__)
 
 #: the pose graph solved for the start: ``dm2 baseline gtsam``'s defaults
 GRAPH_SOLVER = SolverOptions(robust="cauchy")
-#: the dense stage's cells: this many to a voxel's edge (which also makes the finest plane voxel as small), doubled
-#: (up to :data:`CELL_DOUBLINGS` times) in frames with more than their share. The cost takes a thick cell's points
-#: at its mean; the finer the cells, the nearer it is to every point's own distance: a depth camera looking across a
-#: room, refine from the truth ends 6.8 mm away with quarter-voxel cells, 3.3 mm with eighths (the dense stage
-#: alone, from exact odometry: 6.4 / 4.2 / 2.8 mm with halves, quarters, eighths)
+#: the dense stage's cells: this many to a voxel's edge (which also makes the finest plane voxel as small); a frame
+#: with more than its share sums them twice as large (a quarter voxel), then keeps a random subset of those. The
+#: cost takes a thick cell's points at its mean; the finer the cells, the nearer it is to every point's own
+#: distance. A depth camera looking across a room, refine from the truth: 6.8 mm with quarter-voxel cells (half-voxel
+#: in the frames over their share), 6.7 with eighths doubled up to twice (the same half-voxel cells there), 3.3 with
+#: eighths doubled once (a subset of quarter-voxel cells there); the dense stage alone, from exact odometry:
+#: 6.4 / 4.2 / 2.8 mm with halves, quarters, eighths
 CELLS_PER_VOXEL_EDGE = 8
-CELL_DOUBLINGS = 2
 
 
 class StartKind(str, enum.Enum):
@@ -144,7 +145,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     voxel = dense_voxel(cfg, prep.frames.scale)
     t = time.perf_counter()
     cells = cells_from_scans(scans, voxel / CELLS_PER_VOXEL_EDGE, cfg.dense_cells_per_frame, cfg.dense_max_cells, seed,
-                             progress, keep_scatter=cfg.dense_cell_scatter, doublings=CELL_DOUBLINGS)
+                             progress, keep_scatter=cfg.dense_cell_scatter)
     t_cells = time.perf_counter() - t
     graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise)
     release_mapped(prep.frames.points)  # the rounds read the cells, not the frames: their pages leave the memory
