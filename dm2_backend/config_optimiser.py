@@ -99,11 +99,10 @@ class OptimConfig(BaseModel):
     dense_voxel: float | None = Field(None, gt=0)
     #: at most this many rounds (one Gauss-Newton step each, planes fitted again)
     dense_rounds: int = Field(30, ge=1)
-    #: cells (each frame's points summed in cells of an eighth of a voxel) kept per frame and in all (time and
-    #: memory grow with them: about 200 MiB and 20 s a round a million); a frame with more is summed into cells
-    #: twice as large (once), then keeps a random subset. Simulated 32-beam LiDAR, 500 frames from gtsam's
-    #: 0.0275 m (quarter-voxel cells then): 2,048 cells a frame 0.0010 m, 200 cells a frame (as at 7,500 frames)
-    #: 0.0027 m
+    #: cells (each frame's points summed in cells of a quarter voxel) kept per frame and in all (time and memory
+    #: grow with them: about 200 MiB and 20 s a round a million); a frame with more is summed into cells twice
+    #: as large, then keeps a random subset. Simulated 32-beam LiDAR, 500 frames from gtsam's 0.0275 m: 2,048
+    #: cells a frame 0.0010 m, 200 cells a frame (as at 7,500 frames) 0.0027 m
     dense_cells_per_frame: int = Field(2048, ge=1)
     dense_max_cells: int = Field(1_500_000, ge=1)
     #: which cells keep their scatter in the dense term (BALM2's exact point-to-plane cost of a point cluster):

@@ -315,24 +315,6 @@ def test_a_frame_over_its_share_keeps_that_many_exact_cells_twice_as_large():
         np.testing.assert_allclose(scatter, coarse[k][2], rtol=1e-5, atol=1e-5)
 
 
-def test_cells_double_as_often_as_allowed_until_a_frame_fits_its_share():
-    rng = np.random.default_rng(4)
-    scans = [rng.uniform(0, 1.99, (20000, 3)),  # 512 cells of 0.25 m, 64 of 0.5 m, 8 of 1 m
-             rng.uniform(0, 0.99, (5000, 3)),  # 64 cells of 0.25 m, 8 of 0.5 m
-             rng.uniform(0, 0.24, (100, 3))]  # one cell of 0.25 m
-    seq = ScanSequence(lambda i: Scan(scans[i]), 3, planar=False)
-    cells = planes.cells_from_scans(seq, 0.25, 30, 10**6, doublings=2)
-    assert cells.size == 0.25 and np.bincount(cells.frame).tolist() == [8, 8, 1]
-    for frame, size in ((0, 1.0), (1, 0.5), (2, 0.25)):  # each frame's cells exact, at the size that fits
-        count, mean, scatter = planes.compress(scans[frame], size)
-        on = cells.frame == frame
-        np.testing.assert_allclose(cells.count[on], count)
-        np.testing.assert_allclose(cells.mean[on], mean, rtol=1e-5)
-        np.testing.assert_allclose(cells.scatter[on], scatter, rtol=1e-4, atol=1e-4)
-    once = planes.cells_from_scans(seq, 0.25, 30, 10**6)  # one doubling: the first keeps 30 of its 0.5 m cells
-    assert np.bincount(once.frame).tolist() == [30, 8, 1]
-
-
 def _mapped_resident_kib(path: Path) -> int:
     """Resident KiB of this process's mappings of ``path`` (Linux ``smaps``)."""
     total, inside = 0, False

@@ -118,12 +118,10 @@ def derive(cfg: OptimConfig, scale: ScanScale, planar: bool = True) -> Lengths:
 
 
 def dense_voxel(cfg: OptimConfig, scale: ScanScale) -> float:
-    """The plane term's largest voxel: planar patches a few per median range, and at least four point spacings
-    (its cells, :data:`dm2_backend.pipeline.start.CELLS_PER_VOXEL_EDGE` to its edge, then hold a point or more
-    where the scan is dense). Measured from the
-    truth (the floor) and from gtsam on the LiDAR ray-cast through the real keyframes' mesh (with quarter-voxel
-    cells): 0.87 m (this rule) 0.0032 / 0.0033 m, 1.2 m 0.0044 / 0.0044, 1.74 m (8 spacings) 0.0047 / 0.0049; on
-    the procedural street (500 frames) 0.88 m 0.0010 / 0.0010, 1.76 m 0.0008 / 0.0010."""
+    """The plane term's largest voxel: planar patches a few per median range, its finest quarter at least a
+    point spacing. Measured from the truth (the floor) and from gtsam on the LiDAR ray-cast through the real
+    keyframes' mesh: 0.87 m (this rule) 0.0032 / 0.0033 m, 1.2 m 0.0044 / 0.0044, 1.74 m (8 spacings) 0.0047 /
+    0.0049; on the procedural street (500 frames) 0.88 m 0.0010 / 0.0010, 1.76 m 0.0008 / 0.0010."""
     if cfg.dense_voxel is not None:
         return cfg.dense_voxel
     spacing = scale.spacing_raw or scale.spacing or 0.0

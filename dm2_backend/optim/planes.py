@@ -86,11 +86,9 @@ def compress(points: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, n
     return _summed(pts, inv, k)
 
 
-def _grouped(points: np.ndarray, size: float, share: int | None, doublings: int = 1,
-             ) -> tuple[np.ndarray, np.ndarray, int]:
-    """A scan's finite points (float64) and the id of each one's cell of edge ``size``, doubled (up to
-    ``doublings`` times) while that gives more than ``share`` cells; and the number of cells. Ids in the order of
-    the cells' keys."""
+def _grouped(points: np.ndarray, size: float, share: int | None) -> tuple[np.ndarray, np.ndarray, int]:
+    """A scan's finite points (float64) and the id of each one's cell of edge ``size``, or ``2 * size`` where
+    ``size`` gives more than ``share`` cells; and the number of cells. Ids in the order of the cells' keys."""
     pts = np.asarray(points, dtype=np.float64)[:, :3]
     if not np.isfinite(pts).all():  # (a scan sequence drops them already)
         pts = pts[np.isfinite(pts).all(1)]
@@ -98,18 +96,11 @@ def _grouped(points: np.ndarray, size: float, share: int | None, doublings: int 
         return pts, np.zeros(0, np.int64), 0
     keys = np.floor(pts / size).astype(np.int64)
     inv, k = group_rows(keys)
-    if share is None or k <= share or doublings < 1:
-        return pts, inv, k
-    cell_keys = np.empty((k, 3), np.int64)
-    cell_keys[inv] = keys
-    for _ in range(doublings):  # floor(p / 2s) = floor(floor(p / s) / 2): group the cells, not the points
+    if share is not None and k > share:  # floor(p / 2s) = floor(floor(p / s) / 2): group the cells, not the points
+        cell_keys = np.empty((k, 3), np.int64)
+        cell_keys[inv] = keys
         coarse, k = group_rows(cell_keys // 2)
         inv = coarse[inv]
-        if k <= share:
-            break
-        doubled = np.empty((k, 3), np.int64)
-        doubled[coarse] = cell_keys // 2
-        cell_keys = doubled
     return pts, inv, k
 
 
@@ -124,18 +115,18 @@ def _summed(pts: np.ndarray, inv: np.ndarray, k: int) -> tuple[np.ndarray, np.nd
 
 
 def cells_from_scans(scans: ScanSequence, size: float, per_frame: int, max_cells: int, seed: int = 0,
-                     progress: bool = False, keep_scatter: CellScatter = "all", doublings: int = 1) -> Cells:
+                     progress: bool = False, keep_scatter: CellScatter = "all") -> Cells:
     """Every scan compressed into cells (scans on threads), at most ``per_frame`` a frame and ``max_cells`` in
-    all (at least 64 a frame): a frame with more is summed into cells twice as large (up to ``doublings`` times),
-    and keeps a random subset of those if still too many (each kept cell exact: only its points are summed).
-    ``Cells.size`` is the smallest cell. ``keep_scatter``: which cells keep their scatter (:func:`kept_scatter`);
-    the others' points are taken at their mean."""
+    all (at least 64 a frame): a frame with more is summed into cells twice as large (once), and keeps a random
+    subset of those if still too many (each kept cell exact: only its points are summed). ``Cells.size`` is the
+    smallest cell. ``keep_scatter``: which cells keep their scatter (:func:`kept_scatter`); the others' points are
+    taken at their mean."""
     share = min(per_frame, max(64, max_cells // max(len(scans), 1)))
     rng = np.random.default_rng(seed)
 
     def fitted(scan) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray] | None, np.ndarray, np.ndarray, int]:
         """The scan's cells where they fit the share, else None (a subset is drawn in order); its points' ids."""
-        pts, inv, k = _grouped(scan.points, size, share, doublings)
+        pts, inv, k = _grouped(scan.points, size, share)
         return (_summed(pts, inv, k) if k <= share else None), pts, inv, k
 
     bar = progress_of(scans, "dense cells", total=len(scans), unit="scan", enabled=progress)

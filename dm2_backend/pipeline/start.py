@@ -35,21 +35,12 @@ from dm2_backend.optim.dense import refine_dense
 from dm2_backend.optim.dense_checkpoint import DENSE_CHECKPOINT
 from dm2_backend.optim.planes import agreement_score, cells_from_scans
 from dm2_backend.prepare.steps import Prepared
-from dm2_backend.scans import DEPTH_CAMERA, ScanSequence
+from dm2_backend.scans import ScanSequence
 
 log = logging.getLogger(__name__)
 
 #: the pose graph solved for the start: ``dm2 baseline gtsam``'s defaults
 GRAPH_SOLVER = SolverOptions(robust="cauchy")
-#: the dense stage's cells: this many to a voxel's edge (which also makes the finest plane voxel as small). A frame
-#: with more than its share sums them twice as large, then keeps a random subset of those: once for a depth
-#: camera, whose range noise grows with the square of the depth, so that its cells thicken as they grow and a thick
-#: cell's points are taken at its mean, not at their own distances; twice for a LiDAR, whose noise is a small part
-#: of its cells. Looking across a room, refine from the truth: 6.8 mm with quarter-voxel cells (half-voxel in the
-#: frames over their share), 6.7 with eighths doubled up to twice, 3.3 with eighths doubled once (a subset of
-#: quarter-voxel cells); on the simulated street (500 frames, refine from the odometry) 0.68 mm doubled twice, 0.89
-#: once
-CELLS_PER_VOXEL_EDGE = 8
 
 
 class StartKind(str, enum.Enum):
@@ -145,9 +136,8 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
         return start
     voxel = dense_voxel(cfg, prep.frames.scale)
     t = time.perf_counter()
-    cells = cells_from_scans(scans, voxel / CELLS_PER_VOXEL_EDGE, cfg.dense_cells_per_frame, cfg.dense_max_cells, seed,
-                             progress, keep_scatter=cfg.dense_cell_scatter,
-                             doublings=1 if scans.sensor == DEPTH_CAMERA else 2)
+    cells = cells_from_scans(scans, voxel / 4.0, cfg.dense_cells_per_frame, cfg.dense_max_cells, seed, progress,
+                             keep_scatter=cfg.dense_cell_scatter)
     t_cells = time.perf_counter() - t
     graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise)
     release_mapped(prep.frames.points)  # the rounds read the cells, not the frames: their pages leave the memory
