@@ -136,6 +136,9 @@ def run_case(method: Method, input_args: list[str], run_dir: Path, cache_dir: Pa
                     report_peak_rss_mb=report.get("peak_rss_mb"), best_epoch=report.get("best_epoch"),
                     epochs_run=len(report.get("epochs", []) or []), device=report.get("device"),
                     convergence=convergence(report))
+        if report.get("peak_rss_mb") is not None:  # the run's own peak (VmHWM): wait4's ru_maxrss keeps this
+            case["wait_peak_rss_mb"] = case["peak_rss_mb"]  # process's peak across exec (1,651 MiB in every
+            case["peak_rss_mb"] = report["peak_rss_mb"]  # case after the real-map simulation)
     return case
 
 

@@ -224,6 +224,7 @@ def write_depth_room(out: Path, frames: int, path: str = "walk", laps: float = 1
 
 
 def _readme(info: dict) -> str:
+    """``README.txt`` of a room folder: labelled SIMULATED, what made it, what each file holds."""
     cam = info["camera"]
     return f"""SIMULATED DATA - not recorded by a real sensor.
 
@@ -239,5 +240,5 @@ truth.tum               ground truth, TUM format
 warm_start.tum          a drifting visual odometry, TUM format (ATE {info['warm_start']['ate_rmse_m']:.3f} m)
 info.json               every setting
 
-Refine it: dm2 refine --scans FOLDER --poses FOLDER/warm_start.tum --gt FOLDER/truth.tum
+Refine it: dm2 refine --scans FOLDER --poses FOLDER/warm_start.tum --gt FOLDER/truth.tum --out RUN
 """
