@@ -91,8 +91,8 @@ class OptimConfig(BaseModel):
     #: x, y, yaw only; the graph all six); ACES 0.0363 from prepared, 0.0421 from graph
     start: Literal["auto", "graph", "prepared"] = "auto"
     #: the dense multi-frame plane term, minimised by second-order steps over all poses jointly with the pose
-    #: graph's factors before the first-order epochs (``dm2_backend.optim.dense``); None: on for 3D data, off for
-    #: planar data (a 2D scan has lines, not planes)
+    #: graph's factors before the first-order epochs (``dm2_backend.optim.dense``; a 2D scan's lines as walls);
+    #: None or True: on, False: off
     dense: bool | None = None
     #: largest voxel of the plane term (m; non-flat voxels are split down to a quarter); None:
     #: max(median range / 8, 4 x the raw scans' point spacing)

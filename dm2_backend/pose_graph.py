@@ -3,7 +3,7 @@ format holds, what the pose-graph baselines solve)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -44,6 +44,17 @@ class PoseGraph:
         if self.planar:
             return self.information.copy()
         return self.information[:, ROTATION_FIRST][:, :, ROTATION_FIRST]
+
+    def spatial(self, hold: float) -> PoseGraph:
+        """This graph as an SE(3) one: a planar graph's [x y theta] information on x, y and yaw, and ``hold`` on z,
+        roll and pitch (so they stay where the poses have them); a 3D graph as it is."""
+        if not self.planar:
+            return self
+        info = np.zeros((len(self.information), 6, 6))
+        at = np.array([0, 1, 5])  # x, y, yaw in g2o's [x y z qx qy qz]
+        info[:, at[:, None], at[None, :]] = self.information
+        info[:, [2, 3, 4], [2, 3, 4]] = hold
+        return replace(self, information=info, planar=False)
 
     def to_trajectory(self) -> Trajectory:
         meta = {"edges": len(self.edges), **self.meta}

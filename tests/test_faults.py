@@ -25,7 +25,7 @@ from dm2_backend.prepare.cache_keys import file_fingerprint
 
 SMALL = {"seed": 3, "frames": {"max_points": 128},
          "optimiser": {"points_per_frame": 32, "bce_points_per_frame": 16, "batch_groups": 16,
-                       "grid_max_cells": 2**12}}
+                       "grid_max_cells": 2**12, "dense": False}}  # the first-order epochs, checkpointed
 #: a child process that runs ``dm2 ARGS`` and, when the N-th output whose name matches PATTERN is about to be
 #: written, sends itself SIGNAL (the instant of a real signal, chosen by what the run writes, not by a clock)
 CHILD = """

@@ -40,7 +40,7 @@ SMALL = {
     "seed": 3,
     "frames": {"max_points": 256},
     "optimiser": {"epochs": EPOCHS, "max_steps": 0, "points_per_frame": 64, "bce_points_per_frame": 32,
-                  "batch_groups": 16, "grid_max_cells": 2**14},
+                  "batch_groups": 16, "grid_max_cells": 2**14, "dense": False},  # the first-order epochs
 }
 #: Two ranks do not repeat the single-process arithmetic: rank 1 draws its own free-space samples, each rank
 #: normalises its loss terms over its half of the anchors (a frame in the groups of anchors on both ranks

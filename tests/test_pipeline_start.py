@@ -14,6 +14,7 @@ from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.geometry import se3
 from dm2_backend.optim.config import OptimConfig
 from dm2_backend.pipeline import start as start_module
+from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.pipeline.start import GRAPH_SOLVER, StartKind, choose_start
 from dm2_backend.prepare.steps import Prepared
 from dm2_backend.scans import Scan, ScanSequence
@@ -81,3 +82,32 @@ def test_prepared_and_auto_on_planar_data(prepared, sampler):
         assert start.name is StartKind.PREPARED and start.poses is prepared.initial
     with pytest.raises(ValidationError, match="start"):  # a start that is none of the choices is never built
         OptimConfig(start="gtsam")
+
+
+def test_the_dense_stage_on_planar_scans_stays_planar_and_lowers_the_error():
+    """A 2D laser's lines are walls: the dense stage runs on planar scans, keeps x, y, yaw poses, leaves the truth
+    at its noise floor and brings the loop-closed start to it."""
+    from dm2_backend.pipeline.start import Start, dense_start
+
+    case = planar_case()
+    seq = ScanSequence(lambda i: Scan(case.scans[i]), len(case.scans), planar=True)
+    prep = Prepared(case.frames, case.warm, case.topology, case.pairwise)
+    truth = dense_start(seq, prep, Start(case.gt, StartKind.PREPARED, "truth"), OptimConfig())
+    floor = ate_rmse(case.gt, truth.poses)
+    start = perturb(case.gt, 0.05, 0.01, seed=1)
+    out = dense_start(seq, prep, Start(start, StartKind.PREPARED, "test"), OptimConfig())
+    assert out.refined and out.dense["rounds"] >= 1
+    assert all(se3.is_planar(p) for p in out.poses)
+    assert floor < 0.01
+    assert ate_rmse(case.gt, out.poses) < min(2.5 * floor, 0.2 * ate_rmse(case.gt, start))
+
+
+def test_a_planar_graph_solved_as_spatial_has_the_planar_solution(prepared):
+    """:meth:`PoseGraph.spatial` keeps a planar graph's optimum: GTSAM's Pose3 solution of the lifted graph is its
+    Pose2 solution."""
+    graph = build_graph(prepared.frames, perturb(prepared.initial, 0.2, 0.05, seed=2), prepared.topology,
+                        prepared.pairwise)
+    flat = gtsam_backend.optimize(graph, GRAPH_SOLVER).poses
+    lifted = gtsam_backend.optimize(graph.spatial(1e6), GRAPH_SOLVER).poses
+    np.testing.assert_allclose(se3.to_xy_yaw(lifted), se3.to_xy_yaw(flat), atol=1e-4)
+    assert graph.spatial(1e6).information.shape[1:] == (6, 6) and not graph.spatial(1e6).planar

@@ -22,7 +22,7 @@ from dm2_backend.simulate.sequence import write_sequence
 
 SMALL = {"seed": 3, "frames": {"max_points": 128},
          "optimiser": {"points_per_frame": 32, "bce_points_per_frame": 16, "batch_groups": 16,
-                       "grid_max_cells": 2**12}}
+                       "grid_max_cells": 2**12, "dense": False}}  # the first-order epochs, checkpointed
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -29,6 +29,7 @@ from dm2_backend.baselines.options import SolverOptions
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import continuity
 from dm2_backend.evaluation.map_quality import MapSampler
+from dm2_backend.geometry import se3
 from dm2_backend.memory import release_mapped
 from dm2_backend.optim.config import OptimConfig, dense_voxel
 from dm2_backend.optim.dense import refine_dense
@@ -41,6 +42,9 @@ log = logging.getLogger(__name__)
 
 #: the pose graph solved for the start: ``dm2 baseline gtsam``'s defaults
 GRAPH_SOLVER = SolverOptions(robust="cauchy")
+#: information (1/m^2, 1/rad^2) with which a planar graph's edges hold z, roll and pitch in the dense stage: a 1 mm,
+#: 1 mrad step (the extruded walls hold roll and pitch as well; the result is projected back to the plane)
+PLANAR_HOLD = 1e6
 
 
 class StartKind(str, enum.Enum):
@@ -127,23 +131,30 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None) -
 def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimConfig, seed: int = 0,
                 progress: bool = False, trace: Callable[[np.ndarray], float] | None = None,
                 checkpoint_dir: Path | None = None, resume: bool = False) -> Start:
-    """``start`` refined by the dense stage (``cfg.dense``; None: 3D data only): every scan's points against the
-    planes many frames share, jointly with the pose graph's factors (:mod:`dm2_backend.optim.dense`); its
-    checkpoint in ``checkpoint_dir``, continued with ``resume``."""
-    if prep.frames.planar or cfg.dense is False:
-        if prep.frames.planar and cfg.dense:
-            log.warning("optimiser.dense: planar scans have lines, not planes; the dense stage does not run")
+    """``start`` refined by the dense stage (``cfg.dense``): every scan's points against the planes many frames
+    share, jointly with the pose graph's factors (:mod:`dm2_backend.optim.dense`); its checkpoint in
+    ``checkpoint_dir``, continued with ``resume``. Planar scans (2D lasers) see walls as lines: their cells are
+    extruded into vertical walls a voxel tall, the planar graph is solved as an SE(3) one that holds z, roll and
+    pitch (:meth:`~dm2_backend.pose_graph.PoseGraph.spatial`), and the result is projected back to x, y, yaw."""
+    if cfg.dense is False:
         return start
+    planar = prep.frames.planar
     voxel = dense_voxel(cfg, prep.frames.scale)
     t = time.perf_counter()
     cells = cells_from_scans(scans, voxel / 4.0, cfg.dense_cells_per_frame, cfg.dense_max_cells, seed, progress,
                              keep_scatter=cfg.dense_cell_scatter)
+    if planar:
+        cells = cells.extruded(voxel)
     t_cells = time.perf_counter() - t
     graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise)
+    if planar:
+        graph = graph.spatial(PLANAR_HOLD)
     release_mapped(prep.frames.points)  # the rounds read the cells, not the frames: their pages leave the memory
     checkpoint = checkpoint_dir / DENSE_CHECKPOINT if checkpoint_dir is not None else None
     result = refine_dense(cells, graph, start.poses, voxel, cfg.dense_rounds, progress=progress, trace=trace,
                           checkpoint=checkpoint, resume=resume, measure_odometry=cfg.dense_odometry_noise)
+    if planar:
+        result.poses = se3.from_xy_yaw(se3.to_xy_yaw(result.poses))
     # never worse than where it started, judged without ground truth: each frame against the map the others make
     candidates = {"warm start": prep.warm_start, start.name.value: start.poses, "dense": result.poses}
     agreement = agreement_score(cells, candidates, voxel, judges=(start.name.value, "dense"))
