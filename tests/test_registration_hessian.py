@@ -117,3 +117,51 @@ def test_the_registration_plugin_keeps_the_hessians_when_asked():
     assert kept.hessian.shape == (3, 2, 6, 6) and np.all(kept.hessian[:, :, 2, 2] > 0)
     assert np.all(kept.plane_rmse < kept.rmse)
     np.testing.assert_array_equal(kept.hessian[0, 0], kept.hessian[1, 0])  # one registration of the pair (0, 1)
+
+
+def _planar_corridor(rng: np.random.Generator, length: float = 30.0) -> np.ndarray:
+    """A 2D laser's view of a corridor 2 m wide along x (two lines): nothing fixes x."""
+    x = rng.uniform(-length / 2, length / 2, 1500)
+    y = np.where(np.arange(1500) % 2, 1.0, -1.0) + rng.normal(0, 0.005, 1500)
+    return np.column_stack([x, y, np.zeros(1500)]).astype(np.float32)
+
+
+def test_a_planar_match_carries_its_point_to_line_information():
+    """Planar scans: the point-to-line information on [x y yaw] is the planar block of the point-to-plane one (a
+    right perturbation: the tangent of a Pose2 between factor), weak only along a corridor."""
+    rng = np.random.default_rng(5)
+    target = Cloud(_planar_corridor(rng), planar=True, normal_radius=0.5)
+    source = Cloud(_planar_corridor(rng), planar=True, normal_radius=0.5)
+    init = se3.from_xy_yaw(np.array([0.0, 0.03, 0.01]))
+    assert register(source, target, init, (0.3,)).hessian is None  # only when asked
+    m = register(source, target, init, (0.3,), hessian=True)
+    assert m.hessian.shape == (3, 3) and 0 < m.plane_rmse < 0.02
+    p = se3.transform_points(m.T, source.points.astype(np.float64))
+    _, idx = target.tree.query(p[:, :2], distance_upper_bound=0.3)
+    ok = idx < len(target.xy)
+    normals = np.column_stack([target.normals[idx[ok]], np.zeros(ok.sum())])
+    full = point_to_plane_hessian(source.points[ok].astype(np.float64), normals, m.T)
+    np.testing.assert_allclose(m.hessian, full[np.ix_([0, 1, 5], [0, 1, 5])], rtol=1e-9)
+    w, v = np.linalg.eigh(m.hessian[:2, :2])
+    assert w[0] < 0.01 * w[1] and abs(v[0, 0]) > 0.99  # free along the corridor (x) only (up to the normals' noise)
+
+
+def test_planar_registrations_keep_their_own_information_when_asked():
+    """With ``information: hessian`` the plugin keeps the point-to-line information of planar scans and the graph
+    weighs each planar registration by it."""
+    from dm2_backend.plugins.registration_icp import IcpRegistration
+
+    rng = np.random.default_rng(6)
+    clouds = [_planar_corridor(rng) for _ in range(3)]
+    scale = ScanScale(voxel=0.05, spacing=0.05, spacing_raw=0.05, range_median=5.0, range_p90=12.0)
+    frames = Frames(clouds, None, planar=True, scale=scale)
+    topology = Topology(np.array([[1, 2], [0, 2], [0, 1]]))
+    kept = IcpRegistration(information="hessian", progress=False).run(frames, np.tile(np.eye(4), (3, 1, 1)),
+                                                                       topology)
+    assert kept.valid.all() and kept.hessian.shape == (3, 2, 3, 3)
+    graph = build_graph(frames, np.tile(np.eye(4), (3, 1, 1)), topology, kept)
+    assert graph.planar and graph.meta["hessian_edges"] == 3  # every registration has its own
+    loop = graph.information[-1]
+    assert loop[1, 1] > 100 * loop[0, 0]  # across the corridor, not along it
+    plain = IcpRegistration(progress=False).run(frames, np.tile(np.eye(4), (3, 1, 1)), topology)
+    assert plain.hessian is None  # the default: isotropic

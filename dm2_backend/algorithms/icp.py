@@ -33,13 +33,14 @@ def register(
     point-to-line only) keeps unconstrained directions, e.g. along a corridor, at ``init``; ``prior_info``
     (planar point-to-line only) is a full (3, 3) prior information on (x, y, yaw) about ``init``;
     ``tolerance`` (3D): a pass stops when fitness and inlier rmse change by less than this fraction;
-    ``robust_k`` (planar point-to-line only): Cauchy weights on the residuals, see :func:`icp_2d`; ``hessian``
-    (3D): also the point-to-plane information of the result and its residuals' rms (``Match.hessian``)."""
+    ``robust_k`` (planar point-to-line only): Cauchy weights on the residuals, see :func:`icp_2d`; ``hessian``:
+    also the point-to-plane (planar: point-to-line) information of the result and its residuals' rms
+    (``Match.hessian``)."""
     if source.planar:
         if method == "point-to-point":
             return _icp_o3d_planar(source, target, init, distances, iterations)
         return icp_2d(source.xy, target, init, distances, iterations, prior_weight=prior_weight,
-                      prior_info=prior_info, robust_k=robust_k)
+                      prior_info=prior_info, robust_k=robust_k, hessian=hessian)
     T = np.asarray(init, dtype=np.float64)
     source.ensure(method, "source")
     target.ensure(method, "target")
@@ -132,6 +133,7 @@ def icp_2d(
     prior_weight: float = 0.0,
     prior_info: np.ndarray | None = None,
     robust_k: float = 0.0,
+    hessian: bool = False,
 ) -> Match:
     """2D point-to-line ICP (Gauss-Newton on x, y, yaw) of points onto a planar :class:`Cloud`.
 
@@ -144,7 +146,10 @@ def icp_2d(
     translation): negligible where the scan constrains the pose, decisive along directions it does
     not (a featureless corridor). ``prior_info`` (3, 3) adds ``e^T prior_info e`` with e = (x, y, yaw) - init,
     in the units of the point-to-line cost (m^2 per correspondence): e.g. odometry's information scaled by the
-    residual variance, or a strong weight along one direction to hold it at ``init``."""
+    residual variance, or a strong weight along one direction to hold it at ``init``.
+
+    With ``hessian``, the match also carries its point-to-line information (3, 3) on [x y yaw] for unit residual
+    variance, :func:`point_to_plane_hessian` of the last correspondences in the plane, and their residuals' rms."""
     x, y, yaw = se3.to_xy_yaw(init)
     x0, y0, yaw0 = x, y, yaw
     fitness, rmse = 0.0, float("inf")
@@ -189,7 +194,27 @@ def icp_2d(
             if np.hypot(dx, dy) + abs(dth) * np.abs(pc).max() < stop:
                 break
         fitness, rmse = ok.mean(), float(np.sqrt(np.mean(dist[ok] ** 2)))
-    return Match(planar_pose(x, y, se3.wrap_angle(yaw)), float(fitness), rmse)
+    T = planar_pose(x, y, se3.wrap_angle(yaw))
+    if not hessian:
+        return Match(T, float(fitness), rmse)
+    return Match(T, float(fitness), rmse, *_line_information(source_xy, target, T, distances[-1]))
+
+
+def _line_information(source_xy: np.ndarray, target: Cloud, T: np.ndarray, distance: float) -> tuple:
+    """Point-to-line information (3, 3) on [x y yaw] (the planar rows and columns of
+    :func:`point_to_plane_hessian`) of ``source_xy`` at ``T`` against ``target`` within ``distance``, and the rms
+    of those residuals; (None, None) with fewer than 3 correspondences."""
+    src = np.column_stack([source_xy, np.zeros(len(source_xy))])
+    p = se3.transform_points(T, src)
+    dist, idx = target.tree.query(p[:, :2], distance_upper_bound=distance)
+    ok = np.isfinite(dist)
+    if ok.sum() < 3:
+        return None, None
+    normals = np.column_stack([target.normals[idx[ok]], np.zeros(int(ok.sum()))])
+    residual = np.einsum("ij,ij->i", normals[:, :2], p[ok, :2] - target.xy[idx[ok]])
+    planar = np.array([0, 1, 5])  # x, y, yaw of g2o's [x y z rx ry rz]
+    H = point_to_plane_hessian(src[ok], normals, T)[np.ix_(planar, planar)]
+    return H, float(np.sqrt(np.mean(residual**2)))
 
 
 def information_2d(source_xy: np.ndarray, target: Cloud, T: np.ndarray, distance: float) -> dict:

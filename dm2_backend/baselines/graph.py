@@ -10,11 +10,12 @@ Edges (``(i, j)``, i < j, the pose of frame j in frame i):
   else the front end's;
 * loop: every other valid pairwise registration, once per unordered pair.
 
-Information model (default; planar scans; a registration without a Hessian; :func:`registration_information`):
+Information model (default; a registration without a Hessian; :func:`registration_information`):
 a registration with inlier rmse ``r``, overlap ``fitness`` of the neighbour's ``M`` points and lever arm ``L``
 (rms range of the neighbour's points) gets isotropic ``sigma_t = max(r, floor) / sqrt(fitness * M)`` and
-``sigma_r = sigma_t / L``. On 3D data with ``registration.options.information: hessian``, a registration's
-information is its own Gauss-Newton Hessian in point-to-plane form over its correspondences divided by the
+``sigma_r = sigma_t / L``. With ``registration.options.information: hessian``, a
+registration's information is its own Gauss-Newton Hessian in point-to-plane (planar: point-to-line) form over its
+correspondences divided by the
 variance of those residuals, ``J^T J / max(r_plane, floor)^2`` (:func:`hessian_information`), so a direction the
 matched geometry does not pin (along a corridor, across the one wall a camera sees) carries no weight and stays
 where the odometry puts it. Front-end odometry edges get the median isotropic registration information times
@@ -124,7 +125,9 @@ def hessian_information(hessian: np.ndarray, rmse: float, floor: float) -> np.nd
     sigma = residual_sigma(rmse, floor)
     info = 0.5 * (hessian + hessian.T) / sigma**2
     d = np.diag(info)
-    return info + np.diag(EIGEN_FLOOR * np.repeat([max(d[:3].mean(), 1e-300), max(d[3:].mean(), 1e-300)], 3))
+    t = 2 if len(d) == 3 else 3  # planar [x y theta] or [x y z rx ry rz]
+    floors = [max(d[:t].mean(), 1e-300)] * t + [max(d[t:].mean(), 1e-300)] * (len(d) - t)
+    return info + np.diag(EIGEN_FLOOR * np.asarray(floors))
 
 
 def build_graph(frames: Frames, warm: np.ndarray, topology: Topology, pairwise: Pairwise,
@@ -140,9 +143,9 @@ def build_graph(frames: Frames, warm: np.ndarray, topology: Topology, pairwise: 
     arms, floor = lever_arms(frames), rmse_floor(frames, model)
     isotropic = {p: registration_information(e.rmse, e.fitness, e.points, arms[p[1]], planar, floor)
                  for p, e in pairs.items()}
-    info = {p: hessian_information(e.hessian, e.plane_rmse, floor) if e.hessian is not None and not planar
-            else isotropic[p] for p, e in pairs.items()}
-    hessians = sum(1 for e in pairs.values() if e.hessian is not None and not planar)
+    info = {p: hessian_information(e.hessian, e.plane_rmse, floor) if e.hessian is not None else isotropic[p]
+            for p, e in pairs.items()}
+    hessians = sum(1 for e in pairs.values() if e.hessian is not None)
     if info:
         fallback = np.median(np.stack(list(isotropic.values())), axis=0) * model.fallback_weight
     else:
