@@ -12,6 +12,10 @@ from dm2_backend.trajectory import Trajectory
 
 #: g2o SE3 ordering [x y z qx qy qz] -> rotation-first [qx qy qz x y z] (GTSAM Pose3 tangent order)
 ROTATION_FIRST = np.array([3, 4, 5, 0, 1, 2])
+#: where a planar graph's [x y theta] sit in the SE(3) tangent [x y z rx ry rz] (rad, as GTSAM reads g2o's
+#: information), and the axes a planar pose leaves at 0 (z, roll, pitch)
+PLANAR_AXES = np.array([0, 1, 5])
+HELD_AXES = np.array([2, 3, 4])
 
 
 @dataclass
@@ -45,16 +49,17 @@ class PoseGraph:
             return self.information.copy()
         return self.information[:, ROTATION_FIRST][:, :, ROTATION_FIRST]
 
-    def spatial(self, hold: float) -> PoseGraph:
-        """This graph as an SE(3) one: a planar graph's [x y theta] information on x, y and yaw, and ``hold`` on z,
-        roll and pitch (so they stay where the poses have them); a 3D graph as it is."""
+    def lifted_to_se3(self, hold: float) -> PoseGraph:
+        """This graph as an SE(3) one: a planar graph's [x y theta] information on x, y and yaw
+        (:data:`PLANAR_AXES`), and ``hold`` (1/m^2, 1/rad^2) on z, roll and pitch, so they stay where the poses have
+        them (``meta["held"]`` records it); a 3D graph as it is."""
         if not self.planar:
             return self
         info = np.zeros((len(self.information), 6, 6))
-        at = np.array([0, 1, 5])  # x, y, yaw in g2o's [x y z qx qy qz]
-        info[:, at[:, None], at[None, :]] = self.information
-        info[:, [2, 3, 4], [2, 3, 4]] = hold
-        return replace(self, information=info, planar=False)
+        info[:, PLANAR_AXES[:, None], PLANAR_AXES[None, :]] = self.information
+        info[:, HELD_AXES, HELD_AXES] = hold
+        held = {"axes": HELD_AXES.tolist(), "information": float(hold)}
+        return replace(self, information=info, planar=False, meta={**self.meta, "held": held})
 
     def to_trajectory(self) -> Trajectory:
         meta = {"edges": len(self.edges), **self.meta}

@@ -97,17 +97,34 @@ def test_the_dense_stage_on_planar_scans_stays_planar_and_lowers_the_error():
     start = perturb(case.gt, 0.05, 0.01, seed=1)
     out = dense_start(seq, prep, Start(start, StartKind.PREPARED, "test"), OptimConfig())
     assert out.refined and out.dense["rounds"] >= 1
-    assert all(se3.is_planar(p) for p in out.poses)
+    assert all(se3.is_planar(p) for p in out.poses)  # projected; before that the graph held them (test below)
     assert floor < 0.01
     assert ate_rmse(case.gt, out.poses) < min(2.5 * floor, 0.2 * ate_rmse(case.gt, start))
 
 
-def test_a_planar_graph_solved_as_spatial_has_the_planar_solution(prepared):
-    """:meth:`PoseGraph.spatial` keeps a planar graph's optimum: GTSAM's Pose3 solution of the lifted graph is its
-    Pose2 solution."""
+def test_a_planar_graph_lifted_to_se3_has_the_planar_costs_and_optimum(prepared):
+    """:meth:`PoseGraph.lifted_to_se3` keeps a planar graph: on planar poses its Pose3 factors cost what the Pose2
+    ones do (noisy edges, so every information entry counts), GTSAM's Pose3 solution is the Pose2 one, and the
+    measured odometry noise does not undo the hold."""
+    from dm2_backend.optim import odometry_noise
+
     graph = build_graph(prepared.frames, perturb(prepared.initial, 0.2, 0.05, seed=2), prepared.topology,
                         prepared.pairwise)
+    graph.relative = perturb(graph.relative, 0.05, 0.02, seed=4)
+    lifted = graph.lifted_to_se3(1e6)
+    assert lifted.information.shape[1:] == (6, 6) and not lifted.planar and graph.planar
+    poses = perturb(graph.poses, 0.1, 0.03, seed=5)
+
+    def cost(g) -> float:
+        fg = gtsam_backend.factor_graph(g)  # no kernel: the plain weighted squares
+        return fg.error(gtsam_backend.to_values(g, poses))
+
+    assert cost(lifted) == pytest.approx(cost(graph), rel=1e-6)
     flat = gtsam_backend.optimize(graph, GRAPH_SOLVER).poses
-    lifted = gtsam_backend.optimize(graph.spatial(1e6), GRAPH_SOLVER).poses
-    np.testing.assert_allclose(se3.to_xy_yaw(lifted), se3.to_xy_yaw(flat), atol=1e-4)
-    assert graph.spatial(1e6).information.shape[1:] == (6, 6) and not graph.spatial(1e6).planar
+    solved = gtsam_backend.optimize(lifted, GRAPH_SOLVER).poses
+    np.testing.assert_allclose(se3.to_xy_yaw(solved), se3.to_xy_yaw(flat), atol=1e-4)
+    steps = odometry_noise.consecutive_edges(lifted)
+    noise = odometry_noise.MeasuredNoise(np.full(6, 0.01), np.zeros(6), len(steps))
+    held = odometry_noise.reweighted(lifted, steps, noise).information[steps]
+    assert np.all(held[:, [2, 3, 4], [2, 3, 4]] == 1e6) and np.all(held[:, [0, 1, 5], [0, 1, 5]] == 1e4)
+    assert not np.any(held[:, 2, [0, 1, 5]])

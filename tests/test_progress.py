@@ -54,3 +54,4 @@ def test_small_run_logs_one_line_per_stage(tmp_path):
     for stage in ("simulate", "load scans", "loop closure", "pairwise icp", "map scans", "dense cells", "dense"):
         mine = [ln for ln in lines if re.match(rf"dm2: {stage}: \d+/\d+ in ", ln)]  # its progress line, once
         assert len(mine) == 1, (stage, err)
+    assert not [ln for ln in lines if ln.startswith("dm2: refine: ")]  # no first-order epochs after the dense stage

@@ -165,3 +165,31 @@ def test_planar_registrations_keep_their_own_information_when_asked():
     assert loop[1, 1] > 100 * loop[0, 0]  # across the corridor, not along it
     plain = IcpRegistration(progress=False).run(frames, np.tile(np.eye(4), (3, 1, 1)), topology)
     assert plain.hessian is None  # the default: isotropic
+
+
+def test_the_planar_block_is_the_gauss_newton_system_of_a_right_pose2_perturbation():
+    """Rows and columns [x y yaw] of :func:`point_to_plane_hessian` on planar points, normals and pose are J^T J
+    of the point-to-line residuals under ``T Exp(x, y, yaw)``: the tangent of a Pose2 between factor."""
+    from dm2_backend.pose_graph import PLANAR_AXES
+
+    rng = np.random.default_rng(7)
+    p = np.column_stack([rng.uniform(-5, 5, (40, 2)), np.zeros(40)])
+    angle = rng.uniform(0, 2 * np.pi, 40)
+    n = np.column_stack([np.cos(angle), np.sin(angle), np.zeros(40)])
+    T = se3.from_xy_yaw(np.array([3.0, -1.0, 0.5]))
+    q = se3.transform_points(T, p)
+
+    def residuals(xi: np.ndarray) -> np.ndarray:
+        return np.einsum("ij,ij->i", n, se3.transform_points(T @ se3.from_xy_yaw(xi), p) - q)
+
+    h = 1e-6
+    J = np.column_stack([(residuals(h * e) - residuals(-h * e)) / (2 * h) for e in np.eye(3)])
+    block = point_to_plane_hessian(p, n, T)[np.ix_(PLANAR_AXES, PLANAR_AXES)]
+    np.testing.assert_allclose(block, J.T @ J, rtol=1e-5, atol=1e-6)
+
+
+def test_planar_hessian_information_floors_translation_and_yaw_apart():
+    info = hessian_information(np.diag([4.0, 0.0, 9.0]), rmse=0.02, floor=0.01)
+    np.testing.assert_allclose(info[1, 1], EIGEN_FLOOR * 2.0 / 0.02**2)  # the translations' mean, not yaw's
+    np.testing.assert_allclose(info[2, 2], (9.0 + EIGEN_FLOOR * 9.0) / 0.02**2)
+    assert np.linalg.eigvalsh(info).min() > 0

@@ -11,6 +11,7 @@ import open3d as o3d
 
 from dm2_backend.algorithms.common import Cloud, Match, planar_pose, project_planar
 from dm2_backend.geometry import se3
+from dm2_backend.pose_graph import PLANAR_AXES
 
 reg = o3d.pipelines.registration
 
@@ -200,7 +201,8 @@ def icp_2d(
     return Match(T, float(fitness), rmse, *_line_information(source_xy, target, T, distances[-1]))
 
 
-def _line_information(source_xy: np.ndarray, target: Cloud, T: np.ndarray, distance: float) -> tuple:
+def _line_information(source_xy: np.ndarray, target: Cloud, T: np.ndarray,
+                      distance: float) -> tuple[np.ndarray | None, float | None]:
     """Point-to-line information (3, 3) on [x y yaw] (the planar rows and columns of
     :func:`point_to_plane_hessian`) of ``source_xy`` at ``T`` against ``target`` within ``distance``, and the rms
     of those residuals; (None, None) with fewer than 3 correspondences."""
@@ -212,8 +214,7 @@ def _line_information(source_xy: np.ndarray, target: Cloud, T: np.ndarray, dista
         return None, None
     normals = np.column_stack([target.normals[idx[ok]], np.zeros(int(ok.sum()))])
     residual = np.einsum("ij,ij->i", normals[:, :2], p[ok, :2] - target.xy[idx[ok]])
-    planar = np.array([0, 1, 5])  # x, y, yaw of g2o's [x y z rx ry rz]
-    H = point_to_plane_hessian(src[ok], normals, T)[np.ix_(planar, planar)]
+    H = point_to_plane_hessian(src[ok], normals, T)[np.ix_(PLANAR_AXES, PLANAR_AXES)]
     return H, float(np.sqrt(np.mean(residual**2)))
 
 

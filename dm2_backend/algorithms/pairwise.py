@@ -84,7 +84,8 @@ class PairwiseRegistration:
     #: Measured on the same preparations (isotropic / hessian): simulated street (500 frames) gtsam 0.0275 /
     #: 0.0308 m, the dense stage at its floor either way (0.00071 / 0.00075 m); ACES gtsam 0.0379 / 0.0489 m,
     #: refine 0.0344 / 0.0344 m; the planar corridor ring refine from its truth 0.039 / 0.024 m, from its warm
-    #: start 0.0567 / 0.0560 m. The odometry edges keep the median isotropic weight either way, a guess
+    #: start 0.0567 / 0.0560 m. The odometry edges keep the median isotropic weight either way. Planar scans with
+    #: ``method: point-to-point`` give no Hessian (their edges stay isotropic)
     information: Literal["hessian", "isotropic"] = "isotropic"
     #: start loop pairs from the transform the descriptor topology verified
     use_loops: bool = True

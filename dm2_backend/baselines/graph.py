@@ -61,7 +61,7 @@ class PairEdge:
     fitness: float
     rmse: float
     points: int  # points of the registered (neighbour) frame
-    hessian: np.ndarray | None = None  # (6, 6) point-to-plane J^T J of this registration (g2o order), if any
+    hessian: np.ndarray | None = None  # (6, 6), planar (3, 3): this registration's J^T J (g2o order), if any
     plane_rmse: float = float("inf")  # rms of its point-to-plane residuals (m), with ``hessian``
 
 

@@ -11,7 +11,9 @@ from dm2_backend.errors import InputError
 
 @click.command("refine")
 @run_options
-@click.option("--epochs", type=click.IntRange(min=1), default=None, help="Optimisation epochs (at least 1).")
+@click.option("--epochs", type=click.IntRange(min=1), default=None,
+              help="First-order epochs (at least 1); they run after the dense stage only with "
+                   "optimiser.first_order: true, or without it (optimiser.dense: false).")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None, help="Torch device.")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run in --out from its checkpoint.")
 @click.option("--nproc", type=click.IntRange(min=1), default=None,

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.algorithms.common import fine_distance, lengths
+from dm2_backend.algorithms.common import fine_distance, lengths, project_planar
 from dm2_backend.algorithms.pairwise import COARSE
 from dm2_backend.baselines import gtsam_backend
 from dm2_backend.baselines.graph import build_graph, valid_pairs
@@ -29,7 +29,6 @@ from dm2_backend.baselines.options import SolverOptions
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import continuity
 from dm2_backend.evaluation.map_quality import MapSampler
-from dm2_backend.geometry import se3
 from dm2_backend.memory import release_mapped
 from dm2_backend.optim.config import OptimConfig, dense_voxel
 from dm2_backend.optim.dense import refine_dense
@@ -135,7 +134,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     share, jointly with the pose graph's factors (:mod:`dm2_backend.optim.dense`); its checkpoint in
     ``checkpoint_dir``, continued with ``resume``. Planar scans (2D lasers) see walls as lines: their cells are
     extruded into vertical walls a voxel tall, the planar graph is solved as an SE(3) one that holds z, roll and
-    pitch (:meth:`~dm2_backend.pose_graph.PoseGraph.spatial`), and the result is projected back to x, y, yaw."""
+    pitch (:meth:`~dm2_backend.pose_graph.PoseGraph.lifted_to_se3`), and the result is projected back to x, y, yaw."""
     if cfg.dense is False:
         return start
     planar = prep.frames.planar
@@ -148,13 +147,13 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     t_cells = time.perf_counter() - t
     graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise)
     if planar:
-        graph = graph.spatial(PLANAR_HOLD)
+        graph = graph.lifted_to_se3(PLANAR_HOLD)
     release_mapped(prep.frames.points)  # the rounds read the cells, not the frames: their pages leave the memory
     checkpoint = checkpoint_dir / DENSE_CHECKPOINT if checkpoint_dir is not None else None
     result = refine_dense(cells, graph, start.poses, voxel, cfg.dense_rounds, progress=progress, trace=trace,
                           checkpoint=checkpoint, resume=resume, measure_odometry=cfg.dense_odometry_noise)
     if planar:
-        result.poses = se3.from_xy_yaw(se3.to_xy_yaw(result.poses))
+        result.poses = project_planar(result.poses)
     # never worse than where it started, judged without ground truth: each frame against the map the others make
     candidates = {"warm start": prep.warm_start, start.name.value: start.poses, "dense": result.poses}
     agreement = agreement_score(cells, candidates, voxel, judges=(start.name.value, "dense"))
