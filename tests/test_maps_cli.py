@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from click.testing import CliRunner
 from optim_cases import one_thread, planar_case, write_planar_sequence
 
@@ -15,9 +16,10 @@ from dm2_backend.cli.main import cli
 from dm2_backend.maps import occupancy_grid, run_maps
 from dm2_backend.optim import mnet_file
 
+#: ``first_order``: the epochs after the dense stage, which train the M-Net
 SMALL = {"seed": 3, "frames": {"max_points": 256},
          "optimiser": {"points_per_frame": 64, "bce_points_per_frame": 32, "batch_groups": 16,
-                       "grid_max_cells": 2**14}}
+                       "grid_max_cells": 2**14, "first_order": True}}
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -137,3 +139,15 @@ def test_missing_rerun_is_one_line(run, tmp_path, monkeypatch):
     monkeypatch.setattr(builtins, "__import__", no_rerun)
     result = CliRunner().invoke(cli, ["view", str(run), "--out", str(tmp_path / "x.rrd")], obj={})
     assert result.exit_code == 2 and "pip install 'dm2[view]'" in result.output
+
+
+def test_a_refine_without_epochs_makes_no_mnet_map(seq, tmp_path):
+    """By default the dense stage ends a planar refine and no epoch trains the M-Net: its map is not made, and
+    ``maps.json`` says why."""
+    cfg = tmp_path / "config.yaml"
+    cfg.write_text(yaml.safe_dump({**SMALL, "optimiser": {**SMALL["optimiser"], "first_order": None}}))
+    out = tmp_path / "refine"
+    invoke("refine", "--scans", str(seq / "velodyne"), "--poses", str(seq / "warm_start.txt"), "--out", str(out),
+           "-c", str(cfg), "-q", "--no-cache")
+    assert (out / "map.pgm").exists() and not (out / "mnet_map.pgm").exists()
+    assert "no first-order epoch" in run_maps.read_summary(out)["skipped"]["mnet"]

@@ -162,7 +162,7 @@ def _load_mnet(out: Path, summary: dict) -> mnet_file.MNet | None:
         return None
     mnet = mnet_file.load_mnet(path)
     if not mnet.trained:
-        summary["skipped"]["mnet"] = "the run did not train the M-Net (optimiser use_bce off)"
+        summary["skipped"]["mnet"] = "the run did not train the M-Net (no first-order epoch, or use_bce off)"
         return None
     return mnet
 

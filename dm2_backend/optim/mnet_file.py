@@ -5,8 +5,8 @@ tensors and plain values, so it loads with ``torch.load(weights_only=True)``: th
 ``state_dict``, its constructor arguments, and ``world_from_field``, the 4x4 transform from the field's
 coordinates to the world of the run's poses (the optimiser re-anchors its poses on the first frame's start
 pose; the field lives in the optimiser's own frame). ``trained`` is False when the run did not use the
-occupancy loss (``use_bce`` off when polishing a locally accurate 3D start): the field is then untrained and
-no M-Net map or mesh is made from it.
+occupancy loss (``use_bce`` off when polishing a locally accurate 3D start) or ran no epoch (the first-order
+epochs are off after the dense stage): the field is then untrained and no M-Net map or mesh is made from it.
 """
 
 from __future__ import annotations

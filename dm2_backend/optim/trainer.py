@@ -301,7 +301,7 @@ class Optimiser:
         with torch.no_grad():
             first = self.model()[0].cpu().numpy()
         gauge = self.model.T0[0].cpu().numpy() @ np.linalg.inv(first)
-        save_mnet(path, self.field, gauge, trained=bool(self.derived.use_bce))
+        save_mnet(path, self.field, gauge, trained=bool(self.derived.use_bce) and self.epochs > 0)
 
     def run(self, checkpoint_dir: Path | None = None, resume: bool = False) -> OptimResult:
         """Train; with several ranks only rank 0 reads and writes the checkpoint, shows progress and
