@@ -82,7 +82,7 @@ class PairwiseRegistration:
     #: over its correspondences over the variance of those residuals, ``Pairwise.hessian``: a direction the
     #: matched geometry leaves free, along a corridor or across the one wall a camera sees, gets no weight).
     #: Measured on the same preparations (isotropic / hessian): simulated street (500 frames) gtsam 0.0275 /
-    #: 0.0308 m, the dense stage at its floor either way (0.00071 / 0.00075 m); ACES gtsam 0.0379 / 0.0489 m,
+    #: 0.0308 m, the dense stage at its floor either way (0.00071 / 0.00075 m); ACES gtsam 0.0414 / 0.0489 m,
     #: refine 0.0344 / 0.0344 m; the planar corridor ring refine from its truth 0.039 / 0.024 m, from its warm
     #: start 0.0567 / 0.0560 m. The odometry edges keep the median isotropic weight either way. Planar scans with
     #: ``method: point-to-point`` give no Hessian (their edges stay isotropic)
