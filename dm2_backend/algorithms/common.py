@@ -90,9 +90,8 @@ class Match:
     rmse: float  # rms distance of those correspondences
     #: the registration's Gauss-Newton information J^T J over those correspondences in point-to-plane form
     #: (:func:`dm2_backend.algorithms.icp.point_to_plane_hessian`; planar: point-to-line, (3, 3) on [x y yaw]),
-    #: for unit residual variance, and the rms of
-    #: those point-to-plane residuals (m; the noise of the matched surfaces, where ``rmse`` is mostly the
-    #: point spacing); None when the registration does not give them
+    #: for unit residual variance, and the rms of those point-to-plane residuals (m; the noise of the matched
+    #: surfaces, where ``rmse`` is mostly the point spacing); None when the registration does not give them
     hessian: np.ndarray | None = None
     plane_rmse: float | None = None
 

@@ -13,9 +13,8 @@ Edges (``(i, j)``, i < j, the pose of frame j in frame i):
 Information model (default; a registration without a Hessian; :func:`registration_information`):
 a registration with inlier rmse ``r``, overlap ``fitness`` of the neighbour's ``M`` points and lever arm ``L``
 (rms range of the neighbour's points) gets isotropic ``sigma_t = max(r, floor) / sqrt(fitness * M)`` and
-``sigma_r = sigma_t / L``. With ``registration.options.information: hessian``, a
-registration's information is its own Gauss-Newton Hessian in point-to-plane (planar: point-to-line) form over its
-correspondences divided by the
+``sigma_r = sigma_t / L``. With ``registration.options.information: hessian``, a registration's information is its
+own Gauss-Newton Hessian in point-to-plane (planar: point-to-line) form over its correspondences divided by the
 variance of those residuals, ``J^T J / max(r_plane, floor)^2`` (:func:`hessian_information`), so a direction the
 matched geometry does not pin (along a corridor, across the one wall a camera sees) carries no weight and stays
 where the odometry puts it. Front-end odometry edges get the median isotropic registration information times
