@@ -11,7 +11,6 @@ import open3d as o3d
 
 from dm2_backend.algorithms.common import Cloud, Match, planar_pose, project_planar
 from dm2_backend.geometry import se3
-from dm2_backend.pose_graph import PLANAR_AXES
 
 reg = o3d.pipelines.registration
 
@@ -203,19 +202,17 @@ def icp_2d(
 
 def _line_information(source_xy: np.ndarray, target: Cloud, T: np.ndarray,
                       distance: float) -> tuple[np.ndarray | None, float | None]:
-    """Point-to-line information (3, 3) on [x y yaw] (the planar rows and columns of
-    :func:`point_to_plane_hessian`) of ``source_xy`` at ``T`` against ``target`` within ``distance``, and the rms
-    of those residuals; (None, None) with fewer than 3 correspondences."""
-    src = np.column_stack([source_xy, np.zeros(len(source_xy))])
-    p = se3.transform_points(T, src)
-    dist, idx = target.tree.query(p[:, :2], distance_upper_bound=distance)
-    ok = np.isfinite(dist)
-    if ok.sum() < 3:
+    """Point-to-line information (3, 3) on [x y yaw] of ``source_xy`` at ``T`` against ``target`` within
+    ``distance``, on a right perturbation ``T Exp(xi)`` (the planar rows and columns of
+    :func:`point_to_plane_hessian`), and the rms of those residuals; (None, None) with fewer than 3
+    correspondences. It is :func:`information_2d`'s (world-frame translation, yaw about the sensor) with the
+    translation turned into the frame of ``T``: ``B^T info B``, B = diag(R, 1)."""
+    info = information_2d(source_xy, target, T, distance)
+    if info["count"] < 3:
         return None, None
-    normals = np.column_stack([target.normals[idx[ok]], np.zeros(int(ok.sum()))])
-    residual = np.einsum("ij,ij->i", normals[:, :2], p[ok, :2] - target.xy[idx[ok]])
-    H = point_to_plane_hessian(src[ok], normals, T)[np.ix_(PLANAR_AXES, PLANAR_AXES)]
-    return H, float(np.sqrt(np.mean(residual**2)))
+    B = np.eye(3)
+    B[:2, :2] = T[:2, :2]
+    return B.T @ info["info"] @ B, info["line_rmse"]
 
 
 def information_2d(source_xy: np.ndarray, target: Cloud, T: np.ndarray, distance: float) -> dict:
@@ -224,6 +221,7 @@ def information_2d(source_xy: np.ndarray, target: Cloud, T: np.ndarray, distance
     ``distance``, per correspondence:
 
     - ``fitness``, ``rmse``: the fraction of points with a correspondence and their rms distance;
+      ``line_rmse``: the rms of their point-to-line residuals;
     - ``weak``, ``weak_axis``: the smallest eigenvalue of the translation block (the mean ``n n^T`` of the
       normals, between 0 and 1/2: near 0 along a featureless corridor) and its unit direction (world frame);
     - ``yaw``: the yaw information left once translation is free (the Schur complement, m^2: the mean squared
@@ -236,11 +234,13 @@ def information_2d(source_xy: np.ndarray, target: Cloud, T: np.ndarray, distance
     p = source_xy @ np.array([[c, s], [-s, c]]) + (x, y)
     dist, idx = target.tree.query(p, distance_upper_bound=distance)
     ok = np.isfinite(dist)
-    out = {"fitness": float(ok.mean()) if len(ok) else 0.0, "rmse": float("inf"), "weak": 0.0,
+    out = {"fitness": float(ok.mean()) if len(ok) else 0.0, "rmse": float("inf"), "line_rmse": float("inf"),
+           "weak": 0.0,
            "weak_axis": np.array([1.0, 0.0]), "yaw": 0.0, "info": np.zeros((3, 3)), "count": int(ok.sum())}
     if ok.sum() < 3:
         return out
     p, n = p[ok], target.normals[idx[ok]]
+    residual = ((p - target.xy[idx[ok]]) * n).sum(axis=1)
     # about the sensor position (x, y): the same parametrisation as the prior of icp_2d
     J = np.column_stack([n, n[:, 1] * (p[:, 0] - x) - n[:, 0] * (p[:, 1] - y)])
     H = J.T @ J
@@ -248,7 +248,8 @@ def information_2d(source_xy: np.ndarray, target: Cloud, T: np.ndarray, distance
     w, v = np.linalg.eigh(H[:2, :2] / m)
     schur = H[2, 2] - H[2, :2] @ np.linalg.solve(H[:2, :2] + 1e-9 * np.eye(2), H[:2, 2])
     # the prior of icp_2d uses yaw about the sensor too, so info is consistent with it
-    out.update(rmse=float(np.sqrt(np.mean(dist[ok] ** 2))), weak=float(w[0]), weak_axis=v[:, 0],
+    out.update(rmse=float(np.sqrt(np.mean(dist[ok] ** 2))), line_rmse=float(np.sqrt(np.mean(residual**2))),
+               weak=float(w[0]), weak_axis=v[:, 0],
                yaw=float(schur / m), info=H)
     return out
 
