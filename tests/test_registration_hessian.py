@@ -7,7 +7,8 @@ import numpy as np
 from dm2_backend.algorithms.common import Cloud
 from dm2_backend.algorithms.icp import point_to_plane_hessian, register
 from dm2_backend.baselines import gtsam_backend
-from dm2_backend.baselines.graph import EIGEN_FLOOR, build_graph, hessian_information
+from dm2_backend.baselines.graph import EIGEN_FLOOR, InformationModel, build_graph, hessian_information
+from dm2_backend.config_schema import PluginSection
 from dm2_backend.geometry import se3
 from dm2_backend.stages import Frames, Pairwise, ScanScale, Topology
 
@@ -87,11 +88,13 @@ def test_hessian_information_keeps_a_slid_corridor_match_from_moving_the_graph()
         pair = Pairwise(rel, groups >= 0, np.full((n, 1), 0.9), np.full((n, 1), 0.3),
                         hessian=hess if kind == "hessian" else None,
                         plane_rmse=np.full((n, 1), 0.01) if kind == "hessian" else None)
-        graph = build_graph(frames, gt, Topology(groups), pair)
+        graph = build_graph(frames, gt, Topology(groups), pair, InformationModel(hessian=True))
         assert graph.meta["hessian_edges"] == (n - 3 if kind == "hessian" else 0)
         solved = gtsam_backend.optimize(graph).poses
         err[kind] = np.abs(solved[:, 0, 3] - gt[:, 0, 3]).max()
     assert err["hessian"] < 0.01 < 0.2 < err["isotropic"]
+    # recorded but not asked for (the pose graph's default): isotropic
+    assert build_graph(frames, gt, Topology(groups), pair).meta["hessian_edges"] == 0
 
 
 def test_hessian_information_is_positive_definite_and_scaled_by_the_residual():
@@ -146,9 +149,9 @@ def test_a_planar_match_carries_its_point_to_line_information():
     assert w[0] < 0.01 * w[1] and abs(v[0, 0]) > 0.99  # free along the corridor (x) only (up to the normals' noise)
 
 
-def test_planar_registrations_keep_their_own_information_when_asked():
-    """With ``information: hessian`` the plugin keeps the point-to-line information of planar scans and the graph
-    weighs each planar registration by it."""
+def test_planar_registrations_keep_their_own_information():
+    """The plugin keeps the point-to-line information of planar scans (the dense stage weighs by it); the pose
+    graph weighs each planar registration by it with ``information: hessian`` only."""
     from dm2_backend.plugins.registration_icp import IcpRegistration
 
     rng = np.random.default_rng(6)
@@ -156,15 +159,18 @@ def test_planar_registrations_keep_their_own_information_when_asked():
     scale = ScanScale(voxel=0.05, spacing=0.05, spacing_raw=0.05, range_median=5.0, range_p90=12.0)
     frames = Frames(clouds, None, planar=True, scale=scale)
     topology = Topology(np.array([[1, 2], [0, 2], [0, 1]]))
-    kept = IcpRegistration(information="hessian", progress=False).run(frames, np.tile(np.eye(4), (3, 1, 1)),
-                                                                       topology)
+    kept = IcpRegistration(progress=False).run(frames, np.tile(np.eye(4), (3, 1, 1)), topology)
     assert kept.valid.all() and kept.hessian.shape == (3, 2, 3, 3)
-    graph = build_graph(frames, np.tile(np.eye(4), (3, 1, 1)), topology, kept)
+    plugin = PluginSection(name="icp", options={"information": "hessian"})
+    asked = InformationModel.of({"registration": plugin})
+    assert asked.hessian and not InformationModel.of({"registration": PluginSection(name="icp")}).hessian
+    graph = build_graph(frames, np.tile(np.eye(4), (3, 1, 1)), topology, kept, asked)
     assert graph.planar and graph.meta["hessian_edges"] == 3  # every registration has its own
     loop = graph.information[-1]
     assert loop[1, 1] > 100 * loop[0, 0]  # across the corridor, not along it
-    plain = IcpRegistration(progress=False).run(frames, np.tile(np.eye(4), (3, 1, 1)), topology)
-    assert plain.hessian is None  # the default: isotropic
+    plain = build_graph(frames, np.tile(np.eye(4), (3, 1, 1)), topology, kept)
+    assert plain.meta["hessian_edges"] == 0
+    np.testing.assert_array_equal(plain.information[-1], np.diag(np.diag(plain.information[-1])))  # isotropic
 
 
 def test_the_planar_block_is_the_gauss_newton_system_of_a_right_pose2_perturbation():

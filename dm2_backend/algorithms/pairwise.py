@@ -85,7 +85,9 @@ class PairwiseRegistration:
     #: 0.0308 m, the dense stage at its floor either way (0.00071 / 0.00075 m); ACES gtsam 0.0414 / 0.0489 m,
     #: refine 0.0344 / 0.0344 m; the planar corridor ring refine from its truth 0.039 / 0.024 m, from its warm
     #: start 0.0567 / 0.0560 m. The odometry edges keep the median isotropic weight either way. Planar scans with
-    #: ``method: point-to-point`` give no Hessian (their edges stay isotropic)
+    #: ``method: point-to-point`` give no Hessian (their edges stay isotropic). This is the pose graphs' choice
+    #: (``dm2 baseline``, the 3D start); planar registrations record their Hessian either way and the dense stage
+    #: weighs by it wherever one was recorded
     information: Literal["hessian", "isotropic"] = "isotropic"
     #: start loop pairs from the transform the descriptor topology verified
     use_loops: bool = True
@@ -126,7 +128,7 @@ class PairwiseRegistration:
             fitness=np.zeros((n, k)),
             rmse=np.full((n, k), np.inf),
         )
-        if self.information == "hessian":
+        if self._hessian:
             dim = 3 if frames.planar else 6
             out.hessian, out.plane_rmse = np.zeros((n, k, dim, dim), np.float32), np.full((n, k), np.inf)
         by_pair: dict[tuple[int, int], tuple[np.ndarray, list[GateFailure], Match]] = {}
@@ -157,6 +159,9 @@ class PairwiseRegistration:
 
     def _check(self, frames: Frames) -> None:
         self._method = resolve_method(self.method, frames.planar)
+        # a planar match's point-to-line Hessian comes with its fit (the dense stage weighs by it); a 3D one costs
+        # a normal estimate, made when the pose graph asks for it
+        self._hessian = self.information == "hessian" or frames.planar
 
     def _chunked(self, frames: Frames, pairs: list[tuple[int, int]], fine: float, pool: ThreadPoolExecutor, job):
         """``job`` of every pair, in order, a chunk at a time: the clouds a chunk needs are built before it
@@ -181,7 +186,7 @@ class PairwiseRegistration:
         """Frame b onto frame a from init: T_b^a with its fitness and rmse. A good initial guess (most
         pairs) converges in the fine pass alone; otherwise a coarse pass runs first."""
         src, tgt = self._clouds[b], self._clouds[a]
-        kw = {"tolerance": self.tolerance, "robust_k": self.robust_k, "hessian": self.information == "hessian"}
+        kw = {"tolerance": self.tolerance, "robust_k": self.robust_k, "hessian": self._hessian}
         m = register(src, tgt, init, (fine,), self._method, self.iterations, **kw)
         if m.fitness >= 0.8:
             return m

@@ -50,6 +50,15 @@ class InformationModel:
     fallback_weight: float = 1.0
     #: "front-end" (relative poses of the initial trajectory) or "registration" (see the module docstring)
     odometry: str = "front-end"
+    #: weigh a registration by its own Hessian where the preparation recorded one (else isotropic)
+    hessian: bool = False
+
+    @classmethod
+    def of(cls, resolved: dict) -> InformationModel:
+        """The model ``registration.options.information`` asks for, from a preparation's resolved plugins."""
+        registration = resolved.get("registration")
+        options = registration.options if registration is not None else {}
+        return cls(hessian=options.get("information") == "hessian")
 
 
 @dataclass
@@ -142,9 +151,9 @@ def build_graph(frames: Frames, warm: np.ndarray, topology: Topology, pairwise: 
     arms, floor = lever_arms(frames), rmse_floor(frames, model)
     isotropic = {p: registration_information(e.rmse, e.fitness, e.points, arms[p[1]], planar, floor)
                  for p, e in pairs.items()}
-    info = {p: hessian_information(e.hessian, e.plane_rmse, floor) if e.hessian is not None else isotropic[p]
-            for p, e in pairs.items()}
-    hessians = sum(1 for e in pairs.values() if e.hessian is not None)
+    info = {p: hessian_information(e.hessian, e.plane_rmse, floor) if model.hessian and e.hessian is not None
+            else isotropic[p] for p, e in pairs.items()}
+    hessians = sum(1 for e in pairs.values() if model.hessian and e.hessian is not None)
     if info:
         fallback = np.median(np.stack(list(isotropic.values())), axis=0) * model.fallback_weight
     else:

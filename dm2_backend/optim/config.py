@@ -117,15 +117,25 @@ def derive(cfg: OptimConfig, scale: ScanScale, planar: bool = True) -> Lengths:
     )
 
 
-def dense_voxel(cfg: OptimConfig, scale: ScanScale) -> float:
+#: a voxel spans at least this many noise sigmas: its flatness test (thickness under a quarter of its width,
+#: ``planes.FLATNESS``) passes a flat patch of range noise ``sigma`` from ``4 sqrt(12) sigma`` = 13.9 sigmas up;
+#: twice that, so a wall is not flat in one round and rough in the next (a 2D laser's cells hold one or two
+#: points: their means carry the whole range noise)
+NOISE_WIDTHS = 28.0
+
+
+def dense_voxel(cfg: OptimConfig, scale: ScanScale, noise: float | None = None) -> float:
     """The plane term's largest voxel: planar patches a few per median range, its finest quarter at least a
-    point spacing. Measured from the truth (the floor) and from gtsam on the LiDAR ray-cast through the real
-    keyframes' mesh: 0.87 m (this rule) 0.0032 / 0.0033 m, 1.2 m 0.0044 / 0.0044, 1.74 m (8 spacings) 0.0047 /
-    0.0049; on the procedural street (500 frames) 0.88 m 0.0010 / 0.0010, 1.76 m 0.0008 / 0.0010."""
+    point spacing, and at least :data:`NOISE_WIDTHS` times the range ``noise`` (m) where it is known. Measured
+    from the truth (the floor) and from gtsam on the LiDAR ray-cast through the real keyframes' mesh: 0.87 m
+    (this rule) 0.0032 / 0.0033 m, 1.2 m 0.0044 / 0.0044, 1.74 m (8 spacings) 0.0047 / 0.0049; on the procedural
+    street (500 frames) 0.88 m 0.0010 / 0.0010, 1.76 m 0.0008 / 0.0010. The noise bound, on planar scans: the
+    corridor ring (2 cm range noise, 1.4 m median range) 0.18 -> 0.31 m, ACES 0.31 -> 0.45 m, Intel 0.25 ->
+    0.35 m (refine on ACES and Intel the same either way: 0.0343 / 0.0128 m)."""
     if cfg.dense_voxel is not None:
         return cfg.dense_voxel
     spacing = scale.spacing_raw or scale.spacing or 0.0
-    return max(scale.length / 8.0, 4.0 * spacing, 1e-3)
+    return max(scale.length / 8.0, 4.0 * spacing, NOISE_WIDTHS * (noise or 0.0), 1e-3)
 
 
 def pose_regime(cfg: OptimConfig, accurate: bool, polish: bool = False) -> PoseRegime:

@@ -11,7 +11,7 @@ import numpy as np
 
 from dm2_backend.atomic import atomic_write
 from dm2_backend.baselines import g2o_backend, gtsam_backend
-from dm2_backend.baselines.graph import build_graph
+from dm2_backend.baselines.graph import InformationModel, build_graph
 from dm2_backend.baselines.multiway import multiway
 from dm2_backend.baselines.options import GRAPH_METHODS, METHODS, GraphResult, SolverOptions
 from dm2_backend.config_schema import RunConfig
@@ -67,7 +67,7 @@ def _solve(method: str, prep: Prepared, options: SolverOptions, out: Path) -> tu
     if method == "multiway":
         result = multiway(prep.frames, prep.initial, prep.topology, prep.pairwise, options)
         return result.poses, result.summary(), []
-    graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise)
+    graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise, InformationModel.of(prep.resolved))
     write_g2o(graph, out / "graph.g2o")
     result = solve(method, graph, options)
     return result.poses, {**result.summary(), "graph": "graph.g2o", "nodes": len(graph), "edges": len(graph.edges),

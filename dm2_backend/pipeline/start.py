@@ -24,7 +24,7 @@ import numpy as np
 from dm2_backend.algorithms.common import fine_distance, lengths, project_planar
 from dm2_backend.algorithms.pairwise import COARSE
 from dm2_backend.baselines import gtsam_backend
-from dm2_backend.baselines.graph import build_graph, valid_pairs
+from dm2_backend.baselines.graph import InformationModel, build_graph, valid_pairs
 from dm2_backend.baselines.options import SolverOptions
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import continuity
@@ -104,7 +104,7 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None) -
         return Start(prepared, StartKind.PREPARED, "optimiser.start: prepared")
     if cfg.start == "auto" and prep.frames.planar:
         return Start(prepared, StartKind.PREPARED, "optimiser.start auto: planar data start from the prepared poses")
-    graph = build_graph(prep.frames, prepared, prep.topology, prep.pairwise)
+    graph = build_graph(prep.frames, prepared, prep.topology, prep.pairwise, InformationModel.of(prep.resolved))
     if graph.meta["loop_edges"] == 0:  # the odometry edges are the prepared poses' own steps
         return Start(prepared, StartKind.PREPARED, "no registration edges beyond the odometry: the graph is the start")
     try:
@@ -127,6 +127,14 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None) -
     return Start(prepared, StartKind.PREPARED, "the pose-graph solution makes a blurrier map", scores, cuts=cuts)
 
 
+def range_noise(prep: Prepared) -> float | None:
+    """The scans' range noise across their surfaces (m): the median point-to-line (point-to-plane) rms of the
+    valid registrations that recorded one, over sqrt(2) (two scans' noise in each residual); None without."""
+    rms = [e.plane_rmse for e in valid_pairs(prep.topology, prep.pairwise, prep.frames).values()
+           if e.hessian is not None and np.isfinite(e.plane_rmse)]
+    return float(np.median(rms)) / np.sqrt(2.0) if rms else None
+
+
 def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimConfig, seed: int = 0,
                 progress: bool = False, trace: Callable[[np.ndarray], float] | None = None,
                 checkpoint_dir: Path | None = None, resume: bool = False) -> Start:
@@ -138,14 +146,16 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     if cfg.dense is False:
         return start
     planar = prep.frames.planar
-    voxel = dense_voxel(cfg, prep.frames.scale)
+    noise = range_noise(prep)
+    voxel = dense_voxel(cfg, prep.frames.scale, noise)
     t = time.perf_counter()
     cells = cells_from_scans(scans, voxel / 4.0, cfg.dense_cells_per_frame, cfg.dense_max_cells, seed, progress,
                              keep_scatter=cfg.dense_cell_scatter)
     if planar:
         cells = cells.extruded(voxel)
     t_cells = time.perf_counter() - t
-    graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise)
+    # each registration weighed by its own Hessian where the preparation recorded one (every planar one)
+    graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise, InformationModel(hessian=True))
     if planar:
         graph = graph.lifted_to_se3(PLANAR_HOLD)
     release_mapped(prep.frames.points)  # the rounds read the cells, not the frames: their pages leave the memory
@@ -166,7 +176,8 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     if chosen == "dense" and cut:  # its frames agree, its steps do not: the start stands
         log.warning("dense stage's result not kept: it cuts the sequence at %s", cut.describe())
         chosen, reason = start.name.value, f"it cuts the sequence at {cut.describe()}"
-    summary = {"voxel_m": voxel, "cell_m": cells.size, "cells": len(cells), "cells_seconds": t_cells,
+    summary = {"voxel_m": voxel, "range_noise_m": noise, "cell_m": cells.size, "cells": len(cells),
+               "cells_seconds": t_cells,
                "seconds": result.seconds, "rounds": len(result.history), "stopped": result.stopped,
                "history": result.history, "resumed_after_round": result.resumed_after,
                "odometry_noise": result.odometry.summary() if result.odometry else None,
