@@ -95,7 +95,8 @@ class OptimConfig(BaseModel):
     #: None or True: on, False: off
     dense: bool | None = None
     #: largest voxel of the plane term (m; non-flat voxels are split down to a quarter); None:
-    #: max(median range / 8, 4 x the raw scans' point spacing)
+    #: max(median range / 8, 4 x the raw scans' point spacing, 28 x the range noise where the registrations
+    #: measured it: every planar one, ``optim.config.dense_voxel``)
     dense_voxel: float | None = Field(None, gt=0)
     #: at most this many rounds (one Gauss-Newton step each, planes fitted again)
     dense_rounds: int = Field(30, ge=1)

@@ -155,6 +155,7 @@ def test_a_corridors_truth_holds_with_the_registrations_own_information():
     assert 0.005 < noise < 0.02  # the point-to-line spread of 2 cm range noise seen at an angle
     seq = ScanSequence(lambda i: Scan(scans[i]), len(scans), planar=True)
     out = dense_start(seq, prep, Start(gt, StartKind.PREPARED, "truth"), OptimConfig())
+    assert out.dense["returned"] == "dense" and out.dense["hessian_edges"] > 0
     voxel = dense_voxel(OptimConfig(), frames.scale)  # without the noise bound
     assert out.dense["voxel_m"] == pytest.approx(NOISE_WIDTHS * noise) and out.dense["voxel_m"] > voxel
     cells = cells_from_scans(seq, voxel / 4, 2048, 10**6, keep_scatter="thin").extruded(voxel)

@@ -88,7 +88,7 @@ def test_hessian_information_keeps_a_slid_corridor_match_from_moving_the_graph()
         pair = Pairwise(rel, groups >= 0, np.full((n, 1), 0.9), np.full((n, 1), 0.3),
                         hessian=hess if kind == "hessian" else None,
                         plane_rmse=np.full((n, 1), 0.01) if kind == "hessian" else None)
-        graph = build_graph(frames, gt, Topology(groups), pair, InformationModel(hessian=True))
+        graph = build_graph(frames, gt, Topology(groups), pair, InformationModel(use_hessians=True))
         assert graph.meta["hessian_edges"] == (n - 3 if kind == "hessian" else 0)
         solved = gtsam_backend.optimize(graph).poses
         err[kind] = np.abs(solved[:, 0, 3] - gt[:, 0, 3]).max()
@@ -162,8 +162,9 @@ def test_planar_registrations_keep_their_own_information():
     kept = IcpRegistration(progress=False).run(frames, np.tile(np.eye(4), (3, 1, 1)), topology)
     assert kept.valid.all() and kept.hessian.shape == (3, 2, 3, 3)
     plugin = PluginSection(name="icp", options={"information": "hessian"})
-    asked = InformationModel.of({"registration": plugin})
-    assert asked.hessian and not InformationModel.of({"registration": PluginSection(name="icp")}).hessian
+    asked = InformationModel.from_resolved({"registration": plugin})
+    default = InformationModel.from_resolved({"registration": PluginSection(name="icp")})
+    assert asked.use_hessians and not default.use_hessians
     graph = build_graph(frames, np.tile(np.eye(4), (3, 1, 1)), topology, kept, asked)
     assert graph.planar and graph.meta["hessian_edges"] == 3  # every registration has its own
     loop = graph.information[-1]

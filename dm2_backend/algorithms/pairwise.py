@@ -97,6 +97,9 @@ class PairwiseRegistration:
 
     def run(self, frames: Frames, poses: np.ndarray, topology: Topology) -> Pairwise:
         self._check(frames)
+        # a planar match's point-to-line Hessian comes with its fit (the dense stage weighs by it); a 3D one costs
+        # a normal estimate, made when the pose graph asks for it
+        self._record_hessians = self.information == "hessian" or frames.planar
         scale = lengths(frames)
         fine = self.max_distance or fine_distance(scale)
         max_rmse = self.max_rmse or 1.5 * max(scale.voxel, scale.spacing)
@@ -128,7 +131,7 @@ class PairwiseRegistration:
             fitness=np.zeros((n, k)),
             rmse=np.full((n, k), np.inf),
         )
-        if self._hessian:
+        if self._record_hessians:
             dim = 3 if frames.planar else 6
             out.hessian, out.plane_rmse = np.zeros((n, k, dim, dim), np.float32), np.full((n, k), np.inf)
         by_pair: dict[tuple[int, int], tuple[np.ndarray, list[GateFailure], Match]] = {}
@@ -159,9 +162,6 @@ class PairwiseRegistration:
 
     def _check(self, frames: Frames) -> None:
         self._method = resolve_method(self.method, frames.planar)
-        # a planar match's point-to-line Hessian comes with its fit (the dense stage weighs by it); a 3D one costs
-        # a normal estimate, made when the pose graph asks for it
-        self._hessian = self.information == "hessian" or frames.planar
 
     def _chunked(self, frames: Frames, pairs: list[tuple[int, int]], fine: float, pool: ThreadPoolExecutor, job):
         """``job`` of every pair, in order, a chunk at a time: the clouds a chunk needs are built before it
@@ -186,7 +186,7 @@ class PairwiseRegistration:
         """Frame b onto frame a from init: T_b^a with its fitness and rmse. A good initial guess (most
         pairs) converges in the fine pass alone; otherwise a coarse pass runs first."""
         src, tgt = self._clouds[b], self._clouds[a]
-        kw = {"tolerance": self.tolerance, "robust_k": self.robust_k, "hessian": self._hessian}
+        kw = {"tolerance": self.tolerance, "robust_k": self.robust_k, "hessian": self._record_hessians}
         m = register(src, tgt, init, (fine,), self._method, self.iterations, **kw)
         if m.fitness >= 0.8:
             return m

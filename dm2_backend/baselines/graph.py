@@ -13,7 +13,9 @@ Edges (``(i, j)``, i < j, the pose of frame j in frame i):
 Information model (default; a registration without a Hessian; :func:`registration_information`):
 a registration with inlier rmse ``r``, overlap ``fitness`` of the neighbour's ``M`` points and lever arm ``L``
 (rms range of the neighbour's points) gets isotropic ``sigma_t = max(r, floor) / sqrt(fitness * M)`` and
-``sigma_r = sigma_t / L``. With ``registration.options.information: hessian``, a registration's information is its
+``sigma_r = sigma_t / L``. With :attr:`InformationModel.use_hessians` (the pose graphs: when
+``registration.options.information: hessian`` asks; the dense stage: always, on the Hessians every planar
+registration records), a registration's information is its
 own Gauss-Newton Hessian in point-to-plane (planar: point-to-line) form over its correspondences divided by the
 variance of those residuals, ``J^T J / max(r_plane, floor)^2`` (:func:`hessian_information`), so a direction the
 matched geometry does not pin (along a corridor, across the one wall a camera sees) carries no weight and stays
@@ -51,14 +53,14 @@ class InformationModel:
     #: "front-end" (relative poses of the initial trajectory) or "registration" (see the module docstring)
     odometry: str = "front-end"
     #: weigh a registration by its own Hessian where the preparation recorded one (else isotropic)
-    hessian: bool = False
+    use_hessians: bool = False
 
     @classmethod
-    def of(cls, resolved: dict) -> InformationModel:
+    def from_resolved(cls, resolved: dict) -> InformationModel:
         """The model ``registration.options.information`` asks for, from a preparation's resolved plugins."""
         registration = resolved.get("registration")
         options = registration.options if registration is not None else {}
-        return cls(hessian=options.get("information") == "hessian")
+        return cls(use_hessians=options.get("information") == "hessian")
 
 
 @dataclass
@@ -151,9 +153,9 @@ def build_graph(frames: Frames, warm: np.ndarray, topology: Topology, pairwise: 
     arms, floor = lever_arms(frames), rmse_floor(frames, model)
     isotropic = {p: registration_information(e.rmse, e.fitness, e.points, arms[p[1]], planar, floor)
                  for p, e in pairs.items()}
-    info = {p: hessian_information(e.hessian, e.plane_rmse, floor) if model.hessian and e.hessian is not None
+    info = {p: hessian_information(e.hessian, e.plane_rmse, floor) if model.use_hessians and e.hessian is not None
             else isotropic[p] for p, e in pairs.items()}
-    hessians = sum(1 for e in pairs.values() if model.hessian and e.hessian is not None)
+    hessians = sum(1 for e in pairs.values() if model.use_hessians and e.hessian is not None)
     if info:
         fallback = np.median(np.stack(list(isotropic.values())), axis=0) * model.fallback_weight
     else:

@@ -67,7 +67,8 @@ def _solve(method: str, prep: Prepared, options: SolverOptions, out: Path) -> tu
     if method == "multiway":
         result = multiway(prep.frames, prep.initial, prep.topology, prep.pairwise, options)
         return result.poses, result.summary(), []
-    graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise, InformationModel.of(prep.resolved))
+    model = InformationModel.from_resolved(prep.resolved)  # isotropic unless the registration asks
+    graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise, model)
     write_g2o(graph, out / "graph.g2o")
     result = solve(method, graph, options)
     return result.poses, {**result.summary(), "graph": "graph.g2o", "nodes": len(graph), "edges": len(graph.edges),

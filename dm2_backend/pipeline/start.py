@@ -104,7 +104,8 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None) -
         return Start(prepared, StartKind.PREPARED, "optimiser.start: prepared")
     if cfg.start == "auto" and prep.frames.planar:
         return Start(prepared, StartKind.PREPARED, "optimiser.start auto: planar data start from the prepared poses")
-    graph = build_graph(prep.frames, prepared, prep.topology, prep.pairwise, InformationModel.of(prep.resolved))
+    model = InformationModel.from_resolved(prep.resolved)
+    graph = build_graph(prep.frames, prepared, prep.topology, prep.pairwise, model)
     if graph.meta["loop_edges"] == 0:  # the odometry edges are the prepared poses' own steps
         return Start(prepared, StartKind.PREPARED, "no registration edges beyond the odometry: the graph is the start")
     try:
@@ -128,8 +129,10 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None) -
 
 
 def range_noise(prep: Prepared) -> float | None:
-    """The scans' range noise across their surfaces (m): the median point-to-line (point-to-plane) rms of the
-    valid registrations that recorded one, over sqrt(2) (two scans' noise in each residual); None without."""
+    """Planar scans' range noise across their lines (m): the median point-to-line rms of the valid registrations,
+    over sqrt(2) (two scans' noise in each residual); None without (3D: the voxel rule was measured without it)."""
+    if not prep.frames.planar:
+        return None
     rms = [e.plane_rmse for e in valid_pairs(prep.topology, prep.pairwise, prep.frames).values()
            if e.hessian is not None and np.isfinite(e.plane_rmse)]
     return float(np.median(rms)) / np.sqrt(2.0) if rms else None
@@ -155,7 +158,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
         cells = cells.extruded(voxel)
     t_cells = time.perf_counter() - t
     # each registration weighed by its own Hessian where the preparation recorded one (every planar one)
-    graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise, InformationModel(hessian=True))
+    graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise, InformationModel(use_hessians=True))
     if planar:
         graph = graph.lifted_to_se3(PLANAR_HOLD)
     release_mapped(prep.frames.points)  # the rounds read the cells, not the frames: their pages leave the memory
@@ -176,7 +179,8 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     if chosen == "dense" and cut:  # its frames agree, its steps do not: the start stands
         log.warning("dense stage's result not kept: it cuts the sequence at %s", cut.describe())
         chosen, reason = start.name.value, f"it cuts the sequence at {cut.describe()}"
-    summary = {"voxel_m": voxel, "range_noise_m": noise, "cell_m": cells.size, "cells": len(cells),
+    summary = {"voxel_m": voxel, "range_noise_m": noise, "hessian_edges": graph.meta["hessian_edges"],
+               "cell_m": cells.size, "cells": len(cells),
                "cells_seconds": t_cells,
                "seconds": result.seconds, "rounds": len(result.history), "stopped": result.stopped,
                "history": result.history, "resumed_after_round": result.resumed_after,
