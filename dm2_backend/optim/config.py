@@ -130,8 +130,8 @@ def dense_voxel(cfg: OptimConfig, scale: ScanScale, noise: float | None = None) 
     from the truth (the floor) and from gtsam on the LiDAR ray-cast through the real keyframes' mesh: 0.87 m
     (this rule) 0.0032 / 0.0033 m, 1.2 m 0.0044 / 0.0044, 1.74 m (8 spacings) 0.0047 / 0.0049; on the procedural
     street (500 frames) 0.88 m 0.0010 / 0.0010, 1.76 m 0.0008 / 0.0010. The noise bound, on planar scans: the
-    corridor ring (2 cm range noise, 1.4 m median range) 0.18 -> 0.31 m, ACES 0.31 -> 0.45 m, Intel 0.25 ->
-    0.35 m (refine on ACES and Intel the same either way: 0.0343 / 0.0128 m)."""
+    corridor ring (2 cm range noise, 1.4 m median range, noise measured 1.1 cm) 0.18 -> 0.31 m, ACES (1.6 cm)
+    0.31 -> 0.45 m (refine 0.0343 m either way); Intel (0.8 cm), the demo and the hospital-like logs keep theirs."""
     if cfg.dense_voxel is not None:
         return cfg.dense_voxel
     spacing = scale.spacing_raw or scale.spacing or 0.0
