@@ -180,9 +180,8 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
         log.warning("dense stage's result not kept: it cuts the sequence at %s", cut.describe())
         chosen, reason = start.name.value, f"it cuts the sequence at {cut.describe()}"
     summary = {"voxel_m": voxel, "range_noise_m": noise, "hessian_edges": graph.meta["hessian_edges"],
-               "cell_m": cells.size, "cells": len(cells),
-               "cells_seconds": t_cells,
-               "seconds": result.seconds, "rounds": len(result.history), "stopped": result.stopped,
+               "cell_m": cells.size, "cells": len(cells), "cells_seconds": t_cells, "seconds": result.seconds,
+               "rounds": len(result.history), "stopped": result.stopped,
                "history": result.history, "resumed_after_round": result.resumed_after,
                "odometry_noise": result.odometry.summary() if result.odometry else None,
                "agreement_m2": agreement, "cuts": cut.summary(), "returned": chosen}
