@@ -97,8 +97,9 @@ class Pairwise:
     reason: dict[tuple[int, int], str] = field(default_factory=dict)
     #: (N, k, 6, 6) float32 (planar scans: (N, k, 3, 3) on [x y yaw]): the registration's point-to-plane
     #: (point-to-line) information for unit residual variance (``Match.hessian``) on T_max^min of the pair
-    #: (min(i, j), max(i, j)) that was registered, g2o order; zero where a pair has none; None when not asked
-    #: (``information: isotropic``, the default)
+    #: (min(i, j), max(i, j)) that was registered, g2o order; zero where a pair has none (``small-gicp`` gives
+    #: none); None when not recorded (3D scans with ``information: isotropic``, the default; planar scans always
+    #: record it)
     hessian: np.ndarray | None = None
     #: (N, k) the rms of those point-to-plane residuals (m; ``Match.plane_rmse``), with ``hessian``
     plane_rmse: np.ndarray | None = None
