@@ -70,6 +70,12 @@ class LoopsTopology:
     keyframe_angle: float = 30.0
     #: path length on either side of a keyframe that its submap covers (m; default the 90th-percentile range)
     submap_half_length: float | None = None
+    #: a verified closure is measured again on submaps this long on either side (m; default the median range; 0:
+    #: off), from the first measurement: a long submap carries the warm start's own drift, a degree or more of yaw
+    #: over its length, into the closure. Kept when it overlaps and constrains translation as the gates ask of the
+    #: first (a corridor closure keeps its free axis). On ACES (accepted closures judged against the relations):
+    #: 3.8 deg off at worst -> 0.9, precision 90.7 % -> 97.7 % by the nearest relation
+    short_half_length: float | None = None
     #: matching grid cell (m; default 2 point spacings)
     resolution: float | None = None
     #: a submap point is kept only when another lies within this (m; default 2 cells, twice the likelihood's sigma):
@@ -129,6 +135,8 @@ class LoopsTopology:
                     "min_path_gap", "cycle_tolerance")
         bad = [f"{n}={getattr(self, n)}" for n in lengths_ if getattr(self, n) is not None and not getattr(self, n) > 0]
         bad += [f"support={self.support}"] if self.support is not None and self.support < 0 else []
+        bad += ([f"short_half_length={self.short_half_length}"]
+                if self.short_half_length is not None and self.short_half_length < 0 else [])
         bad += [f"{n}={getattr(self, n)}" for n in ("candidates", "consistency_window") if getattr(self, n) < 1]
         bad += [f"{n}={getattr(self, n)}" for n in ("drift", "yaw_drift", "cycle_drift") if getattr(self, n) < 0]
         if not 0 < self.max_ambiguity <= 1:
@@ -146,6 +154,7 @@ class LoopsTopology:
             "radius": self.radius or 0.5 * s.range_median,
             "keyframe_distance": self.keyframe_distance or 0.5 * s.range_median,
             "submap_half_length": half,
+            "short_half_length": s.range_median if self.short_half_length is None else self.short_half_length,
             "resolution": res,
             "support": 2.0 * res if self.support is None else self.support,
             "window": self.window or 0.5 * s.range_median,
@@ -165,6 +174,9 @@ class LoopsTopology:
         path = path_length(poses)
         self._maps = [kf.submap(frames, poses, path, int(f), L["submap_half_length"], L["resolution"] / 2,
                                 L["support"]) for f in keys]
+        self._short_maps: dict[int, np.ndarray] = {}
+        self._short = lambda k: self._short_maps.setdefault(k, kf.submap(  # noqa: E731
+            frames, poses, path, int(keys[k]), L["short_half_length"], L["resolution"] / 2, L["support"]))
         self._origins = [kf.origins(poses, path, int(f), L["submap_half_length"]) for f in keys]
         self._keys, self._frames = keys, frames
         odo = se3.to_xy_yaw(poses[keys])
@@ -260,11 +272,11 @@ class LoopsTopology:
         # ambiguous only along one line (a corridor): certain across it and in yaw; the position along it is
         # the prediction's, and the graph settles it
         across = self.across_corridors and coarse.axis is not None and ambiguous and not low_score
+        axis = np.array(coarse.axis) if across else None
         if reasons and not across:
             entry["reason"] = "; ".join(reasons)
             return entry
         if across:
-            axis = np.array(coarse.axis)
             along = float((init[:2] - (coarse.x, coarse.y)) @ axis)
             start = (coarse.x + along * axis[0], coarse.y + along * axis[1], coarse.yaw)
             m = self._icp(a, b, planar_pose(*start), hold=axis)
@@ -280,6 +292,8 @@ class LoopsTopology:
         failed = self._gates(a, b, m, entry, across)
         weak = len(failed) == 1 and failed[0].gate is Gate.OVERLAP and entry["overlap"] >= self.weak_fitness
         entry["verified"] = not failed or weak
+        if entry["verified"] and L["short_half_length"] > 0:
+            self._measure_short(a, b, m.T, entry, axis)
         entry["weak"] = entry["verified"] and (weak or across)
         if across and entry["verified"]:
             entry["reason"] = (f"verified across a corridor (free along {entry['axis']}; {reasons[0]})"
@@ -289,15 +303,34 @@ class LoopsTopology:
                                else "; ".join([*reasons, *map(str, failed)]) or "verified")
         return entry
 
-    def _icp(self, a: int, b: int, init: np.ndarray, hold: np.ndarray | None = None) -> Match:
-        """ICP of b's submap onto a's; ``hold``: a direction (a's frame) kept at ``init``."""
+    def _measure_short(self, a: int, b: int, T: np.ndarray, entry: dict, axis: np.ndarray | None) -> None:
+        """The verified closure ``T`` measured again on the short submaps of its keyframes (``short_half_length``);
+        the new ``z`` replaces the first (kept as ``z_long``) when that match overlaps (``min_fitness``) and, unless
+        across a corridor, constrains translation (``min_constraint``)."""
+        res = self._lengths["resolution"]
+        m = self._icp(a, b, T, axis, maps=(self._short(b), self._short(a)))
+        src, tgt = self._clouds
+        c = constraint(src, tgt, m.T, res)
+        z, first = se3.to_xy_yaw(m.T), np.asarray(entry["z"])
+        keep = m.fitness >= self.min_fitness and (axis is not None or c >= self.min_constraint)
+        entry["short"] = {"fitness": round(m.fitness, 4), "constraint": round(c, 4), "kept": bool(keep),
+                          "moved_m": round(float(np.linalg.norm(z[:2] - first[:2])), 4),
+                          "moved_deg": round(float(np.degrees(se3.wrap_angle(z[2] - first[2]))), 3)}
+        if keep:
+            entry["z_long"], entry["z"] = entry["z"], [float(v) for v in z]
+
+    def _icp(self, a: int, b: int, init: np.ndarray, hold: np.ndarray | None = None,
+             maps: tuple[np.ndarray, np.ndarray] | None = None) -> Match:
+        """ICP of b's submap onto a's (or of ``maps``: source, target); ``hold``: a direction (a's frame) kept at
+        ``init``."""
         res = self._lengths["resolution"]
         cloud = lambda xy: Cloud(np.column_stack([xy, np.zeros(len(xy))]), True, 2.0 * res)  # noqa: E731
-        self._clouds = (cloud(self._maps[b]), cloud(self._maps[a]))
+        src, tgt = maps or (self._maps[b], self._maps[a])
+        self._clouds = (cloud(src), cloud(tgt))
         prior = None
         if hold is not None:
             prior = np.zeros((3, 3))
-            prior[:2, :2] = 100.0 * len(self._maps[b]) * np.outer(hold, hold)
+            prior[:2, :2] = 100.0 * len(src) * np.outer(hold, hold)
         return register(self._clouds[0], self._clouds[1], init, (2.0 * res, res), "point-to-plane",
                         prior_info=prior)
 
