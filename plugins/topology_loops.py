@@ -44,7 +44,7 @@ from dm2_backend.algorithms.common import (
     path_length,
     planar_pose,
 )
-from dm2_backend.algorithms.gates import Gate, GateFailure, constraint, free_space
+from dm2_backend.algorithms.gates import Gate, GateFailure, constraint, free_space, weakest_direction
 from dm2_backend.algorithms.icp import register
 from dm2_backend.algorithms.loop_graph import Closure, KeyframeGraph, between, confirms, cycle_error
 from dm2_backend.algorithms.topology import check_k, check_poses
@@ -304,18 +304,25 @@ class LoopsTopology:
         return entry
 
     def _measure_short(self, a: int, b: int, T: np.ndarray, entry: dict, axis: np.ndarray | None) -> None:
-        """The verified closure ``T`` measured again on the short submaps of its keyframes (``short_half_length``);
-        the new ``z`` replaces the first (kept as ``z_long``) when that match overlaps (``min_fitness``) and, unless
-        across a corridor, constrains translation (``min_constraint``)."""
+        """The verified closure ``T`` measured again on the short submaps of its keyframes (``short_half_length``).
+        Where they leave a direction free (a stretch of corridor: ``min_constraint``) that direction is held at
+        ``T``, as a corridor closure holds its axis. The new ``z`` replaces the first (kept as ``z_long``) when the
+        short submaps overlap at least as a weak closure's do (``weak_fitness``)."""
         res = self._lengths["resolution"]
-        m = self._icp(a, b, T, axis, maps=(self._short(b), self._short(a)))
-        src, tgt = self._clouds
-        c = constraint(src, tgt, m.T, res)
+        maps = (self._short(b), self._short(a))
+        m = self._icp(a, b, T, axis, maps=maps)
+        c, free = weakest_direction(*self._clouds, m.T, res)
+        held = axis
+        if axis is None and c < self.min_constraint:
+            held = free[:2] / np.linalg.norm(free[:2])
+            m = self._icp(a, b, T, held, maps=maps)
         z, first = se3.to_xy_yaw(m.T), np.asarray(entry["z"])
-        keep = m.fitness >= self.min_fitness and (axis is not None or c >= self.min_constraint)
+        keep = m.fitness >= self.weak_fitness
         entry["short"] = {"fitness": round(m.fitness, 4), "constraint": round(c, 4), "kept": bool(keep),
                           "moved_m": round(float(np.linalg.norm(z[:2] - first[:2])), 4),
                           "moved_deg": round(float(np.degrees(se3.wrap_angle(z[2] - first[2]))), 3)}
+        if held is not None and axis is None:
+            entry["short"]["held"] = [round(float(v), 4) for v in held]
         if keep:
             entry["z_long"], entry["z"] = entry["z"], [float(v) for v in z]
 
