@@ -115,6 +115,37 @@ def test_loops_closes_a_large_drift_loop(floor):
     assert "loop" in kinds
 
 
+def test_a_closure_measured_again_on_short_submaps_is_not_turned_by_the_drift(floor):
+    """A gyro bias turns each long submap (3 degrees over its length here); the closure measured on them takes
+    a share of that turn. Measured again on submaps of the median range either side it is several times closer
+    to the truth in yaw, and the loop-closed poses are closer too."""
+    frames, truth = floor
+    drifted = drifting_odometry(truth, 1, 0.001, 0.01, 0.003)
+    loops = load("dm2.place_recognition", "loops")
+
+    def yaw_errors(topo):
+        out = []
+        for e in topo.log[1:]:
+            if e.get("accepted"):
+                true_yaw = se3.to_xy_yaw(se3.relative(truth[e["i"]][None], truth[e["j"]][None]))[0, 2]
+                out.append(abs(np.degrees(se3.wrap_angle(true_yaw - e["z"][2]))))
+        return np.array(out)
+
+    def ate(P):
+        return float(np.sqrt(np.mean(np.sum((P[:, :2, 3] - truth[:, :2, 3]) ** 2, axis=1))))
+
+    short, long_only = loops(progress=False).run(frames, drifted), loops(progress=False, short_half_length=0).run(
+        frames, drifted)
+    assert short.log[0]["short_half_length"] == pytest.approx(frames.scale.range_median)
+    measured = [e for e in short.log[1:] if e.get("accepted")]
+    assert sum(e["short"]["kept"] for e in measured) >= 0.8 * len(measured)
+    assert all("z_long" in e for e in measured if e["short"]["kept"])
+    assert not any("short" in e for e in long_only.log[1:])
+    assert np.median(yaw_errors(long_only)) > 1.0  # the long submaps' share of the bend
+    assert np.median(yaw_errors(short)) < 0.3 * np.median(yaw_errors(long_only))
+    assert ate(short.poses) < 0.9 * ate(long_only.poses)
+
+
 def test_loops_on_a_short_sequence_without_revisits(floor):
     """Fewer frames than a loop needs: no candidates, no loop-closed poses, groups still filled."""
     frames, truth = floor
@@ -153,3 +184,5 @@ def test_loops_rejects_invalid_options(floor):
     frames, truth = floor
     with pytest.raises(InputError, match="resolution=-1"):
         load("dm2.place_recognition", "loops")(resolution=-1.0, progress=False).run(frames, truth)
+    with pytest.raises(InputError, match="short_half_length=-1"):
+        load("dm2.place_recognition", "loops")(short_half_length=-1.0, progress=False).run(frames, truth)
