@@ -31,6 +31,7 @@ from typing import ClassVar
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.stats import chi2
 
 from dm2_backend.algorithms import correlative as cm
 from dm2_backend.algorithms import keyframes as kf
@@ -76,6 +77,10 @@ class LoopsTopology:
     #: first (a corridor closure keeps its free axis). On ACES (accepted closures judged against the relations):
     #: 3.8 deg off at worst -> 0.9, precision 90.7 % -> 97.7 % by the nearest relation
     short_half_length: float | None = None
+    #: the short measurement replaces the first only when they differ beyond this chi-square quantile of the short
+    #: match's own noise (its point-to-line Hessian over its residuals' variance): from an unbent start (the truth)
+    #: the long submaps measure more precisely
+    short_gate: float = 0.999
     #: matching grid cell (m; default 2 point spacings)
     resolution: float | None = None
     #: a submap point is kept only when another lies within this (m; default 2 cells, twice the likelihood's sigma):
@@ -307,7 +312,9 @@ class LoopsTopology:
         """The verified closure ``T`` measured again on the short submaps of its keyframes (``short_half_length``).
         Where they leave a direction free (a stretch of corridor: ``min_constraint``) that direction is held at
         ``T``, as a corridor closure holds its axis. The new ``z`` replaces the first (kept as ``z_long``) when the
-        short submaps overlap at least as a weak closure's do (``weak_fitness``)."""
+        short submaps overlap at least as a weak closure's do (``weak_fitness``) and it differs from the first by
+        more than its own noise allows (``short_gate``: the first is bent); else the first, which sees more
+        structure, stands."""
         res = self._lengths["resolution"]
         maps = (self._short(b), self._short(a))
         m = self._icp(a, b, T, axis, maps=maps)
@@ -317,10 +324,17 @@ class LoopsTopology:
             held = free[:2] / np.linalg.norm(free[:2])
             m = self._icp(a, b, T, held, maps=maps)
         z, first = se3.to_xy_yaw(m.T), np.asarray(entry["z"])
-        keep = m.fitness >= self.weak_fitness
-        entry["short"] = {"fitness": round(m.fitness, 4), "constraint": round(c, 4), "kept": bool(keep),
-                          "moved_m": round(float(np.linalg.norm(z[:2] - first[:2])), 4),
-                          "moved_deg": round(float(np.degrees(se3.wrap_angle(z[2] - first[2]))), 3)}
+        dz = z - first
+        dz[2] = se3.wrap_angle(dz[2])
+        if held is not None:  # the held direction did not move; what is left has one degree of freedom less
+            dz[:2] -= (dz[:2] @ held) * held
+        info = np.asarray(m.hessian, dtype=np.float64) / max(m.plane_rmse or 0.0, 1e-6) ** 2
+        sigmas = float(np.sqrt(max(dz @ info @ dz, 0.0)))
+        gate = float(np.sqrt(chi2.ppf(self.short_gate, 3 if held is None else 2)))
+        keep = m.fitness >= self.weak_fitness and sigmas > gate
+        entry["short"] = {"fitness": round(m.fitness, 4), "constraint": round(c, 4), "moved_sigmas": round(sigmas, 2),
+                          "kept": bool(keep), "moved_m": round(float(np.linalg.norm(z[:2] - first[:2])), 4),
+                          "moved_deg": round(float(np.degrees(dz[2])), 3)}
         if held is not None and axis is None:
             entry["short"]["held"] = [round(float(v), 4) for v in held]
         if keep:
@@ -339,7 +353,7 @@ class LoopsTopology:
             prior = np.zeros((3, 3))
             prior[:2, :2] = 100.0 * len(src) * np.outer(hold, hold)
         return register(self._clouds[0], self._clouds[1], init, (2.0 * res, res), "point-to-plane",
-                        prior_info=prior)
+                        prior_info=prior, hessian=True)
 
     def _gates(self, a: int, b: int, m: Match, entry: dict, across: bool = False) -> list[GateFailure]:
         src, tgt = self._clouds
