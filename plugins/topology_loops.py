@@ -75,7 +75,7 @@ class LoopsTopology:
     #: off), from the first measurement: a long submap carries the warm start's own drift, a degree or more of yaw
     #: over its length, into the closure. Kept when it overlaps and constrains translation as the gates ask of the
     #: first (a corridor closure keeps its free axis). On ACES (accepted closures judged against the relations):
-    #: 3.8 deg off at worst -> 0.9, precision 90.7 % -> 97.7 % by the nearest relation
+    #: 3.8 deg off at worst -> 1.1, precision 90.7 % -> 97.3 % by the nearest relation
     short_half_length: float | None = None
     #: the short measurement replaces the first only when they differ beyond this chi-square quantile of the short
     #: match's own noise (its point-to-line Hessian over its residuals' variance): from an unbent start (the truth)
@@ -312,7 +312,7 @@ class LoopsTopology:
         """The verified closure ``T`` measured again on the short submaps of its keyframes (``short_half_length``).
         Where they leave a direction free (a stretch of corridor: ``min_constraint``) that direction is held at
         ``T``, as a corridor closure holds its axis. The new ``z`` replaces the first (kept as ``z_long``) when the
-        short submaps overlap at least as a weak closure's do (``weak_fitness``) and it differs from the first by
+        short submaps overlap as the gate asks of the first (``min_fitness``) and it differs from the first by
         more than its own noise allows (``short_gate``: the first is bent); else the first, which sees more
         structure, stands."""
         res = self._lengths["resolution"]
@@ -331,7 +331,7 @@ class LoopsTopology:
         info = np.asarray(m.hessian, dtype=np.float64) / max(m.plane_rmse or 0.0, 1e-6) ** 2
         sigmas = float(np.sqrt(max(dz @ info @ dz, 0.0)))
         gate = float(np.sqrt(chi2.ppf(self.short_gate, 3 if held is None else 2)))
-        keep = m.fitness >= self.weak_fitness and sigmas > gate
+        keep = m.fitness >= self.min_fitness and sigmas > gate
         entry["short"] = {"fitness": round(m.fitness, 4), "constraint": round(c, 4), "moved_sigmas": round(sigmas, 2),
                           "kept": bool(keep), "moved_m": round(float(np.linalg.norm(z[:2] - first[:2])), 4),
                           "moved_deg": round(float(np.degrees(dz[2])), 3)}
