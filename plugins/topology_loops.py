@@ -45,8 +45,8 @@ from dm2_backend.algorithms.common import (
     path_length,
     planar_pose,
 )
-from dm2_backend.algorithms.gates import Gate, GateFailure, constraint, free_space, weakest_direction
-from dm2_backend.algorithms.icp import register
+from dm2_backend.algorithms.gates import Gate, GateFailure, constraint, free_space
+from dm2_backend.algorithms.icp import information_2d, register
 from dm2_backend.algorithms.loop_graph import Closure, KeyframeGraph, between, confirms, cycle_error
 from dm2_backend.algorithms.topology import check_k, check_poses
 from dm2_backend.errors import InputError
@@ -73,9 +73,9 @@ class LoopsTopology:
     submap_half_length: float | None = None
     #: a verified closure is measured again on submaps this long on either side (m; default the median range; 0:
     #: off), from the first measurement: a long submap carries the warm start's own drift, a degree or more of yaw
-    #: over its length, into the closure. Kept when it overlaps and constrains translation as the gates ask of the
-    #: first (a corridor closure keeps its free axis). On ACES (accepted closures judged against the relations):
-    #: 3.8 deg off at worst -> 1.1, precision 90.7 % -> 97.3 % by the nearest relation
+    #: over its length, into the closure. A direction the short submaps leave free is held at the first
+    #: measurement (see ``_measure_short``). On ACES (accepted closures judged against the relations through the
+    #: refined poses): 3.8 deg off at worst -> 1.1, precision 90.7 % -> 97.3 % by the nearest relation
     short_half_length: float | None = None
     #: the short measurement replaces the first only when they differ beyond this chi-square quantile of the short
     #: match's own noise (its point-to-line Hessian over its residuals' variance): from an unbent start (the truth)
@@ -141,7 +141,8 @@ class LoopsTopology:
         bad = [f"{n}={getattr(self, n)}" for n in lengths_ if getattr(self, n) is not None and not getattr(self, n) > 0]
         bad += [f"support={self.support}"] if self.support is not None and self.support < 0 else []
         bad += ([f"short_half_length={self.short_half_length}"]
-                if self.short_half_length is not None and self.short_half_length < 0 else [])
+                if self.short_half_length is not None and not self.short_half_length >= 0 else [])
+        bad += [f"short_gate={self.short_gate} (a probability in (0, 1))"] if not 0 < self.short_gate < 1 else []
         bad += [f"{n}={getattr(self, n)}" for n in ("candidates", "consistency_window") if getattr(self, n) < 1]
         bad += [f"{n}={getattr(self, n)}" for n in ("drift", "yaw_drift", "cycle_drift") if getattr(self, n) < 0]
         if not 0 < self.max_ambiguity <= 1:
@@ -180,8 +181,7 @@ class LoopsTopology:
         self._maps = [kf.submap(frames, poses, path, int(f), L["submap_half_length"], L["resolution"] / 2,
                                 L["support"]) for f in keys]
         self._short_maps: dict[int, np.ndarray] = {}
-        self._short = lambda k: self._short_maps.setdefault(k, kf.submap(  # noqa: E731
-            frames, poses, path, int(keys[k]), L["short_half_length"], L["resolution"] / 2, L["support"]))
+        self._poses, self._path = poses, path
         self._origins = [kf.origins(poses, path, int(f), L["submap_half_length"]) for f in keys]
         self._keys, self._frames = keys, frames
         odo = se3.to_xy_yaw(poses[keys])
@@ -310,35 +310,49 @@ class LoopsTopology:
 
     def _measure_short(self, a: int, b: int, T: np.ndarray, entry: dict, axis: np.ndarray | None) -> None:
         """The verified closure ``T`` measured again on the short submaps of its keyframes (``short_half_length``).
-        Where they leave a direction free (a stretch of corridor: ``min_constraint``) that direction is held at
-        ``T``, as a corridor closure holds its axis. The new ``z`` replaces the first (kept as ``z_long``) when the
-        short submaps overlap as the gate asks of the first (``min_fitness``) and it differs from the first by
-        more than its own noise allows (``short_gate``: the first is bent); else the first, which sees more
-        structure, stands."""
+        Where they leave a direction free (translation constraint under ``min_constraint``: a stretch of corridor)
+        that direction is held at ``T``, as a corridor closure holds its axis. The new ``z`` replaces the first
+        (kept as ``z_long``) when its ICP fitness reaches ``min_fitness`` and it differs from the first by more
+        than its own noise allows (``short_gate``; the noise: its point-to-line information over its residuals'
+        variance): then the first is bent; else the first, which sees more structure, stands."""
         res = self._lengths["resolution"]
-        maps = (self._short(b), self._short(a))
+        maps = (self._short_map(b), self._short_map(a))
+        if min(len(maps[0]), len(maps[1])) < 10:
+            entry["short"] = {"kept": False, "reason": "fewer than 10 points in a short submap"}
+            return
         m = self._icp(a, b, T, axis, maps=maps)
-        c, free = weakest_direction(*self._clouds, m.T, res)
+        fit = information_2d(self._clouds[0].xy, self._clouds[1], m.T, res)
         held = axis
-        if axis is None and c < self.min_constraint:
-            held = free[:2] / np.linalg.norm(free[:2])
+        if axis is None and fit["weak"] < self.min_constraint:
+            held = fit["weak_axis"]
             m = self._icp(a, b, T, held, maps=maps)
+            fit = information_2d(self._clouds[0].xy, self._clouds[1], m.T, res)
         z, first = se3.to_xy_yaw(m.T), np.asarray(entry["z"])
-        dz = z - first
+        dz = z - first  # b's position in a's frame and its yaw about it: information_2d's parametrisation
         dz[2] = se3.wrap_angle(dz[2])
         if held is not None:  # the held direction did not move; what is left has one degree of freedom less
             dz[:2] -= (dz[:2] @ held) * held
-        info = np.asarray(m.hessian, dtype=np.float64) / max(m.plane_rmse or 0.0, 1e-6) ** 2
-        sigmas = float(np.sqrt(max(dz @ info @ dz, 0.0)))
+        # the residuals' rms, at least that of a point's place in its submap cell (one point per half resolution)
+        sigma = max(fit["line_rmse"], 0.5 * res / np.sqrt(12.0))
+        sigmas = float(np.sqrt(max(float(dz @ fit["info"] @ dz), 0.0)) / sigma)
         gate = float(np.sqrt(chi2.ppf(self.short_gate, 3 if held is None else 2)))
-        keep = m.fitness >= self.min_fitness and sigmas > gate
-        entry["short"] = {"fitness": round(m.fitness, 4), "constraint": round(c, 4), "moved_sigmas": round(sigmas, 2),
-                          "kept": bool(keep), "moved_m": round(float(np.linalg.norm(z[:2] - first[:2])), 4),
+        keep = fit["count"] >= 3 and m.fitness >= self.min_fitness and sigmas > gate
+        entry["short"] = {"fitness": round(m.fitness, 4), "constraint": round(fit["weak"], 4),
+                          "moved_sigmas": round(float(sigmas), 2), "kept": bool(keep),
+                          "moved_m": round(float(np.linalg.norm(dz[:2])), 4),
                           "moved_deg": round(float(np.degrees(dz[2])), 3)}
         if held is not None and axis is None:
             entry["short"]["held"] = [round(float(v), 4) for v in held]
         if keep:
             entry["z_long"], entry["z"] = entry["z"], [float(v) for v in z]
+
+    def _short_map(self, k: int) -> np.ndarray:
+        """Keyframe k's short submap (``short_half_length`` either side), made on first use and kept."""
+        if k not in self._short_maps:
+            L = self._lengths
+            self._short_maps[k] = kf.submap(self._frames, self._poses, self._path, int(self._keys[k]),
+                                            L["short_half_length"], L["resolution"] / 2, L["support"])
+        return self._short_maps[k]
 
     def _icp(self, a: int, b: int, init: np.ndarray, hold: np.ndarray | None = None,
              maps: tuple[np.ndarray, np.ndarray] | None = None) -> Match:
@@ -353,7 +367,7 @@ class LoopsTopology:
             prior = np.zeros((3, 3))
             prior[:2, :2] = 100.0 * len(src) * np.outer(hold, hold)
         return register(self._clouds[0], self._clouds[1], init, (2.0 * res, res), "point-to-plane",
-                        prior_info=prior, hessian=True)
+                        prior_info=prior)
 
     def _gates(self, a: int, b: int, m: Match, entry: dict, across: bool = False) -> list[GateFailure]:
         src, tgt = self._clouds

@@ -55,19 +55,3 @@ def test_a_failed_gate_is_a_code_with_its_message():
     assert str(GateFailure(Gate.FITNESS, 0.2, 0.5)) == "fitness 0.20 < 0.50"
     assert str(GateFailure(Gate.RMSE, 0.1234, 0.1)) == "rmse 0.123 > 0.100"
     assert Gate.FREE_SPACE.message(0.31, 0.25) == "free space 0.31 > 0.25"
-
-
-def test_the_weakest_direction_of_a_corridor_runs_along_it():
-    """Two parallel walls along a direction 30 degrees off x: sliding along them costs nothing, so the smallest
-    eigenvalue is ~0 and its direction is the walls'; a room's walls face every way and pin both directions."""
-    from dm2_backend.algorithms.gates import constraint, weakest_direction
-
-    along = np.array([np.cos(np.radians(30)), np.sin(np.radians(30))])
-    across = np.array([-along[1], along[0]])
-    s = np.linspace(-8, 8, 400)
-    walls = np.concatenate([s[:, None] * along + side * across for side in (-1.0, 1.0)])
-    corridor = Cloud(np.column_stack([walls, np.zeros(len(walls))]), True, 0.5)
-    value, direction = weakest_direction(corridor, corridor, np.eye(4), 0.1)
-    assert value < 1e-3 and abs(direction @ along) > 0.999
-    room = Cloud(scan_of_room(np.zeros(3), True), True, 1.0)
-    assert weakest_direction(room, room, np.eye(4), 0.1)[0] == constraint(room, room, np.eye(4), 0.1) > 0.1

@@ -128,12 +128,6 @@ def constraint(source: Cloud, target: Cloud, T: np.ndarray, distance: float) -> 
     """How well an alignment pins down translation: the smallest eigenvalue of the mean ``n n^T`` over
     the target normals of the correspondences within ``distance``. Near 0 in a featureless corridor
     (sliding along it costs nothing); up to 1/2 (2D) or 1/3 (3D) when walls face every way."""
-    return weakest_direction(source, target, T, distance)[0]
-
-
-def weakest_direction(source: Cloud, target: Cloud, T: np.ndarray, distance: float) -> tuple[float, np.ndarray]:
-    """:func:`constraint` and the direction (unit, in the target's frame) it is measured along: the one
-    sliding along costs least."""
     if source.planar:
         c, s = T[0, 0], T[1, 0]
         p = source.xy @ np.array([[c, s], [-s, c]]) + T[:2, 3]
@@ -144,7 +138,6 @@ def weakest_direction(source: Cloud, target: Cloud, T: np.ndarray, distance: flo
     dist, idx = tree.query(p, distance_upper_bound=distance)
     ok = np.isfinite(dist)
     if ok.sum() < 3:
-        return 0.0, np.eye(normals.shape[1])[0]
+        return 0.0
     n = normals[idx[ok]]
-    values, vectors = np.linalg.eigh(n.T @ n / len(n))
-    return float(values[0]), vectors[:, 0]
+    return float(np.linalg.eigvalsh(n.T @ n / len(n))[0])
