@@ -187,3 +187,5 @@ def test_loops_rejects_invalid_options(floor):
         load("dm2.place_recognition", "loops")(resolution=-1.0, progress=False).run(frames, truth)
     with pytest.raises(InputError, match="short_half_length=-1"):
         load("dm2.place_recognition", "loops")(short_half_length=-1.0, progress=False).run(frames, truth)
+    with pytest.raises(InputError, match="short_gate=1.0"):
+        load("dm2.place_recognition", "loops")(short_gate=1.0, progress=False).run(frames, truth)
