@@ -12,6 +12,8 @@
    direction across that line and yaw, and the graph settles the position along it. Then a fine
    correlative pass and ICP on the submaps, gated on overlap, translation constraint (not for a corridor
    closure) and (planar) free space of the two keyframe scans.
+   A verified closure is measured again on short submaps (the median range either side), which the warm
+   start's drift bends less; that measurement replaces the first where the two differ beyond its own noise.
 4. A verified closure is trusted only once a second one agrees with it around a cycle through the
    odometry; a weak one (overlap a little under the gate, every other test passed: two visits that share
    only part of their submaps) only once two others agree, or one that passed every gate. Trusted closures
