@@ -334,9 +334,11 @@ class LoopsTopology:
         dz[2] = se3.wrap_angle(dz[2])
         if held is not None:  # the held direction did not move; what is left has one degree of freedom less
             dz[:2] -= (dz[:2] @ held) * held
-        # the residuals' rms, at least that of a point's place in its submap cell (one point per half resolution)
+        # the residuals' rms, at least that of a point's place in its submap cell (one point per half resolution);
+        # each target normal is fitted to the points within its radius, so neighbouring residuals share its error:
+        # the information counts each such neighbourhood once
         sigma = max(fit["line_rmse"], 0.5 * res / np.sqrt(12.0))
-        sigmas = float(np.sqrt(max(float(dz @ fit["info"] @ dz), 0.0)) / sigma)
+        sigmas = float(np.sqrt(max(float(dz @ fit["info"] @ dz), 0.0) / _shared(self._clouds[1])) / sigma)
         gate = float(np.sqrt(chi2.ppf(self.short_gate, 3 if held is None else 2)))
         keep = fit["count"] >= 3 and m.fitness >= self.min_fitness and sigmas > gate
         entry["short"] = {"fitness": round(m.fitness, 4), "constraint": round(fit["weak"], 4),
@@ -439,6 +441,14 @@ class LoopsTopology:
         topo.poses = corrected if closures else None  # loop-closed only when a loop was closed
         topo.loop_closed = topo.poses is not None
         return topo
+
+
+def _shared(cloud: Cloud, sample: int = 200) -> float:
+    """The median number of the cloud's points within its normal radius of one of them (at least 1): how many
+    residuals share one normal's error."""
+    xy = cloud.xy[:: max(1, len(cloud.xy) // sample)]
+    counts = cloud.tree.query_ball_point(xy, cloud.normal_radius, return_length=True)
+    return max(1.0, float(np.median(counts)))
 
 
 def correct(poses: np.ndarray, keys: np.ndarray, odo: np.ndarray, key_poses: np.ndarray) -> np.ndarray:
