@@ -80,8 +80,8 @@ class LoopsTopology:
     #: refined poses): 3.8 deg off at worst -> 1.1, precision 90.7 % -> 97.3 % by the nearest relation
     short_half_length: float | None = None
     #: the short measurement replaces the first only when they differ beyond this chi-square quantile of the short
-    #: match's own noise (its point-to-line Hessian over its residuals' variance): from an unbent start (the truth)
-    #: the long submaps measure more precisely
+    #: match's own noise (its point-to-line information over its residuals' variance, each normal's neighbourhood
+    #: counted once): from an unbent start (the truth) the long submaps measure more precisely
     short_gate: float = 0.999
     #: matching grid cell (m; default 2 point spacings)
     resolution: float | None = None
@@ -316,7 +316,8 @@ class LoopsTopology:
         that direction is held at ``T``, as a corridor closure holds its axis. The new ``z`` replaces the first
         (kept as ``z_long``) when its ICP fitness reaches ``min_fitness`` and it differs from the first by more
         than its own noise allows (``short_gate``; the noise: its point-to-line information over its residuals'
-        variance): then the first is bent; else the first, which sees more structure, stands."""
+        variance, each normal's neighbourhood counted once): then the first is bent; else the first, which sees more
+        structure, stands."""
         res = self._lengths["resolution"]
         maps = (self._short_map(b), self._short_map(a))
         if min(len(maps[0]), len(maps[1])) < 10:
