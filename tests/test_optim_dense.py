@@ -62,15 +62,36 @@ def test_cells_hold_the_exact_sums_of_their_points():
     rng = np.random.default_rng(0)
     pts = rng.uniform(-2, 2, (5000, 3))
     count, mean, scatter = planes.compress(pts, 0.5)
-    keys = np.floor(pts / 0.5).astype(int)
-    assert count.sum() == len(pts) and len(count) == len(np.unique(keys, axis=0))
-    k = int(np.argmax(count))  # one cell checked against its points directly
-    inside = np.all(np.floor(pts / 0.5) == np.floor(mean[k] / 0.5), axis=1)
-    p = pts[inside]
-    assert count[k] == len(p)
-    np.testing.assert_allclose(mean[k], p.mean(0))
-    full = (p - p.mean(0)).T @ (p - p.mean(0))
-    np.testing.assert_allclose(scatter[k], full[np.triu_indices(3)], atol=1e-9)
+    _, inv, k = planes._grouped(pts, 0.5, None)
+    assert count.sum() == len(pts) and len(count) == k
+    for c in np.argsort(count)[-3:]:  # the largest cells checked against their points directly
+        p = pts[inv == c]
+        assert count[c] == len(p)
+        np.testing.assert_allclose(mean[c], p.mean(0))
+        full = (p - p.mean(0)).T @ (p - p.mean(0))
+        np.testing.assert_allclose(scatter[c], full[np.triu_indices(3)], atol=1e-9)
+
+
+def test_range_noise_across_a_bin_edge_does_not_split_a_surface():
+    """Cells lie along the beams: a wall whose noisy ranges straddle a range bin's edge stays one cell per beam
+    direction (a grid cut by the noise splits it into a near and a far half, each mean pulled along the beam),
+    while a second wall two bins behind it is a cell of its own."""
+    rng = np.random.default_rng(1)
+    beams = np.column_stack([rng.uniform(-0.25, 0.25, (4000, 2)), np.ones(4000)])
+    beams /= np.linalg.norm(beams, axis=1, keepdims=True)
+    wall = 2.0 * beams  # 2.0 m from the sensor: an edge of the 0.1 m range bins
+    noisy = wall + beams * rng.normal(0, 0.01, (4000, 1))  # 1 cm along the beams
+
+    def cells(pts: np.ndarray) -> tuple[np.ndarray, int]:
+        return planes._beam_cells(pts, np.linalg.norm(pts, axis=1), 0.1, 2.0)
+
+    one, k_one = cells(noisy)
+    clean, k_clean = cells(wall)
+    assert k_one == k_clean  # the noise adds no cell
+    assert len(np.unique(np.column_stack([one, clean]), axis=0)) == k_one  # and moves no point to another
+    behind = noisy * (2.3 / 2.0)  # the same beams on a wall 0.3 m further
+    two, k_two = cells(np.concatenate([noisy, behind]))
+    assert k_two == 2 * k_one and len(set(two[:4000]) & set(two[4000:])) == 0
 
 
 def test_gradient_and_hessian_match_the_cost():
@@ -298,21 +319,21 @@ def test_an_interrupted_dense_stage_resumes_where_it_stopped(tmp_path):
 
 def test_a_frame_over_its_share_keeps_that_many_exact_cells_twice_as_large():
     rng = np.random.default_rng(4)
-    many = rng.uniform(-3, 3, (20000, 3))  # about 1700 cells of 0.5 m, 216 of 1 m
-    few = rng.uniform(0, 0.9, (500, 3))  # 8 cells of 0.5 m
+    many = rng.uniform(-3, 3, (20000, 3))  # over 100 cells of 1 m, far more of 0.5 m
+    few = rng.uniform(0, 0.9, (500, 3))  # a few cells of 0.5 m
     seq = ScanSequence(lambda i: Scan([many, few][i]), 2, planar=False)
     cells = planes.cells_from_scans(seq, 0.5, 100, 10**6)
-    assert cells.size == 0.5 and np.bincount(cells.frame).tolist() == [100, 8]
-    coarse = dict(zip(map(tuple, np.floor(planes.compress(many, 1.0)[1] / 1.0).astype(int)),
-                      zip(*planes.compress(many, 1.0), strict=True), strict=True))
+    k_few = len(planes.compress(few, 0.5)[0])
+    assert cells.size == 0.5 and np.bincount(cells.frame).tolist() == [100, k_few]
+    coarse = planes.compress(many, 1.0)
+    assert len(coarse[0]) > 100
+    by_mean = {tuple(np.round(m, 4)): i for i, m in enumerate(coarse[1])}
     first = cells.frame == 0
-    keys = [tuple(k) for k in np.floor(cells.mean[first] / 1.0).astype(int)]
-    assert len(set(keys)) == 100  # distinct cells of the coarse grid, each summed over all its points
-    for k, count, mean, scatter in zip(keys, cells.count[first], cells.mean[first], cells.scatter[first],
-                                       strict=True):
-        np.testing.assert_allclose(count, coarse[k][0])
-        np.testing.assert_allclose(mean, coarse[k][1], rtol=1e-6)
-        np.testing.assert_allclose(scatter, coarse[k][2], rtol=1e-5, atol=1e-5)
+    found = [by_mean[tuple(np.round(m, 4))] for m in cells.mean[first].astype(np.float64)]
+    assert len(set(found)) == 100  # distinct cells of the coarse size, each summed over all its points
+    for i, count, scatter in zip(found, cells.count[first], cells.scatter[first], strict=True):
+        np.testing.assert_allclose(count, coarse[0][i])
+        np.testing.assert_allclose(scatter, coarse[2][i], rtol=1e-5, atol=1e-5)
 
 
 def _mapped_resident_kib(path: Path) -> int:

@@ -87,21 +87,39 @@ def compress(points: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, n
 
 
 def _grouped(points: np.ndarray, size: float, share: int | None) -> tuple[np.ndarray, np.ndarray, int]:
-    """A scan's finite points (float64) and the id of each one's cell of edge ``size``, or ``2 * size`` where
-    ``size`` gives more than ``share`` cells; and the number of cells. Ids in the order of the cells' keys."""
+    """A scan's finite points (float64) and the id of each one's cell along the beams (:func:`_beam_cells`) of
+    ``size``, or ``2 * size`` where ``size`` gives more than ``share`` cells; and the number of cells."""
     pts = np.asarray(points, dtype=np.float64)[:, :3]
     if not np.isfinite(pts).all():  # (a scan sequence drops them already)
         pts = pts[np.isfinite(pts).all(1)]
     if len(pts) == 0:
         return pts, np.zeros(0, np.int64), 0
-    keys = np.floor(pts / size).astype(np.int64)
-    inv, k = group_rows(keys)
-    if share is not None and k > share:  # floor(p / 2s) = floor(floor(p / s) / 2): group the cells, not the points
-        cell_keys = np.empty((k, 3), np.int64)
-        cell_keys[inv] = keys
-        coarse, k = group_rows(cell_keys // 2)
-        inv = coarse[inv]
+    distance = np.linalg.norm(pts, axis=1)
+    reference = max(float(np.median(distance)), size)
+    inv, k = _beam_cells(pts, distance, size, reference)
+    if share is not None and k > share:
+        inv, k = _beam_cells(pts, distance, 2.0 * size, reference)
     return pts, inv, k
+
+
+def _beam_cells(pts: np.ndarray, distance: np.ndarray, size: float, reference: float) -> tuple[np.ndarray, int]:
+    """Each point's cell and the number of cells: its beam's direction binned ``size`` wide at the ``reference``
+    range (the scan's median), its range binned ``size`` deep, and the consecutive range bins of one direction
+    merged. A sensor's noise lies along its beams: cells cut by a fixed grid split a surface whose noisy ranges
+    straddle a bin edge into a near and a far part, each mean pulled along the beam, and those pulls turn the
+    frames (a depth camera across a room: from the truth 6.3 mm against 1.5 mm with cells cut by the noise-free
+    points). Along the beam only a gap of a bin parts two cells (two surfaces, not one surface's noise)."""
+    unit = pts / np.maximum(distance, 1e-12)[:, None]
+    direction, _ = group_rows(np.floor(unit * (reference / size)).astype(np.int64))
+    depth = np.floor(distance / size).astype(np.int64)
+    depth -= depth.min()
+    order = np.argsort(direction * (int(depth.max()) + 2) + depth, kind="stable")
+    beam, bin_ = direction[order], depth[order]
+    starts = np.ones(len(order), bool)
+    starts[1:] = (beam[1:] != beam[:-1]) | (bin_[1:] - bin_[:-1] > 1)
+    inv = np.empty(len(order), np.int64)
+    inv[order] = np.cumsum(starts) - 1
+    return inv, int(starts.sum())
 
 
 def _summed(pts: np.ndarray, inv: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
