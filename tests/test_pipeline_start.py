@@ -158,7 +158,7 @@ def test_a_corridors_truth_holds_with_the_registrations_own_information():
     assert out.dense["returned"] == "dense" and out.dense["hessian_edges"] > 0
     voxel = dense_voxel(OptimConfig(), frames.scale)  # without the noise bound
     assert out.dense["voxel_m"] == pytest.approx(NOISE_WIDTHS * noise) and out.dense["voxel_m"] > voxel
-    cells = cells_from_scans(seq, voxel / 4, 2048, 10**6, keep_scatter="thin").extruded(voxel)
+    cells = cells_from_scans(seq, voxel / 4, 2048, 10**6, keep_scatter="thin", along_beams=False).extruded(voxel)
     isotropic = build_graph(frames, gt, topology, pairwise).lifted_to_se3(PLANAR_HOLD)
     before = refine_dense(cells, isotropic, gt, voxel, measure_odometry=True).poses
     assert ate_rmse(gt, out.poses) < 0.03 and ate_rmse(gt, out.poses) < 0.7 * ate_rmse(gt, before)
