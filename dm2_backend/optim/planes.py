@@ -1,16 +1,17 @@
 """The dense multi-frame term of the objective: every scan point against planes shared by many frames.
 
-Each scan is compressed once, in its sensor frame, into small cells holding the point count, mean and scatter
-(sum of outer products about the mean) of their points (:class:`Cells`). The cells lie along the beams (a beam
+Each scan is compressed once, in its sensor frame, into small cells holding the point count, mean and scatter (sum
+of outer products about the mean) of their points (:class:`Cells`). The cells lie along the beams (a beam
 direction's bin, a run of range bins: :func:`_beam_cells`), so a sensor's range noise, which lies along its beams,
-never splits one surface into cells. These sums are all a point-to-plane
-cost needs: for a plane ``n . x = d`` and a frame at pose (R, t), the squared distances of a cell's N points
-sum to ``N (n . (R mu + t) - d)^2 + m^T C m`` with ``m = R^T n`` (BALM2's point clusters, Liu et al. TRO 2023),
-so cost, gradient and Gauss-Newton Hessian are independent of the number of points. The second term measures a
-cell's thickness; where that is mostly the sensor's range noise, which lies along the beam (a depth camera's
-cells, a millimetre thick near it, centimetres across a room), it turns each frame to lay its beams along the
-planes: from the truth, frames drift round after round. The dense stage therefore takes a thick cell's points at
-its mean and keeps the scatter of thin cells only (:func:`kept_scatter`, ``optimiser.dense_cell_scatter``).
+never splits one surface into cells (3D scans; planar scans and the consistency profile keep cubes of a grid in the
+sensor frame). These sums are all a point-to-plane cost needs: for a plane ``n . x = d`` and a frame at pose (R,
+t), the squared distances of a cell's N points sum to ``N (n . (R mu + t) - d)^2 + m^T C m`` with ``m = R^T n``
+(BALM2's point clusters, Liu et al. TRO 2023), so cost, gradient and Gauss-Newton Hessian are independent of the
+number of points. The second term measures a cell's thickness; where that is mostly the sensor's range noise, which
+lies along the beam (a depth camera's cells, a millimetre thick near it, centimetres across a room), it turns each
+frame to lay its beams along the planes: from the truth, frames drift round after round. The dense stage therefore
+takes a thick cell's points at its mean and keeps the scatter of thin cells only (:func:`kept_scatter`,
+``optimiser.dense_cell_scatter``).
 
 Planes come from many frames, never one scan (a 16-beam LiDAR's ground is a set of rings, lines, in one
 scan): the cells are placed in the world by the current poses, grouped into voxels, and a voxel whose merged
@@ -100,9 +101,13 @@ def _grouped(points: np.ndarray, size: float, share: int | None,
     if len(pts) == 0:
         return pts, np.zeros(0, np.int64), 0
     if not along_beams:
-        inv, k = group_rows(np.floor(pts / size).astype(np.int64))
-        if share is not None and k > share:
-            inv, k = group_rows(np.floor(pts / (2.0 * size)).astype(np.int64))
+        keys = np.floor(pts / size).astype(np.int64)
+        inv, k = group_rows(keys)
+        if share is not None and k > share:  # floor(p / 2s) = floor(floor(p / s) / 2): group the cells
+            cell_keys = np.empty((k, 3), np.int64)
+            cell_keys[inv] = keys
+            coarse, k = group_rows(cell_keys // 2)
+            inv = coarse[inv]
         return pts, inv, k
     distance = np.linalg.norm(pts, axis=1)
     reference = max(float(np.median(distance)), size)
