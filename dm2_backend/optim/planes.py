@@ -4,8 +4,8 @@ Each scan is compressed once, in its sensor frame, into small cells holding the 
 of outer products about the mean) of their points (:class:`Cells`). The cells lie along the beams (a beam
 direction's bin, a run of range bins: :func:`_beam_cells`), so a sensor's range noise, which lies along its beams,
 never splits one surface into cells (3D scans; planar scans and the consistency profile keep cubes of a grid in the
-sensor frame). These sums are all a point-to-plane cost needs: for a plane ``n . x = d`` and a frame at pose (R,
-t), the squared distances of a cell's N points sum to ``N (n . (R mu + t) - d)^2 + m^T C m`` with ``m = R^T n``
+sensor frame). These sums are all a point-to-plane cost needs: for a plane ``n . x = d`` and a frame at pose
+(R, t), the squared distances of a cell's N points sum to ``N (n . (R mu + t) - d)^2 + m^T C m`` with ``m = R^T n``
 (BALM2's point clusters, Liu et al. TRO 2023), so cost, gradient and Gauss-Newton Hessian are independent of the
 number of points. The second term measures a cell's thickness; where that is mostly the sensor's range noise, which
 lies along the beam (a depth camera's cells, a millimetre thick near it, centimetres across a room), it turns each
