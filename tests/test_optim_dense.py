@@ -64,6 +64,18 @@ def test_cells_hold_the_exact_sums_of_their_points():
     count, mean, scatter = planes.compress(pts, 0.5)
     _, inv, k = planes._grouped(pts, 0.5, None)
     assert count.sum() == len(pts) and len(count) == k
+    distance = np.linalg.norm(pts, axis=1)
+    beam = np.floor(pts / distance[:, None] * (np.median(distance) / 0.5)).astype(int)
+    depth = np.floor(distance / 0.5).astype(int)
+    runs = {}
+    for c in range(k):  # each cell: one beam direction, a run of range bins without a gap
+        assert len(np.unique(beam[inv == c], axis=0)) == 1
+        bins = np.unique(depth[inv == c])
+        assert (np.diff(bins) == 1).all()
+        runs.setdefault(tuple(beam[inv == c][0]), []).append((bins[0], bins[-1]))
+    for spans in runs.values():  # two cells of one direction: an empty bin between them
+        spans.sort()
+        assert all(b[0] > a[1] + 1 for a, b in zip(spans, spans[1:], strict=False))
     for c in np.argsort(count)[-3:]:  # the largest cells checked against their points directly
         p = pts[inv == c]
         assert count[c] == len(p)
@@ -327,9 +339,10 @@ def test_a_frame_over_its_share_keeps_that_many_exact_cells_twice_as_large():
     assert cells.size == 0.5 and np.bincount(cells.frame).tolist() == [100, k_few]
     coarse = planes.compress(many, 1.0)
     assert len(coarse[0]) > 100
-    by_mean = {tuple(np.round(m, 4)): i for i, m in enumerate(coarse[1])}
     first = cells.frame == 0
-    found = [by_mean[tuple(np.round(m, 4))] for m in cells.mean[first].astype(np.float64)]
+    gap = np.linalg.norm(cells.mean[first].astype(np.float64)[:, None] - coarse[1][None], axis=2)
+    found = gap.argmin(1).tolist()
+    assert gap.min(1).max() < 1e-5
     assert len(set(found)) == 100  # distinct cells of the coarse size, each summed over all its points
     for i, count, scatter in zip(found, cells.count[first], cells.scatter[first], strict=True):
         np.testing.assert_allclose(count, coarse[0][i])

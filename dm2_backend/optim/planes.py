@@ -3,7 +3,7 @@
 Each scan is compressed once, in its sensor frame, into small cells holding the point count, mean and scatter (sum
 of outer products about the mean) of their points (:class:`Cells`). The cells lie along the beams (a beam
 direction's bin, a run of range bins: :func:`_beam_cells`), so a sensor's range noise, which lies along its beams,
-never splits one surface into cells (3D scans; planar scans and the consistency profile keep cubes of a grid in the
+does not split one surface into cells (3D scans; planar scans and the consistency profile keep cubes of a grid in the
 sensor frame). These sums are all a point-to-plane cost needs: for a plane ``n . x = d`` and a frame at pose
 (R, t), the squared distances of a cell's N points sum to ``N (n . (R mu + t) - d)^2 + m^T C m`` with ``m = R^T n``
 (BALM2's point clusters, Liu et al. TRO 2023), so cost, gradient and Gauss-Newton Hessian are independent of the
@@ -120,18 +120,19 @@ def _grouped(points: np.ndarray, size: float, share: int | None,
 def _beam_cells(pts: np.ndarray, distance: np.ndarray, size: float, reference: float) -> tuple[np.ndarray, int]:
     """Each point's cell and the number of cells: its beam's direction binned ``size`` wide at the ``reference``
     range (the scan's median), its range binned ``size`` deep, and the consecutive range bins of one direction
-    merged. A sensor's noise lies along its beams: cells cut by a fixed grid split a surface whose noisy ranges
-    straddle a bin edge into a near and a far part, each mean pulled along the beam, and those pulls turn the
-    frames (a depth camera across a room, the dense stage from the truth: 6.3 mm, against 1.5 mm with the grid cut
-    by the noise-free points). Along the beam only a gap of a bin parts two cells (two surfaces, not one surface's
-    noise). Far out the cells are wider (a LiDAR's at three times the median range, three times ``size``): binned
-    finer there, the simulated street's frames passed their share and kept fewer points (from the truth 0.66 mm
-    against 0.49)."""
+    merged (so a cell is a bin deep or more). A sensor's noise lies along its beams: cells cut by a fixed grid
+    split a surface whose noisy ranges straddle a bin edge into a near and a far part, each mean pulled along the
+    beam, and those pulls turn the frames (a depth camera across a room, the dense stage alone from the truth:
+    6.3 mm with the cubic grid, 1.5 mm with that grid cut by the noise-free points, 1.5 mm with these cells).
+    Along the beam only an empty bin parts two cells (two surfaces, not one surface's noise, while that noise is
+    under a bin). Runs are not capped: a surface seen at a grazing angle can make a cell longer than a voxel.
+    Far out the cells are wider (a LiDAR's at three times the median range, three times ``size``): binned no
+    wider than twice ``size`` (by octaves of range), the simulated street's frames passed their share and kept
+    fewer points (its dense stage alone from the truth 0.66 mm, against 0.49 with these cells)."""
     unit = pts / np.maximum(distance, 1e-12)[:, None]
     direction, _ = group_rows(np.floor(unit * (reference / size)).astype(np.int64))
     depth = np.floor(distance / size).astype(np.int64)
-    depth -= depth.min()
-    order = np.argsort(direction * (int(depth.max()) + 2) + depth, kind="stable")
+    order = np.lexsort((depth, direction))
     beam, bin_ = direction[order], depth[order]
     starts = np.ones(len(order), bool)
     starts[1:] = (beam[1:] != beam[:-1]) | (bin_[1:] - bin_[:-1] > 1)
@@ -151,13 +152,15 @@ def _summed(pts: np.ndarray, inv: np.ndarray, k: int) -> tuple[np.ndarray, np.nd
 
 
 def cells_from_scans(scans: ScanSequence, size: float, per_frame: int, max_cells: int, seed: int = 0,
-                     progress: bool = False, keep_scatter: CellScatter = "all", along_beams: bool = True) -> Cells:
-    """Every scan compressed into cells (scans on threads), at most ``per_frame`` a frame and ``max_cells`` in
-    all (at least 64 a frame): a frame with more is summed into cells twice as large (once), and keeps a random
-    subset of those if still too many (each kept cell exact: only its points are summed). ``Cells.size`` is the
-    smallest cell. ``keep_scatter``: which cells keep their scatter (:func:`kept_scatter`); the others' points are
-    taken at their mean. ``along_beams``: cells along the beams (:func:`_beam_cells`), else cubes of a grid in
-    the sensor frame."""
+                     progress: bool = False, keep_scatter: CellScatter = "all",
+                     along_beams: bool | None = None) -> Cells:
+    """Every scan compressed into cells (scans on threads), at most ``per_frame`` a frame and ``max_cells`` in all (at
+    least 64 a frame): a frame with more is summed into cells twice as large (once), and keeps a random subset of
+    those if still too many (each kept cell exact: only its points are summed). ``Cells.size`` is the cells' nominal
+    size (``size``). ``keep_scatter``: which cells keep their scatter (:func:`kept_scatter`); the others' points are
+    taken at their mean. ``along_beams``: cells along the beams (:func:`_beam_cells`), else cubes of a grid in the
+    sensor frame; by default along the beams for 3D scans, cubes for planar ones."""
+    along_beams = not scans.planar if along_beams is None else along_beams
     share = min(per_frame, max(64, max_cells // max(len(scans), 1)))
     rng = np.random.default_rng(seed)
 

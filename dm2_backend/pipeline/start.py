@@ -153,9 +153,9 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     voxel = dense_voxel(cfg, prep.frames.scale, noise)
     t = time.perf_counter()
     # 3D scans' cells lie along the beams; planar scans keep the cubic grid (along the beams the corridor ring's
-    # dense stage from its truth ended 23 mm away, against 15: see planes._beam_cells)
+    # dense stage from its truth ended 23 mm away, against 15)
     cells = cells_from_scans(scans, voxel / 4.0, cfg.dense_cells_per_frame, cfg.dense_max_cells, seed, progress,
-                             keep_scatter=cfg.dense_cell_scatter, along_beams=not planar)
+                             keep_scatter=cfg.dense_cell_scatter)
     if planar:
         cells = cells.extruded(voxel)
     t_cells = time.perf_counter() - t
