@@ -249,10 +249,11 @@ def _converged(history: list[dict], tolerance: float) -> bool:
     of 0.2-0.4 mm, below the first test, that cut the RPE 2.6x over three rounds), and the graph's cost alone
     stopped the depth camera walking round the table while it still moved 2.8 mm a round (5.3 mm from the truth,
     on its way down from 56)."""
-    moved = history[-1]["step_rms_m"] >= tolerance * history[-1]["sigma"]
+    if history[-1]["step_rms_m"] >= tolerance * history[-1]["sigma"]:
+        return False
     marks = [i for i, row in enumerate(history) if "odometry_noise" in row]
-    if moved or not marks:
-        return not moved
+    if not marks:
+        return True
     after = history[marks[0] + 1:]
     return len(after) >= 2 and abs(after[-1]["graph"] - after[-2]["graph"]) < tolerance * after[-2]["graph"]
 
