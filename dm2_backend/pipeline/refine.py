@@ -14,7 +14,7 @@ from dm2_backend.pipeline.inputs import RunInputs
 from dm2_backend.pipeline.live import live_metric
 from dm2_backend.pipeline.run_report import RunReport
 from dm2_backend.pipeline.run_writer import map_entropy, map_sampler, output_timestamps, write_run
-from dm2_backend.pipeline.start import choose_start, dense_start
+from dm2_backend.pipeline.start import DenseCells, choose_start, dense_start
 
 log = logging.getLogger(__name__)
 
@@ -35,13 +35,16 @@ def refine(inputs: RunInputs, cfg: RunConfig, out: Path, cache_dir: Path | None,
         stages = prep.stages.copy()
         with stages.stage("map_sampler"):
             sampler = map_sampler(inputs, progress) if lead else None
-        with stages.stage("start"):
-            start = choose_start(prep, cfg.optimiser, sampler) if lead else None
+        cells = None
+        with stages.stage("start"):  # with the dense stage's cells, which judge the graph start
+            if lead and cfg.optimiser.dense is not False:
+                cells = DenseCells.of(inputs.scans, prep, cfg.optimiser, cfg.seed, progress)
+            start = choose_start(prep, cfg.optimiser, sampler, cells) if lead else None
         metric = live_metric(inputs, stamps) if lead else None
         with stages.stage("dense"):
             if lead:
                 start = dense_start(inputs.scans, prep, start, cfg.optimiser, cfg.seed, progress, metric,
-                                    checkpoint_dir=out, resume=resume)
+                                    checkpoint_dir=out, resume=resume, dense_cells=cells)
             if sess.mode is parallel.Mode.TORCHRUN:
                 start = distributed.broadcast(start)
         watch = parallel.Watch(metric, map_entropy(sampler), metric) if lead else None

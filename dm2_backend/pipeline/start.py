@@ -33,7 +33,7 @@ from dm2_backend.memory import release_mapped
 from dm2_backend.optim.config import OptimConfig, dense_voxel
 from dm2_backend.optim.dense import refine_dense
 from dm2_backend.optim.dense_checkpoint import DENSE_CHECKPOINT
-from dm2_backend.optim.planes import agreement_score, cells_from_scans
+from dm2_backend.optim.planes import Cells, agreement_score, cells_from_scans
 from dm2_backend.prepare.steps import Prepared
 from dm2_backend.scans import ScanSequence
 
@@ -64,6 +64,7 @@ class Start:
     map_entropy: dict[str, float] = field(default_factory=dict)  # candidate -> mean map entropy
     dense: dict = field(default_factory=dict)
     cuts: dict[str, dict] = field(default_factory=dict)  # "graph" -> its cut steps (``continuity.Cuts.summary``)
+    agreement_m2: dict[str, float] = field(default_factory=dict)  # candidate -> :meth:`DenseCells.agreement`
 
     @property
     def refined(self) -> bool:
@@ -76,8 +77,8 @@ class Start:
         return self.name is StartKind.GRAPH or self.refined
 
     def summary(self) -> dict:
-        return {"name": self.name.value, "why": self.why, "map_entropy": self.map_entropy, "dense": self.dense,
-                "cuts": self.cuts}
+        return {"name": self.name.value, "why": self.why, "map_entropy": self.map_entropy,
+                "agreement_m2": self.agreement_m2, "dense": self.dense, "cuts": self.cuts}
 
 
 def sequence_cuts(prep: Prepared, poses: np.ndarray) -> continuity.Cuts:
@@ -93,9 +94,12 @@ def sequence_cuts(prep: Prepared, poses: np.ndarray) -> continuity.Cuts:
     return continuity.cuts(poses, prep.warm_start, registered, slip, scale.range_median or 1.0)
 
 
-def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None) -> Start:
-    """``cfg.start`` "prepared": the prepared poses; "graph": the pose-graph solution when its map is sharper
-    (without a map sampler, or when the graph cannot be solved, see ``why``); "auto": graph for 3D data,
+def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None,
+                 judge: DenseCells | None = None) -> Start:
+    """``cfg.start`` "prepared": the prepared poses; "graph": the pose-graph solution when its frames agree better
+    with the planes the other frames make than the prepared poses' do (``judge``: the dense stage's cells; without
+    them, when its map is sharper by map entropy; without a map sampler, or when the graph cannot be solved, see
+    ``why``); "auto": graph for 3D data,
     prepared for planar data (2D laser logs: the loop-closed poses of ``loops`` are already a pose-graph
     solution in all three degrees of freedom, and the map losses refine them further than the graph over the
     pairwise registrations: ACES 0.0363 m against 0.0421 from the graph)."""
@@ -120,6 +124,13 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None) -
         why = (f"the pose-graph solution cuts the sequence at {cut.describe()}, which neither the odometry nor the "
                "registration of those frames says")
         return Start(prepared, StartKind.PREPARED, why, cuts=cuts)
+    if judge is not None:  # each frame against the planes the others make
+        agreement = judge.agreement({"prepared": prepared, "graph": solved})
+        if agreement["graph"] <= agreement["prepared"]:
+            return Start(solved, StartKind.GRAPH, "the pose-graph solution's frames agree better with the planes the "
+                         "others see", cuts=cuts, agreement_m2=agreement)
+        return Start(prepared, StartKind.PREPARED, "the pose-graph solution's frames agree worse with the planes the "
+                     "others see", cuts=cuts, agreement_m2=agreement)
     if sampler is None:
         return Start(solved, StartKind.GRAPH, "pose-graph solution (no map to compare)", cuts=cuts)
     scores = {"prepared": sampler.evaluate(prepared).entropy, "graph": sampler.evaluate(solved).entropy}
@@ -138,27 +149,51 @@ def range_noise(prep: Prepared) -> float | None:
     return float(np.median(rms)) / np.sqrt(2.0) if rms else None
 
 
+@dataclass
+class DenseCells:
+    """Every scan compressed into the dense stage's cells (:func:`cells_from_scans`), with the voxel of its planes
+    and the planar scans' range noise (None for 3D); built once, for judging the start and for the stage."""
+
+    cells: Cells
+    voxel: float
+    noise: float | None
+    seconds: float
+
+    @classmethod
+    def of(cls, scans: ScanSequence, prep: Prepared, cfg: OptimConfig, seed: int = 0,
+           progress: bool = False) -> DenseCells:
+        noise = range_noise(prep)
+        voxel = dense_voxel(cfg, prep.frames.scale, noise)
+        t = time.perf_counter()
+        # 3D scans' cells lie along the beams; planar scans keep the cubic grid (along the beams the corridor
+        # ring's dense stage from its truth ended 23 mm away, against 15)
+        cells = cells_from_scans(scans, voxel / 4.0, cfg.dense_cells_per_frame, cfg.dense_max_cells, seed, progress,
+                                 keep_scatter=cfg.dense_cell_scatter)
+        if prep.frames.planar:
+            cells = cells.extruded(voxel)
+        return cls(cells, voxel, noise, time.perf_counter() - t)
+
+    def agreement(self, candidates: dict[str, np.ndarray]) -> dict[str, float]:
+        """How far each candidate's frames lie from the planes the other frames make (m^2, lower is better;
+        :func:`~dm2_backend.optim.planes.agreement_score`, judged on each candidate's planes in turn)."""
+        return agreement_score(self.cells, candidates, self.voxel)
+
+
 def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimConfig, seed: int = 0,
                 progress: bool = False, trace: Callable[[np.ndarray], float] | None = None,
-                checkpoint_dir: Path | None = None, resume: bool = False) -> Start:
+                checkpoint_dir: Path | None = None, resume: bool = False,
+                dense_cells: DenseCells | None = None) -> Start:
     """``start`` refined by the dense stage (``cfg.dense``): every scan's points against the planes many frames
     share, jointly with the pose graph's factors (:mod:`dm2_backend.optim.dense`); its checkpoint in
-    ``checkpoint_dir``, continued with ``resume``. Planar scans (2D lasers) see walls as lines: their cells are
-    extruded into vertical walls a voxel tall, the planar graph is solved as an SE(3) one that holds z, roll and
-    pitch (:meth:`~dm2_backend.pose_graph.PoseGraph.lifted_to_se3`), and the result is projected back to x, y, yaw."""
+    ``checkpoint_dir``, continued with ``resume``; ``dense_cells``: the cells already built (else built here).
+    Planar scans (2D lasers) see walls as lines: their cells are extruded into vertical walls a voxel tall, the
+    planar graph is solved as an SE(3) one that holds z, roll and pitch
+    (:meth:`~dm2_backend.pose_graph.PoseGraph.lifted_to_se3`), and the result is projected back to x, y, yaw."""
     if cfg.dense is False:
         return start
     planar = prep.frames.planar
-    noise = range_noise(prep)
-    voxel = dense_voxel(cfg, prep.frames.scale, noise)
-    t = time.perf_counter()
-    # 3D scans' cells lie along the beams; planar scans keep the cubic grid (along the beams the corridor ring's
-    # dense stage from its truth ended 23 mm away, against 15)
-    cells = cells_from_scans(scans, voxel / 4.0, cfg.dense_cells_per_frame, cfg.dense_max_cells, seed, progress,
-                             keep_scatter=cfg.dense_cell_scatter)
-    if planar:
-        cells = cells.extruded(voxel)
-    t_cells = time.perf_counter() - t
+    built = dense_cells or DenseCells.of(scans, prep, cfg, seed, progress)
+    cells, voxel, noise = built.cells, built.voxel, built.noise
     # each registration weighed by its own Hessian where the preparation recorded one (every planar one)
     graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise, InformationModel(use_hessians=True))
     if planar:
@@ -182,7 +217,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
         log.warning("dense stage's result not kept: it cuts the sequence at %s", cut.describe())
         chosen, reason = start.name.value, f"it cuts the sequence at {cut.describe()}"
     summary = {"voxel_m": voxel, "range_noise_m": noise, "hessian_edges": graph.meta["hessian_edges"],
-               "cell_m": cells.size, "cells": len(cells), "cells_seconds": t_cells, "seconds": result.seconds,
+               "cell_m": cells.size, "cells": len(cells), "cells_seconds": built.seconds, "seconds": result.seconds,
                "rounds": len(result.history), "stopped": result.stopped,
                "history": result.history, "resumed_after_round": result.resumed_after,
                "odometry_noise": result.odometry.summary() if result.odometry else None,
@@ -193,5 +228,5 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     if chosen != "dense":
         return Start(candidates[chosen], start.name if chosen == start.name.value else StartKind.PREPARED,
                      f"{start.why}; the dense stage's result was not kept ({reason})",
-                     start.map_entropy, summary, start.cuts)
-    return Start(result.poses, start.name, start.why, start.map_entropy, summary, start.cuts)
+                     start.map_entropy, summary, start.cuts, start.agreement_m2)
+    return Start(result.poses, start.name, start.why, start.map_entropy, summary, start.cuts, start.agreement_m2)
