@@ -1,4 +1,5 @@
-"""Where refine's optimiser starts: the pose-graph solution when its map is sharper, else the prepared poses."""
+"""Where refine's optimiser starts: the pose-graph solution when its frames agree better with the planes the others
+make (or, without the dense stage, its map is sharper), else the prepared poses."""
 
 from __future__ import annotations
 
@@ -74,6 +75,35 @@ def test_a_graph_solution_that_cuts_the_sequence_is_not_taken(prepared, sampler,
     kept = choose_start(prepared, OptimConfig(start="graph"), sampler)
     assert kept.name is StartKind.GRAPH and kept.cuts["graph"] == {"judged": True, "steps": [], "offset_m": [],
                                                                     "offset_deg": []}
+
+
+def test_the_dense_stages_cells_judge_the_graph_start(prepared, monkeypatch):
+    """With the dense stage's cells the graph start is judged by how far each frame lies from the planes the other
+    frames make (map entropy chose a depth camera's graph solution 7x farther from the truth than the loop-closed
+    poses): the judge ranks the truth first, keeps the graph when its frames agree better and refuses a bent one."""
+    from dm2_backend.pipeline.start import DenseCells
+
+    case = planar_case()
+    seq = ScanSequence(lambda i: Scan(case.scans[i]), len(case.scans), planar=True)
+    judge = DenseCells.of(seq, prepared, OptimConfig())
+    bent_poses = perturb(case.gt, 0.1, 0.02, seed=3)
+    ranked = judge.agreement({"truth": case.gt, "bent": bent_poses})
+    assert ranked["truth"] < 0.5 * ranked["bent"]
+    start = choose_start(prepared, OptimConfig(start="graph"), None, judge)
+    solved = gtsam_backend.optimize(build_graph(prepared.frames, prepared.initial, prepared.topology,
+                                                prepared.pairwise), GRAPH_SOLVER).poses
+    again = judge.agreement({"prepared": prepared.initial, "graph": solved})
+    assert start.agreement_m2 == pytest.approx(again) and start.summary()["agreement_m2"] == start.agreement_m2
+    better = "graph" if again["graph"] <= again["prepared"] else "prepared"
+    assert start.name.value == better and not start.map_entropy
+
+    def bent(graph, options):
+        return GraphResult(perturb(graph.poses, 0.1, 0.02, seed=3), None, None, None, 0.0, "gtsam")
+
+    monkeypatch.setattr(start_module.gtsam_backend, "optimize", bent)
+    start = choose_start(prepared, OptimConfig(start="graph"), None, judge)
+    assert start.name is StartKind.PREPARED and "agree worse" in start.why
+    assert start.agreement_m2["graph"] > start.agreement_m2["prepared"]
 
 
 def test_prepared_and_auto_on_planar_data(prepared, sampler):

@@ -31,7 +31,7 @@ from typing import Literal
 import numpy as np
 from scipy.sparse import bsr_matrix, csr_matrix
 
-from dm2_backend.geometry.voxels import group_rows
+from dm2_backend.geometry.voxels import flat_keys, group_rows
 from dm2_backend.progress import progress as progress_of
 from dm2_backend.scans import ScanSequence
 from dm2_backend.threads import ordered_map
@@ -111,14 +111,16 @@ def _grouped(points: np.ndarray, size: float, share: int | None,
         return pts, inv, k
     distance = np.linalg.norm(pts, axis=1)
     reference = max(float(np.median(distance)), size)
-    inv, k = _beam_cells(pts, distance, size, reference)
+    unit = pts / np.maximum(distance, 1e-12)[:, None]
+    inv, k = _beam_cells(unit, distance, size, reference)
     if share is not None and k > share:
-        inv, k = _beam_cells(pts, distance, 2.0 * size, reference)
+        inv, k = _beam_cells(unit, distance, 2.0 * size, reference)
     return pts, inv, k
 
 
-def _beam_cells(pts: np.ndarray, distance: np.ndarray, size: float, reference: float) -> tuple[np.ndarray, int]:
-    """Each point's cell and the number of cells: its beam's direction binned ``size`` wide at the ``reference``
+def _beam_cells(unit: np.ndarray, distance: np.ndarray, size: float, reference: float) -> tuple[np.ndarray, int]:
+    """Each point's cell (its beam's ``unit`` direction, its ``distance``) and the number of cells: its beam's
+    direction binned ``size`` wide at the ``reference``
     range (the scan's median), its range binned ``size`` deep, and the consecutive range bins of one direction
     merged (so a cell is a bin deep or more). A sensor's noise lies along its beams: cells cut by a fixed grid
     split a surface whose noisy ranges straddle a bin edge into a near and a far part, each mean pulled along the
@@ -129,10 +131,16 @@ def _beam_cells(pts: np.ndarray, distance: np.ndarray, size: float, reference: f
     Far out the cells are wider (a LiDAR's at three times the median range, three times ``size``): binned no
     wider than twice ``size`` (by octaves of range), the simulated street's frames passed their share and kept
     fewer points (its dense stage alone from the truth 0.66 mm, against 0.49 with these cells)."""
-    unit = pts / np.maximum(distance, 1e-12)[:, None]
-    direction, _ = group_rows(np.floor(unit * (reference / size)).astype(np.int64))
+    direction = np.floor(unit * (reference / size)).astype(np.int64)
     depth = np.floor(distance / size).astype(np.int64)
-    order = np.lexsort((depth, direction))
+    depth -= depth.min()
+    flat = flat_keys(np.concatenate([direction, depth[:, None]], 1))  # one sort: by direction, then range
+    if flat is None:
+        direction, _ = group_rows(direction)
+        order = np.lexsort((depth, direction))
+    else:
+        direction = flat // (int(depth.max()) + 1)
+        order = np.argsort(flat, kind="stable")
     beam, bin_ = direction[order], depth[order]
     starts = np.ones(len(order), bool)
     starts[1:] = (beam[1:] != beam[:-1]) | (bin_[1:] - bin_[:-1] > 1)
