@@ -95,7 +95,8 @@ def test_range_noise_across_a_bin_edge_does_not_split_a_surface():
     noisy = wall + beams * rng.normal(0, 0.01, (4000, 1))  # 1 cm along the beams
 
     def cells(pts: np.ndarray) -> tuple[np.ndarray, int]:
-        return planes._beam_cells(pts, np.linalg.norm(pts, axis=1), 0.1, 2.0)
+        distance = np.linalg.norm(pts, axis=1)
+        return planes._beam_cells(pts / distance[:, None], distance, 0.1, 2.0)
 
     one, k_one = cells(noisy)
     clean, k_clean = cells(wall)
