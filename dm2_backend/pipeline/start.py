@@ -6,8 +6,11 @@ DeepMapping2 steps from the loop-closed poses do not get that far (simulated 3D 
 refine from the loop-closed poses 0.055 m). Starting from the graph's solution lets the map losses refine what the
 constraints got wrong. The graph start is taken only when it keeps the sequence's steps (no step that both the
 front end's odometry and the two frames' registration contradict: :mod:`dm2_backend.evaluation.continuity`) and
-its map is sharper than the prepared poses' (mean map entropy), both judged without ground truth, so a graph that a
-clique of wrong registrations cut or bent does not start the optimiser; nor is a dense result that cuts a step kept.
+its frames agree better than the prepared poses' with the planes the other frames make (the dense stage's cells:
+:class:`DenseCells`; without the dense stage, its map is sharper by mean map entropy), both judged without ground
+truth, so a graph that a clique of wrong registrations cut or bent does not start the optimiser; nor is a dense
+result that cuts a step kept. (Map entropy chose a depth camera's graph solution 7x farther from the truth than
+the loop-closed poses: sharper in the mean, bent where the camera saw one corner.)
 """
 
 from __future__ import annotations
