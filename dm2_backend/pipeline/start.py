@@ -102,10 +102,9 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None,
     """``cfg.start`` "prepared": the prepared poses; "graph": the pose-graph solution when its frames agree better
     with the planes the other frames make than the prepared poses' do (``judge``: the dense stage's cells; without
     them, when its map is sharper by map entropy; without a map sampler, or when the graph cannot be solved, see
-    ``why``); "auto": graph for 3D data,
-    prepared for planar data (2D laser logs: the loop-closed poses of ``loops`` are already a pose-graph
-    solution in all three degrees of freedom, and the map losses refine them further than the graph over the
-    pairwise registrations: ACES 0.0363 m against 0.0421 from the graph)."""
+    ``why``); "auto": graph for 3D data, prepared for planar data (2D laser logs: the loop-closed poses of
+    ``loops`` are already a pose-graph solution in all three degrees of freedom, and the map losses refine them
+    further than the graph over the pairwise registrations: ACES 0.0363 m against 0.0421 from the graph)."""
     prepared = prep.initial
     if cfg.start == "prepared":
         return Start(prepared, StartKind.PREPARED, "optimiser.start: prepared")
