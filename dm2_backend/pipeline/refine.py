@@ -8,6 +8,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from dm2_backend.config_schema import RunConfig
+from dm2_backend.memory import release_mapped
 from dm2_backend.optim import distributed
 from dm2_backend.pipeline import parallel
 from dm2_backend.pipeline.inputs import RunInputs
@@ -38,6 +39,7 @@ def refine(inputs: RunInputs, cfg: RunConfig, out: Path, cache_dir: Path | None,
         cells = None
         with stages.stage("start"):  # with the dense stage's cells, which judge the graph start
             if lead and cfg.optimiser.dense is not False:
+                release_mapped(prep.frames.points)  # the cells are read from the scans; the graph needs no points
                 cells = DenseCells.of(inputs.scans, prep, cfg.optimiser, cfg.seed, progress)
             start = choose_start(prep, cfg.optimiser, sampler, cells) if lead else None
         metric = live_metric(inputs, stamps) if lead else None
