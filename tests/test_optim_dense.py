@@ -84,6 +84,30 @@ def test_cells_hold_the_exact_sums_of_their_points():
         np.testing.assert_allclose(scatter[c], full[np.triu_indices(3)], atol=1e-9)
 
 
+def test_beam_cells_are_those_of_a_sort_by_direction_then_range(monkeypatch):
+    """The one-key sort gives the cells of the plain two-key sort (beam direction's bin, then range bin; a new cell
+    where the direction changes or a range bin is skipped), with points on every side of the sensor, and so does the
+    fallback for keys too wide for one int64."""
+    rng = np.random.default_rng(7)
+    pts = rng.normal(size=(3000, 3)) * rng.uniform(0.3, 40.0, (3000, 1))
+    distance = np.linalg.norm(pts, axis=1)
+    unit = pts / distance[:, None]
+    size, reference = 0.2, float(np.median(distance))
+    _, direction = np.unique(np.floor(unit * (reference / size)).astype(np.int64), axis=0, return_inverse=True)
+    depth = np.floor(distance / size).astype(np.int64)
+    order = np.lexsort((depth, direction.ravel()))
+    d, b = direction.ravel()[order], depth[order]
+    new_cell = np.r_[True, (d[1:] != d[:-1]) | (b[1:] - b[:-1] > 1)]
+    expected = np.empty(len(pts), np.int64)
+    expected[order] = np.cumsum(new_cell) - 1
+    inv, k = planes._beam_cells(unit, distance, size, reference)
+    assert k == int(new_cell.sum()) and np.array_equal(inv, expected)
+    monkeypatch.setattr(planes, "flat_keys", lambda keys: None)
+    inv, k = planes._beam_cells(unit, distance, size, reference)
+    assert k == int(new_cell.sum()) and np.array_equal(inv, expected)
+    assert planes._beam_cells(unit[:0], distance[:0], size, reference)[1] == 0
+
+
 def test_range_noise_across_a_bin_edge_does_not_split_a_surface():
     """Cells lie along the beams: a wall whose noisy ranges straddle a range bin's edge stays one cell per beam
     direction (a grid cut by the noise splits it into a near and a far half, each mean pulled along the beam),

@@ -96,6 +96,8 @@ def test_the_dense_stages_cells_judge_the_graph_start(prepared, monkeypatch):
     assert start.agreement_m2 == pytest.approx(again) and start.summary()["agreement_m2"] == start.agreement_m2
     better = "graph" if again["graph"] <= again["prepared"] else "prepared"
     assert start.name.value == better and not start.map_entropy
+    # each candidate's own error agrees with the judge here: the one it keeps is the closer to the truth
+    assert ate_rmse(case.gt, start.poses) <= ate_rmse(case.gt, solved if better == "prepared" else prepared.initial)
 
     def bent(graph, options):
         return GraphResult(perturb(graph.poses, 0.1, 0.02, seed=3), None, None, None, 0.0, "gtsam")
@@ -104,6 +106,22 @@ def test_the_dense_stages_cells_judge_the_graph_start(prepared, monkeypatch):
     start = choose_start(prepared, OptimConfig(start="graph"), None, judge)
     assert start.name is StartKind.PREPARED and "agree worse" in start.why
     assert start.agreement_m2["graph"] > start.agreement_m2["prepared"]
+
+
+def test_a_judge_with_no_shared_plane_leaves_the_choice_to_the_maps(prepared, sampler):
+    """Scans whose frames share no plane (here: cells of one frame only) give the judge nothing (NaN): the start is
+    chosen by map entropy, as without the dense stage, and the judge's empty verdict is kept in the report."""
+    from dm2_backend.optim.planes import Cells
+    from dm2_backend.pipeline.start import DenseCells
+
+    rng = np.random.default_rng(0)
+    lone = Cells(np.zeros(50, np.int32), np.full(50, 10, np.float32), rng.uniform(0, 1, (50, 3)).astype(np.float32),
+                 np.zeros((50, 6), np.float32), 0.1)
+    with pytest.warns(RuntimeWarning, match="Mean of empty slice"):
+        start = choose_start(prepared, OptimConfig(start="graph"), sampler, DenseCells(lone, 0.4, None, 0.0))
+    by_maps = choose_start(prepared, OptimConfig(start="graph"), sampler)
+    assert start.name is by_maps.name and start.map_entropy == by_maps.map_entropy and start.map_entropy
+    assert set(start.agreement_m2) == {"prepared", "graph"} and all(np.isnan(v) for v in start.agreement_m2.values())
 
 
 def test_prepared_and_auto_on_planar_data(prepared, sampler):

@@ -7,7 +7,7 @@ import numpy as np
 
 def flat_keys(keys: np.ndarray) -> np.ndarray | None:
     """Integer ``keys`` (K,D) as one int64 per row that sorts as the rows do (lexicographically), or None when
-    their span does not fit in one."""
+    their span does not fit in one (``keys`` not empty)."""
     # column by column: a reduction along axis 0 of (K,3), ``ravel_multi_index`` and the shifted copy cost more
     lo = [int(keys[:, a].min()) for a in range(keys.shape[1])]
     dims = [int(keys[:, a].max()) - lo[a] + 1 for a in range(keys.shape[1])]
@@ -15,7 +15,7 @@ def flat_keys(keys: np.ndarray) -> np.ndarray | None:
         return None
     flat = keys[:, 0].astype(np.int64) - lo[0]
     for a in range(1, keys.shape[1]):
-        flat = flat * dims[a] + (keys[:, a] - lo[a])
+        flat = flat * dims[a] + (keys[:, a].astype(np.int64) - lo[a])
     return flat
 
 

@@ -47,6 +47,7 @@ def refine(inputs: RunInputs, cfg: RunConfig, out: Path, cache_dir: Path | None,
             if lead:
                 start = dense_start(inputs.scans, prep, start, cfg.optimiser, cfg.seed, progress, metric,
                                     checkpoint_dir=out, resume=resume, dense_cells=cells)
+            cells = None  # the epochs and the outputs do not read them
             if sess.mode is parallel.Mode.TORCHRUN:
                 start = distributed.broadcast(start)
         watch = parallel.Watch(metric, map_entropy(sampler), metric) if lead else None

@@ -67,7 +67,9 @@ class Start:
     map_entropy: dict[str, float] = field(default_factory=dict)  # candidate -> mean map entropy
     dense: dict = field(default_factory=dict)
     cuts: dict[str, dict] = field(default_factory=dict)  # "graph" -> its cut steps (``continuity.Cuts.summary``)
-    agreement_m2: dict[str, float] = field(default_factory=dict)  # candidate -> :meth:`DenseCells.agreement`
+    #: candidate ("prepared", "graph") -> :meth:`DenseCells.agreement`, judged on those two's planes (the dense
+    #: stage's own ``agreement_m2``, in ``dense``, judges its start and result on theirs)
+    agreement_m2: dict[str, float] = field(default_factory=dict)
 
     @property
     def refined(self) -> bool:
@@ -126,19 +128,23 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None,
         why = (f"the pose-graph solution cuts the sequence at {cut.describe()}, which neither the odometry nor the "
                "registration of those frames says")
         return Start(prepared, StartKind.PREPARED, why, cuts=cuts)
-    if judge is not None:  # each frame against the planes the others make
-        agreement = judge.agreement({"prepared": prepared, "graph": solved})
+    agreement = judge.agreement({"prepared": prepared, "graph": solved}) if judge is not None else {}
+    if agreement and all(np.isfinite(v) for v in agreement.values()):  # each frame against the others' planes
         if agreement["graph"] <= agreement["prepared"]:
             return Start(solved, StartKind.GRAPH, "the pose-graph solution's frames agree better with the planes the "
                          "others see", cuts=cuts, agreement_m2=agreement)
         return Start(prepared, StartKind.PREPARED, "the pose-graph solution's frames agree worse with the planes the "
                      "others see", cuts=cuts, agreement_m2=agreement)
+    # no judge, or no plane seen by two frames to judge by: the maps' sharpness
     if sampler is None:
-        return Start(solved, StartKind.GRAPH, "pose-graph solution (no map to compare)", cuts=cuts)
+        return Start(solved, StartKind.GRAPH, "pose-graph solution (no map to compare)", cuts=cuts,
+                     agreement_m2=agreement)
     scores = {"prepared": sampler.evaluate(prepared).entropy, "graph": sampler.evaluate(solved).entropy}
     if scores["graph"] <= scores["prepared"]:
-        return Start(solved, StartKind.GRAPH, "the pose-graph solution makes the sharper map", scores, cuts=cuts)
-    return Start(prepared, StartKind.PREPARED, "the pose-graph solution makes a blurrier map", scores, cuts=cuts)
+        return Start(solved, StartKind.GRAPH, "the pose-graph solution makes the sharper map", scores, cuts=cuts,
+                     agreement_m2=agreement)
+    return Start(prepared, StartKind.PREPARED, "the pose-graph solution makes a blurrier map", scores, cuts=cuts,
+                 agreement_m2=agreement)
 
 
 def range_noise(prep: Prepared) -> float | None:
@@ -154,7 +160,8 @@ def range_noise(prep: Prepared) -> float | None:
 @dataclass
 class DenseCells:
     """Every scan compressed into the dense stage's cells (:func:`cells_from_scans`), with the voxel of its planes
-    and the planar scans' range noise (None for 3D); built once, for judging the start and for the stage."""
+    and the planar scans' range noise (None for 3D); built once, for judging the start and for the stage (from the
+    scans, config and seed the stage itself would use: nothing checks that they are)."""
 
     cells: Cells
     voxel: float
@@ -194,7 +201,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     if cfg.dense is False:
         return start
     planar = prep.frames.planar
-    built = dense_cells or DenseCells.of(scans, prep, cfg, seed, progress)
+    built = DenseCells.of(scans, prep, cfg, seed, progress) if dense_cells is None else dense_cells
     cells, voxel, noise = built.cells, built.voxel, built.noise
     # each registration weighed by its own Hessian where the preparation recorded one (every planar one)
     graph = build_graph(prep.frames, prep.initial, prep.topology, prep.pairwise, InformationModel(use_hessians=True))
