@@ -130,10 +130,10 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None,
         return Start(prepared, StartKind.PREPARED, why, cuts=cuts)
     agreement = judge.agreement({"prepared": prepared, "graph": solved}) if judge is not None else {}
     if agreement and all(np.isfinite(v) for v in agreement.values()):  # each frame against the others' planes
+        graph_agrees = agreement["graph"] <= agreement["prepared"]
         log.info("start: the %s poses (frames' disagreement with the others' planes: prepared %.3g m2, graph %.3g m2)",
-                 "graph" if agreement["graph"] <= agreement["prepared"] else "prepared", agreement["prepared"],
-                 agreement["graph"])
-        if agreement["graph"] <= agreement["prepared"]:
+                 "graph" if graph_agrees else "prepared", agreement["prepared"], agreement["graph"])
+        if graph_agrees:
             return Start(solved, StartKind.GRAPH, "the pose-graph solution's frames agree better with the planes the "
                          "others see", cuts=cuts, agreement_m2=agreement)
         return Start(prepared, StartKind.PREPARED, "the pose-graph solution's frames agree worse with the planes the "
