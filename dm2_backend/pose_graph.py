@@ -30,6 +30,8 @@ class PoseGraph:
     planar: bool = False
     fixed: list[int] = field(default_factory=list)
     meta: dict = field(default_factory=dict)
+    #: (E,) bool: edges solved as given, without a robust kernel (steps the step guard holds); None: none
+    exact: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -48,6 +50,21 @@ class PoseGraph:
         if self.planar:
             return self.information.copy()
         return self.information[:, ROTATION_FIRST][:, :, ROTATION_FIRST]
+
+    def holding(self, steps: np.ndarray, relative: np.ndarray, information: float) -> PoseGraph:
+        """This graph with one exact edge per step ``steps[k]`` (node row ``k`` to the next) at ``relative[k]``,
+        ``information`` (1/m^2, 1/rad^2) on every axis: those steps held where ``relative`` puts them."""
+        steps = np.asarray(steps, dtype=int)
+        dim = 3 if self.planar else 6
+        relative = np.asarray(relative, dtype=np.float64).reshape(-1, 4, 4)
+        if self.planar:
+            relative = se3.from_xy_yaw(se3.to_xy_yaw(relative)).reshape(-1, 4, 4)
+        exact = self.exact if self.exact is not None else np.zeros(len(self.edges), bool)
+        return replace(self, edges=np.concatenate([self.edges, np.stack([self.ids[steps], self.ids[steps + 1]], 1)]),
+                       relative=np.concatenate([self.relative, relative]),
+                       information=np.concatenate([self.information, np.tile(np.eye(dim) * information,
+                                                                             (len(steps), 1, 1))]),
+                       exact=np.concatenate([exact, np.ones(len(steps), bool)]))
 
     def lifted_to_se3(self, hold: float) -> PoseGraph:
         """This graph as an SE(3) one: a planar graph's [x y theta] information on x, y and yaw

@@ -40,7 +40,14 @@ from dm2_backend.algorithms.common import (
     rotation_angle,
     voxel_cloud,
 )
-from dm2_backend.algorithms.gates import Gate, GateFailure, constraint, coverage
+from dm2_backend.algorithms.gates import (
+    Gate,
+    GateFailure,
+    constraint,
+    coverage,
+    plane_residual,
+    significantly_worse,
+)
 from dm2_backend.algorithms.icp import register
 from dm2_backend.algorithms.loop_graph3d import Closure3, FrameGraph
 from dm2_backend.algorithms.topology import check_k, check_poses
@@ -167,7 +174,7 @@ class Loops3dTopology:
             source = Cloud(frames.points[k + 1], False, 2.0 * fine)
             m = register(source, target, steps[k], (4.0 * fine, fine), "gicp")
             if np.isfinite(m.T).all() and np.linalg.norm(se3.relative(steps[k], m.T)[:3, 3]) > limit and \
-                    self._sound(source, target, m):
+                    self._replaces(source, target, m, steps[k]):
                 steps[k] = orthonormal(m.T)
                 repaired.append(k)
             target = source
@@ -266,9 +273,19 @@ class Loops3dTopology:
             failed.append(GateFailure(Gate.DEGENERATE, c, self.min_constraint))
         return failed
 
-    def _sound(self, src: Cloud, tgt: Cloud, m) -> bool:
-        """A frame-pair registration good enough to replace a front-end step: it passes the closure gates."""
-        return m.fitness > 0 and not self._gates(src, tgt, m, {})
+    def _replaces(self, src: Cloud, tgt: Cloud, m, step: np.ndarray) -> bool:
+        """A frame-pair registration replaces the front end's ``step`` when it passes the closure gates, or fails
+        only the translation constraint (a view of few surfaces, where a scan matcher slides) while the two
+        frames' residual at the front end's step is beyond what their noise explains
+        (:func:`~dm2_backend.algorithms.gates.significantly_worse`)."""
+        if m.fitness <= 0:
+            return False
+        failed = {f.gate for f in self._gates(src, tgt, m, {})}
+        if not failed:
+            return True
+        fine = self._lengths["fine"]
+        return failed == {Gate.DEGENERATE} and significantly_worse(
+            plane_residual(src, tgt, step, fine), plane_residual(src, tgt, m.T, fine), False)
 
     def _submap(self, frames: Frames, poses: np.ndarray, b: int) -> Cloud:
         """Scans from keyframe b-1 to b+1, in keyframe b's frame, voxel-down-sampled."""

@@ -243,6 +243,12 @@ def assemble(
             if j not in seen and 0 <= j < n and len(chosen) < k:
                 chosen.append((j, kind))
                 seen.add(j)
+        if temporal and i + 1 < n and i + 1 not in seen:  # every step is registered: it holds the sequence
+            if len(chosen) >= k:
+                spare = [c for c, (_, kind) in enumerate(chosen) if kind != "loop"]
+                seen.discard(chosen.pop(spare[-1] if spare else -1)[0])
+            chosen.append((i + 1, "temporal"))
+            seen.add(i + 1)
         if temporal:
             for j in temporal_order(i, n):
                 if len(chosen) >= k:

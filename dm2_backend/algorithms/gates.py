@@ -141,3 +141,33 @@ def constraint(source: Cloud, target: Cloud, T: np.ndarray, distance: float) -> 
         return 0.0
     n = normals[idx[ok]]
     return float(np.linalg.eigvalsh(n.T @ n / len(n))[0])
+
+
+def plane_residual(source: Cloud, target: Cloud, T: np.ndarray, distance: float) -> tuple[float, int]:
+    """Rms point-to-plane (planar: point-to-line) residual (m) of ``source`` placed at ``T`` against ``target``,
+    over the source points with a target point within ``distance``, and how many those are (rms inf if none)."""
+    moved = se3.transform_points(T, source.points)
+    query = moved[:, :2] if source.planar else moved
+    dist, idx = target.tree.query(query, distance_upper_bound=distance)
+    ok = np.isfinite(dist)
+    if not ok.any():
+        return float("inf"), 0
+    gap = query[ok] - (target.xy if target.planar else target.points)[idx[ok]]
+    r = np.einsum("ij,ij->i", target.normals[idx[ok]], gap)
+    return float(np.sqrt(np.mean(r**2))), int(ok.sum())
+
+
+def significantly_worse(worse: tuple[float, int], better: tuple[float, int], planar: bool) -> bool:
+    """Whether the residual ``worse`` (rms, matched points: :func:`plane_residual`) exceeds ``better`` by more than
+    the two scans' noise explains: its squared residuals rise by more than :data:`CHI2_3` (planar) or
+    :data:`CHI2_6` noise variances over the points matched."""
+    (rms, matched), (best, _) = worse, better
+    if matched == 0 or not np.isfinite(best) or best <= 0:
+        return False
+    return bool(rms**2 / best**2 - 1.0 > (CHI2_3 if planar else CHI2_6) / matched)
+
+
+#: the 99.9th percentile of chi-square with 6 (3) degrees of freedom: the rise of a registration's squared
+#: residuals (over the noise variance) that its own uncertainty explains once in a thousand pairs
+CHI2_6 = 22.46
+CHI2_3 = 16.27

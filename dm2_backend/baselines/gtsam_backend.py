@@ -71,7 +71,8 @@ def from_values(graph: PoseGraph, values: gtsam.Values) -> np.ndarray:
 
 
 def factor_graph(graph: PoseGraph, options: SolverOptions | None = None) -> gtsam.NonlinearFactorGraph:
-    """Between factors (information in GTSAM's rotation-first order) plus the anchor prior."""
+    """Between factors (information in GTSAM's rotation-first order; the robust kernel on every edge but the
+    graph's ``exact`` ones) plus the anchor prior."""
     options = options or SolverOptions()
     options.check()
     fg = gtsam.NonlinearFactorGraph()
@@ -86,9 +87,10 @@ def factor_graph(graph: PoseGraph, options: SolverOptions | None = None) -> gtsa
         else:
             fg.add(gtsam.PriorFactorPose3(n, gtsam.Pose3(T), prior))
     robust = ESTIMATORS[options.robust].Create(options.kernel_k()) if options.robust else None
-    for (i, j), Z, omega in zip(graph.edges.tolist(), graph.relative, info, strict=True):
+    exact = graph.exact if graph.exact is not None else np.zeros(len(graph.edges), bool)
+    for (i, j), Z, omega, as_given in zip(graph.edges.tolist(), graph.relative, info, exact, strict=True):
         noise = gtsam.noiseModel.Gaussian.Information(omega)
-        if robust is not None:
+        if robust is not None and not as_given:
             noise = gtsam.noiseModel.Robust.Create(robust, noise)
         if graph.planar:
             fg.add(gtsam.BetweenFactorPose2(i, j, gtsam.Pose2(*se3.to_xy_yaw(Z)), noise))

@@ -37,6 +37,7 @@ from dm2_backend.optim.config import OptimConfig, dense_voxel
 from dm2_backend.optim.dense import refine_dense
 from dm2_backend.optim.dense_checkpoint import DENSE_CHECKPOINT
 from dm2_backend.optim.planes import Cells, agreement_score, cells_from_scans
+from dm2_backend.pipeline import step_guard
 from dm2_backend.prepare.steps import Prepared
 from dm2_backend.scans import ScanSequence
 
@@ -216,6 +217,16 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
                           checkpoint=checkpoint, resume=resume, measure_odometry=cfg.dense_odometry_noise)
     if planar:
         result.poses = project_planar(result.poses)
+
+    def resolve(poses: np.ndarray, held: dict[int, np.ndarray]) -> np.ndarray:
+        steps = np.array(sorted(held))
+        holding = graph.holding(steps, np.stack([held[s] for s in steps]), step_guard.HOLD)
+        again = refine_dense(cells, holding, poses, voxel, cfg.dense_rounds, progress=progress, trace=trace,
+                             measure_odometry=cfg.dense_odometry_noise).poses
+        return project_planar(again) if planar else again
+
+    guarded = step_guard.guard(step_guard.judge_of(prep), result.poses, resolve)
+    result.poses = guarded.poses
     # never worse than where it started, judged without ground truth: each frame against the map the others make
     candidates = {"warm start": prep.warm_start, start.name.value: start.poses, "dense": result.poses}
     agreement = agreement_score(cells, candidates, voxel, judges=(start.name.value, "dense"))
@@ -225,6 +236,9 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     chosen = min(finite, key=finite.get) if judged else start.name.value
     reason = f"{chosen} agrees better" if judged else "no plane seen by two frames to judge by"
     cut = sequence_cuts(prep, result.poses)
+    if chosen == "dense" and not guarded.clean:  # held and solved again, a step is still contradicted
+        log.warning("dense stage's result not kept: its frames contradict %s", guarded.check.describe())
+        chosen, reason = start.name.value, f"its frames contradict {guarded.check.describe()}"
     if chosen == "dense" and cut:  # its frames agree, its steps do not: the start stands
         log.warning("dense stage's result not kept: it cuts the sequence at %s", cut.describe())
         chosen, reason = start.name.value, f"it cuts the sequence at {cut.describe()}"
@@ -233,12 +247,32 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
                "rounds": len(result.history), "stopped": result.stopped,
                "history": result.history, "resumed_after_round": result.resumed_after,
                "odometry_noise": result.odometry.summary() if result.odometry else None,
-               "agreement_m2": agreement, "cuts": cut.summary(), "returned": chosen}
-    log.info("dense: %d cells of %.3g m and up, %s; returned %s (frames' disagreement with the others' planes: %s)",
-             len(cells), cells.size, result.stopped, chosen,
+               "agreement_m2": agreement, "cuts": cut.summary(), "step_guard": guarded.summary(),
+               "returned": chosen}
+    log.info("dense: %d cells of %.3g m and up, %s; %s; returned %s (frames' disagreement with the others' "
+             "planes: %s)", len(cells), cells.size, result.stopped, _guard_text(guarded), chosen,
              ", ".join(f"{k} {v:.3g} m2" for k, v in agreement.items()))
     if chosen != "dense":
         return Start(candidates[chosen], start.name if chosen == start.name.value else StartKind.PREPARED,
                      f"{start.why}; the dense stage's result was not kept ({reason})",
                      start.map_entropy, summary, start.cuts, start.agreement_m2)
     return Start(result.poses, start.name, start.why, start.map_entropy, summary, start.cuts, start.agreement_m2)
+
+
+def _guard_text(guarded: step_guard.Guarded) -> str:
+    """``step guard: 17 steps held (271-304, 448), none contradicted`` for the console."""
+    if not guarded.held:
+        return f"step guard: none of {len(guarded.check.steps)} steps contradicted by their frames"
+    left = f"{guarded.check.count} still contradicted" if guarded.check.count else "none contradicted"
+    return f"step guard: {len(guarded.held)} steps held ({spans(sorted(guarded.held))}), {left}"
+
+
+def spans(steps: list[int]) -> str:
+    """``[3, 4, 5, 9]`` -> ``3-5, 9``."""
+    out: list[list[int]] = []
+    for s in steps:
+        if out and s == out[-1][1] + 1:
+            out[-1][1] = s
+        else:
+            out.append([s, s])
+    return ", ".join(f"{a}-{b}" if b > a else f"{a}" for a, b in out)
