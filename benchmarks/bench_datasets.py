@@ -182,6 +182,52 @@ def redkitchen(env: Env) -> Inputs:
                   {"scans": str(folder), "gt": "its reference poses (KinectFusion)", "warm_start": "icp"})
 
 
+def redkitchen_500(env: Env) -> Inputs:
+    folder = DATA / "depth3d" / "redkitchen_500-999"
+    _need(folder)
+    args = ["-s", str(folder), "--warm-start", "icp", "--gt", str(folder), "--gt-format", "depth"]
+    return Inputs(args, 500,
+                  {"scans": str(folder), "gt": "its reference poses (KinectFusion)", "warm_start": "icp"})
+
+
+#: the drifted-reference input: a rotation and a translation growing linearly over the sequence to these
+DRIFT_DEG, DRIFT_M = 3.0, 0.05
+#: 7-Scenes frames are 30 Hz; the high-rate input is sampled at 100 Hz
+SEVEN_SCENES_HZ, HIGH_RATE_HZ = 30.0, 100.0
+
+
+def drifted_reference(folder: str, rate: float | None) -> Callable[[Env], Inputs]:
+    """The 7-Scenes ``folder``'s reference poses with a smooth drift (:data:`DRIFT_DEG` about a fixed tilted axis
+    and :data:`DRIFT_M` along another, both growing linearly over the sequence, applied in the world) as the
+    ``--poses`` input: locally exact, globally off. ``rate``: the input sampled at that rate (Hz, interpolated on
+    SE(3)) instead of at the frames' stamps."""
+    def load(env: Env) -> Inputs:
+        from scipy.spatial.transform import Rotation
+
+        from dm2_backend.formats import ReadOptions, read_trajectory
+        from dm2_backend.geometry import se3
+
+        src = DATA / "depth3d" / folder
+        _need(src)
+        ref = read_trajectory(src, "depth", ReadOptions())
+        stamps = ref.timestamps
+        s = np.linspace(0.0, 1.0, len(ref))
+        axis = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)
+        drift = se3.make_poses(Rotation.from_rotvec(np.outer(s, axis) * np.radians(DRIFT_DEG)).as_matrix(),
+                               np.outer(s, np.array([1.0, -1.0, 0.5]) / 1.5) * DRIFT_M)
+        poses = drift @ ref.poses
+        if rate is not None:
+            query = np.arange(stamps[0], stamps[-1] + 1e-9, 1.0 / rate)
+            poses, stamps = se3.interpolate(stamps, poses, query), query
+        out = env.cache / f"{folder}-drift-{int(rate or SEVEN_SCENES_HZ)}hz.tum"
+        xyz, q = se3.to_xyz_quat(poses, "xyzw")
+        np.savetxt(out, np.column_stack([stamps, xyz, q]), fmt="%.9f")
+        return Inputs(["-s", str(src), "-p", str(out), "--gt", str(src), "--gt-format", "depth"], len(ref),
+                      {"scans": str(src), "poses": f"its reference poses with a smooth drift ({DRIFT_DEG} deg, "
+                       f"{DRIFT_M} m over the sequence) at {rate or SEVEN_SCENES_HZ} Hz", "gt": "its reference poses"})
+    return load
+
+
 def kitti00(env: Env) -> Inputs:
     folder = DATA / "lidar3d" / "kitti00"
     _need(folder / "poses_gt.txt", folder / "calib.txt")
@@ -322,6 +368,14 @@ DATASETS: dict[str, Dataset] = {d.name: d for d in [
             carmen("intel")),
     Dataset("redkitchen", "7-Scenes RedKitchen frames 0-499 (real depth camera), icp warm start", "ape",
             redkitchen),
+    Dataset("redkitchen-500", "7-Scenes RedKitchen frames 500-999 (real depth camera), icp warm start", "ape",
+            redkitchen_500),
+    Dataset("redkitchen-drift", "7-Scenes RedKitchen frames 500-999 with its reference poses plus a smooth drift as "
+            "the input (locally exact, at the frames' 30 Hz)", "ape", drifted_reference("redkitchen_500-999", None)),
+    Dataset("redkitchen-drift-100hz", "the same drifted reference sampled at 100 Hz", "ape",
+            drifted_reference("redkitchen_500-999", HIGH_RATE_HZ)),
+    Dataset("redkitchen-0-drift", "7-Scenes RedKitchen frames 0-499 with its reference poses plus a smooth drift as "
+            "the input (locally exact, 30 Hz)", "ape", drifted_reference("redkitchen_000-499", None)),
     Dataset("kitti00-6", "KITTI odometry 00 frames 0-5 (real Velodyne HDL-64), icp warm start", "ape",
             kitti00, note="6 almost collinear poses: the SE(3) alignment of APE leaves the roll about "
             "the path nearly free, so its rotation error means little here (paper_ate_rot_deg in the JSON "

@@ -78,6 +78,15 @@ SETS: dict[str, dict] = {
         "epochs": None,
         "timeout": 3600,
     },
+    # real depth frames: the icp warm start of both halves of RedKitchen, and its reference poses plus a smooth
+    # drift as the input (refine must lower APE and keep RPE per frame within 1.5 mm of the input's)
+    "depth": {
+        "cases": {"redkitchen": ["dm2 refine", "gtsam"], "redkitchen-500": ["dm2 refine", "gtsam"],
+                  "redkitchen-drift": ["dm2 refine"], "redkitchen-drift-100hz": ["dm2 refine"],
+                  "redkitchen-0-drift": ["dm2 refine"]},
+        "epochs": None,
+        "timeout": 3600,
+    },
     "3d-ablations": {
         "cases": {name: ["dm2 refine", *ABLATIONS_3D, "gtsam"]
                   for name in ("sim-3d-500", "balm")},

@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 #: information (1/m^2, 1/rad^2) of a held step: 1 mm, 1 mrad
 HOLD = 1e6
 #: at most this many times the contradicted steps are held and the stage solved again
-ROUNDS = 3
+ROUNDS = 4
 
 
 @dataclass(frozen=True)
@@ -71,11 +71,15 @@ def guard(judge: StepJudge, poses: np.ndarray,
     check = judge.check(poses)
     held: dict[int, np.ndarray] = {}
     rounds = []
-    for _ in range(ROUNDS):
+    for r in range(ROUNDS):
         if not check.count:
             break
         bad = np.flatnonzero(check.contradicted)
-        held.update({int(check.steps[k]): check.reference_step[k] for k in bad})
+        reach = 2**r - 1  # a held step hands its tension to its neighbours: each round holds a wider stretch
+        for k in bad:
+            for i in range(int(check.steps[k]) - reach, int(check.steps[k]) + reach + 1):
+                if 0 <= i < len(poses) - 1 and i not in held:
+                    held[i] = judge.best_reference(i)[2]
         log.info("step guard: %d step(s) contradicted by their frames: %s; held and solved again", len(bad),
                  check.describe())
         rounds.append({"contradicted": check.steps[bad].tolist(), "held": len(held)})
