@@ -18,6 +18,16 @@ PLANAR_AXES = np.array([0, 1, 5])
 HELD_AXES = np.array([2, 3, 4])
 
 
+def lift_planar_information(information: np.ndarray, hold: float) -> np.ndarray:
+    """Planar informations (E, 3, 3) on [x y theta] as SE(3) ones (E, 6, 6): on x, y and yaw
+    (:data:`PLANAR_AXES`), and ``hold`` on z, roll and pitch (:data:`HELD_AXES`)."""
+    information = np.asarray(information, dtype=np.float64).reshape(-1, 3, 3)
+    info = np.zeros((len(information), 6, 6))
+    info[:, PLANAR_AXES[:, None], PLANAR_AXES[None, :]] = information
+    info[:, HELD_AXES, HELD_AXES] = hold
+    return info
+
+
 @dataclass
 class PoseGraph:
     """Nodes (ascending ids) with initial poses, and relative-pose edges with information matrices."""
@@ -51,19 +61,19 @@ class PoseGraph:
             return self.information.copy()
         return self.information[:, ROTATION_FIRST][:, :, ROTATION_FIRST]
 
-    def holding(self, steps: np.ndarray, relative: np.ndarray, information: float) -> PoseGraph:
-        """This graph with one exact edge per step ``steps[k]`` (node row ``k`` to the next) at ``relative[k]``,
-        ``information`` (1/m^2, 1/rad^2) on every axis: those steps held where ``relative`` puts them."""
+    def holding(self, steps: np.ndarray, relative: np.ndarray, information: np.ndarray) -> PoseGraph:
+        """This graph with one exact edge per step ``steps[k]`` (node row ``k`` to the next) at ``relative[k]`` with
+        ``information[k]`` (this graph's order and size): those steps held where the information pins them."""
         steps = np.asarray(steps, dtype=int)
-        dim = 3 if self.planar else 6
         relative = np.asarray(relative, dtype=np.float64).reshape(-1, 4, 4)
         if self.planar:
             relative = se3.from_xy_yaw(se3.to_xy_yaw(relative)).reshape(-1, 4, 4)
+        dim = 3 if self.planar else 6
         exact = self.exact if self.exact is not None else np.zeros(len(self.edges), bool)
         return replace(self, edges=np.concatenate([self.edges, np.stack([self.ids[steps], self.ids[steps + 1]], 1)]),
                        relative=np.concatenate([self.relative, relative]),
-                       information=np.concatenate([self.information, np.tile(np.eye(dim) * information,
-                                                                             (len(steps), 1, 1))]),
+                       information=np.concatenate([self.information,
+                                                   np.asarray(information, dtype=np.float64).reshape(-1, dim, dim)]),
                        exact=np.concatenate([exact, np.ones(len(steps), bool)]))
 
     def lifted_to_se3(self, hold: float) -> PoseGraph:
@@ -72,9 +82,7 @@ class PoseGraph:
         them (``meta["held"]`` records it); a 3D graph as it is."""
         if not self.planar:
             return self
-        info = np.zeros((len(self.information), 6, 6))
-        info[:, PLANAR_AXES[:, None], PLANAR_AXES[None, :]] = self.information
-        info[:, HELD_AXES, HELD_AXES] = hold
+        info = lift_planar_information(self.information, hold)
         held = {"axes": HELD_AXES.tolist(), "information": float(hold)}
         return replace(self, information=info, planar=False, meta={**self.meta, "held": held})
 

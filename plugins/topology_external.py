@@ -47,7 +47,8 @@ class ExternalTopology:
             pos = poses[:, :3, 3]
             near = [np.linalg.norm(pos[row] - pos[i], axis=1) <= self.radius for i, row in enumerate(rows)]
             rows = [[j for j, ok in zip(row, keep, strict=True) if ok] for row, keep in zip(rows, near, strict=True)]
-        topo = assemble([[(j, "external") for j in row] for row in rows], k, self.temporal_fill)
+        topo = assemble([[(j, "external") for j in row] for row in rows], k, self.temporal_fill,
+                        successor=False)  # the groups as given
         kind = "group matrix" if groups else "embeddings"
         topo.log.append({"plugin": self.name, "path": str(self.path), "k": k, "input": kind})
         return topo

@@ -45,7 +45,6 @@ from dm2_backend.algorithms.gates import (
     GateFailure,
     constraint,
     coverage,
-    plane_residual,
     significantly_worse,
 )
 from dm2_backend.algorithms.icp import register
@@ -283,9 +282,7 @@ class Loops3dTopology:
         failed = {f.gate for f in self._gates(src, tgt, m, {})}
         if not failed:
             return True
-        fine = self._lengths["fine"]
-        return failed == {Gate.DEGENERATE} and significantly_worse(
-            plane_residual(src, tgt, step, fine), plane_residual(src, tgt, m.T, fine), False)
+        return failed == {Gate.DEGENERATE} and significantly_worse(src, tgt, step, m.T, self._lengths["fine"])
 
     def _submap(self, frames: Frames, poses: np.ndarray, b: int) -> Cloud:
         """Scans from keyframe b-1 to b+1, in keyframe b's frame, voxel-down-sampled."""

@@ -146,8 +146,9 @@ def test_the_dense_stage_on_planar_scans_stays_planar_and_lowers_the_error():
     out = dense_start(seq, prep, Start(start, StartKind.PREPARED, "test"), OptimConfig())
     assert out.refined and out.dense["rounds"] >= 1
     assert all(se3.is_planar(p) for p in out.poses)  # projected; before that the graph held them (test below)
-    assert floor < 0.01
-    assert ate_rmse(case.gt, out.poses) < min(2.5 * floor, 0.2 * ate_rmse(case.gt, start))
+    assert floor < 0.01  # the truth stands (its steps fit their frames best) or moves within the noise
+    assert ate_rmse(case.gt, out.poses) < min(0.01, 0.2 * ate_rmse(case.gt, start))
+    assert out.dense["step_guard"]["contradicted"] == 0 and truth.dense["step_guard"]["contradicted"] == 0
 
 
 def test_a_planar_graph_lifted_to_se3_has_the_planar_costs_and_optimum(prepared):

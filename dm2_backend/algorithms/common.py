@@ -229,10 +229,12 @@ def loop_rows(
 
 
 def assemble(
-    candidates: list[list[tuple[int, str]]], k: int, temporal: bool = True, log: list | None = None
+    candidates: list[list[tuple[int, str]]], k: int, temporal: bool = True, log: list | None = None,
+    successor: bool = True,
 ) -> Topology:
     """Topology from per-anchor (neighbour, kind) lists, best first; duplicates and the anchor itself
-    dropped, then filled up with temporal neighbours to k."""
+    dropped, then filled up with temporal neighbours to k. With ``temporal`` and ``successor`` frame i+1 is
+    always in frame i's group (in place of its last candidate that is not a loop): every step is registered."""
     n = len(candidates)
     groups = np.full((n, k), -1, dtype=np.int64)
     kinds: dict[tuple[int, int], str] = {}
@@ -243,7 +245,7 @@ def assemble(
             if j not in seen and 0 <= j < n and len(chosen) < k:
                 chosen.append((j, kind))
                 seen.add(j)
-        if temporal and i + 1 < n and i + 1 not in seen:  # every step is registered: it holds the sequence
+        if temporal and successor and i + 1 < n and i + 1 not in seen:
             if len(chosen) >= k:
                 spare = [c for c, (_, kind) in enumerate(chosen) if kind != "loop"]
                 seen.discard(chosen.pop(spare[-1] if spare else -1)[0])

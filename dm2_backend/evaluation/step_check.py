@@ -4,13 +4,15 @@ Each step ``i -> i+1`` is placed at the candidate's relative pose and at each re
 registration of the pair, and the front end's odometry step): frame ``i+1``'s points are matched to frame ``i``'s
 nearest points within the registration's fine correspondence distance, and the rms of their point-to-plane
 (planar scans: point-to-line) residuals is taken. The step's *excess* is how much larger its mean squared residual
-is than the best reference's, as a fraction of the latter. A step is *contradicted* when its excess is beyond both
+is than the best reference's, as a fraction of the latter. A step is *contradicted* when
 
-- what the two frames' noise explains for six (planar: three) free parameters: :data:`CHI2_6` (``CHI2_3``) over
-  the number of matched points, the excess a registration's own uncertainty gives once in a thousand pairs; and
-- the sequence's own spread: the median excess plus :data:`RATIO` robust sigmas (1.4826 x the median absolute
-  deviation) of the excesses of all steps (the pairwise registrations and a multi-frame solution differ by a
-  little everywhere; a step that breaks stands out by an order of magnitude).
+- its excess lies beyond the sequence's own spread: the median excess plus :data:`RATIO` robust sigmas (1.4826 x
+  the median absolute deviation) of the excesses of the steps that differ from their reference (a multi-frame
+  solution and the pairwise registrations differ by a little everywhere; a step that breaks stands out by an
+  order of magnitude; fewer than :data:`MIN_STEPS` such steps: no spread is taken), and
+- the two frames fit every reference better than the candidate beyond chance, point by point
+  (:func:`~dm2_backend.algorithms.gates.significantly_worse`): a registration can slide into a spurious minimum
+  along a corridor, where the odometry's step, which the candidate keeps, fits the frames as well.
 
 Why: a multi-frame objective can trade a step for a sharper map in the mean. On real depth frames (7-Scenes
 RedKitchen 500-999) the dense stage moved a stretch of steps 4-11 cm away from the steps that both the reference
@@ -26,12 +28,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from dm2_backend.algorithms.common import Cloud
-from dm2_backend.algorithms.gates import CHI2_3, CHI2_6, plane_residual
+from dm2_backend.algorithms.gates import plane_residual, plane_residuals, significantly_worse
 from dm2_backend.geometry import se3
 
 #: a step whose excess lies more than this many robust sigmas above the sequence's median excess stands out
 RATIO = 10.0
-#: the fewest steps the sequence's spread is taken over; shorter sequences are judged by the noise floor alone
+#: the fewest steps the sequence's spread is taken over; with fewer the point-by-point test judges alone
 MIN_STEPS = 20
 #: the fewest matched points a residual is taken over (fewer: the step is not judged)
 MIN_MATCHED = 10
@@ -52,8 +54,11 @@ class StepCheck:
     reference_step: np.ndarray  # (S, 4, 4) the best reference's relative pose
     excess: np.ndarray
     matched: np.ndarray
-    threshold: np.ndarray  # the excess above which each step is contradicted
+    threshold: float  # the excess above which a step is tested point by point (0: every step is)
     contradicted: np.ndarray  # bool
+    #: how well all the steps fit their frames: the rms point-to-plane residual (m) over every point of every
+    #: second frame, a point without a match within the distance counting as the distance (NaN: none judged)
+    fit_m: float = float("nan")
 
     @property
     def count(self) -> int:
@@ -72,15 +77,17 @@ class StepCheck:
         """The per-step record of ``report.json``: every judged step, what it was compared with and the verdict."""
         return {"steps": self.steps.tolist(), "residual_m": self.residual_m.tolist(),
                 "reference_residual_m": self.reference_residual_m.tolist(), "reference": list(self.reference),
-                "excess": self.excess.tolist(), "threshold": self.threshold.tolist(),
+                "excess": self.excess.tolist(), "threshold": self.threshold, "fit_m": self.fit_m,
                 "matched": self.matched.tolist(), "contradicted": np.flatnonzero(self.contradicted).tolist()}
 
 
 class FramePairs:
     """The frames' points as clouds with normals (built once), for residuals of frame ``i+1`` against ``i``."""
 
-    def __init__(self, points: list[np.ndarray], planar: bool, distance: float) -> None:
-        self.points, self.planar, self.distance = points, planar, float(distance)
+    def __init__(self, points: list[np.ndarray], planar: bool, distance: float, floor: float = 0.0) -> None:
+        """``distance``: the correspondence distance (m); ``floor``: the least noise a residual is taken to have
+        (m)."""
+        self.points, self.planar, self.distance, self.floor = points, planar, float(distance), float(floor)
         self._clouds: dict[int, Cloud] = {}
 
     def cloud(self, i: int) -> Cloud:
@@ -121,28 +128,42 @@ class StepJudge:
 
     def check(self, poses: np.ndarray) -> StepCheck:
         """Every step of ``poses``; the sequence's spread is taken over the steps judged."""
-        rows = []
+        rows, squares, points = [], 0.0, 0
         for i in range(len(poses) - 1):
             self.pairs.release({i, i + 1})
-            own, matched = self.pairs.residual(i, se3.relative(poses[i], poses[i + 1]))
-            rows.append((i, own, matched, *self.best_reference(i)))
+            r = plane_residuals(self.pairs.cloud(i + 1), self.pairs.cloud(i), se3.relative(poses[i], poses[i + 1]),
+                                self.pairs.distance)
+            on = np.isfinite(r)
+            own = float(np.sqrt(np.mean(r[on] ** 2))) if on.any() else float("inf")
+            squares += float(np.sum(r[on] ** 2)) + (len(r) - int(on.sum())) * self.pairs.distance**2
+            points += len(r)
+            rows.append((i, own, int(on.sum()), *self.best_reference(i)))
         self.pairs.release(set())
-        return _verdicts([r for r in rows if r[2] >= MIN_MATCHED and np.isfinite(r[1]) and 0 < r[3] < np.inf],
-                         self.pairs.planar)
+        fit = float(np.sqrt(squares / points)) if points else float("nan")
+        rows = [r for r in rows if r[2] >= MIN_MATCHED and np.isfinite(r[1]) and 0 < r[3] < np.inf]
+        if not rows:
+            empty = np.zeros(0)
+            return StepCheck(np.zeros(0, int), empty, empty, (), np.zeros((0, 4, 4)), empty, np.zeros(0, int), 0.0,
+                             np.zeros(0, bool), fit)
+        idx, own, matched, ref = (np.array([r[k] for r in rows]) for k in range(4))
+        poses_ref = np.stack([r[5] for r in rows])
+        excess = own**2 / ref**2 - 1.0
+        threshold = spread_threshold(excess[own != ref])
+        contradicted = np.zeros(len(rows), bool)
+        for k in np.flatnonzero(excess > threshold):
+            i = int(idx[k])
+            step = se3.relative(poses[i], poses[i + 1])
+            contradicted[k] = all(significantly_worse(self.pairs.cloud(i + 1), self.pairs.cloud(i), step, by_step[i],
+                                                      self.pairs.distance)
+                                  for by_step in self.references.values() if i in by_step)
+            self.pairs.release(set())
+        return StepCheck(idx.astype(int), own, ref, tuple(r[4] for r in rows), poses_ref, excess,
+                         matched.astype(int), threshold, contradicted, fit)
 
 
-def _verdicts(rows: list[tuple], planar: bool) -> StepCheck:
-    if not rows:
-        empty = np.zeros(0)
-        return StepCheck(np.zeros(0, int), empty, empty, (), np.zeros((0, 4, 4)), empty, np.zeros(0, int), empty,
-                         np.zeros(0, bool))
-    idx, own, matched, ref = (np.array([r[k] for r in rows]) for k in range(4))
-    excess = own**2 / ref**2 - 1.0
-    floor = (CHI2_3 if planar else CHI2_6) / matched
-    threshold = floor.copy()
-    if len(excess) >= MIN_STEPS:
-        median = float(np.median(excess))
-        spread = 1.4826 * float(np.median(np.abs(excess - median)))
-        threshold = np.maximum(floor, median + RATIO * spread)
-    return StepCheck(idx.astype(int), own, ref, tuple(r[4] for r in rows), np.stack([r[5] for r in rows]), excess,
-                     matched.astype(int), threshold, excess > threshold)
+def spread_threshold(excess: np.ndarray) -> float:
+    """The median of ``excess`` plus :data:`RATIO` robust sigmas; 0 with fewer than :data:`MIN_STEPS` values."""
+    if len(excess) < MIN_STEPS:
+        return 0.0
+    median = float(np.median(excess))
+    return median + RATIO * 1.4826 * float(np.median(np.abs(excess - median)))

@@ -38,6 +38,7 @@ from dm2_backend.optim.dense import refine_dense
 from dm2_backend.optim.dense_checkpoint import DENSE_CHECKPOINT
 from dm2_backend.optim.planes import Cells, agreement_score, cells_from_scans
 from dm2_backend.pipeline import step_guard
+from dm2_backend.pose_graph import lift_planar_information
 from dm2_backend.prepare.steps import Prepared
 from dm2_backend.scans import ScanSequence
 
@@ -218,15 +219,20 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     if planar:
         result.poses = project_planar(result.poses)
 
-    def resolve(poses: np.ndarray, held: dict[int, np.ndarray]) -> np.ndarray:
+    def resolve(poses: np.ndarray, held: dict[int, step_guard.Hold]) -> np.ndarray:
         steps = np.array(sorted(held))
-        holding = graph.holding(steps, np.stack([held[s] for s in steps]), step_guard.HOLD)
+        information = np.stack([held[s].information for s in steps])
+        if planar:  # the graph was lifted to SE(3)
+            information = lift_planar_information(information, PLANAR_HOLD)
+        holding = graph.holding(steps, np.stack([held[s].relative for s in steps]), information)
         again = refine_dense(cells, holding, poses, voxel, cfg.dense_rounds, progress=progress, trace=trace,
                              measure_odometry=cfg.dense_odometry_noise).poses
         return project_planar(again) if planar else again
 
-    guarded = step_guard.guard(step_guard.judge_of(prep), result.poses, resolve)
+    judge = step_guard.judge_of(prep)
+    guarded = step_guard.guard(judge, result.poses, resolve)
     result.poses = guarded.poses
+    start_fit = judge.check(start.poses).fit_m
     # never worse than where it started, judged without ground truth: each frame against the map the others make
     candidates = {"warm start": prep.warm_start, start.name.value: start.poses, "dense": result.poses}
     agreement = agreement_score(cells, candidates, voxel, judges=(start.name.value, "dense"))
@@ -242,12 +248,17 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     if chosen == "dense" and cut:  # its frames agree, its steps do not: the start stands
         log.warning("dense stage's result not kept: it cuts the sequence at %s", cut.describe())
         chosen, reason = start.name.value, f"it cuts the sequence at {cut.describe()}"
+    if chosen == "dense" and guarded.check.fit_m > start_fit:  # sharper as a whole, each step fits worse
+        fits = f"{guarded.check.fit_m * 1e3:.4g} mm against the start's {start_fit * 1e3:.4g} mm"
+        log.info("dense stage's result not kept: its steps fit their frames worse than the start's (%s)", fits)
+        chosen, reason = start.name.value, f"its steps fit their frames worse than the start's ({fits})"
     summary = {"voxel_m": voxel, "range_noise_m": noise, "hessian_edges": graph.meta["hessian_edges"],
                "cell_m": cells.size, "cells": len(cells), "cells_seconds": built.seconds, "seconds": result.seconds,
                "rounds": len(result.history), "stopped": result.stopped,
                "history": result.history, "resumed_after_round": result.resumed_after,
                "odometry_noise": result.odometry.summary() if result.odometry else None,
                "agreement_m2": agreement, "cuts": cut.summary(), "step_guard": guarded.summary(),
+               "start_fit_m": start_fit,
                "returned": chosen}
     log.info("dense: %d cells of %.3g m and up, %s; %s; returned %s (frames' disagreement with the others' "
              "planes: %s)", len(cells), cells.size, result.stopped, _guard_text(guarded), chosen,

@@ -1,11 +1,12 @@
 """The step guard: refine never returns a step that the two frames' own data contradicts.
 
 After the dense stage every consecutive step of its result is judged against the pair's valid registration and
-the front end's odometry step (:mod:`dm2_backend.evaluation.step_check`). The contradicted steps are held at the
-reference their data fits best (an exact edge of :data:`HOLD` information:
-:meth:`~dm2_backend.pose_graph.PoseGraph.holding`) and the dense stage solves again from its result; this repeats
-while steps are contradicted, at most :data:`ROUNDS` times. A result that still has a contradicted step is not
-returned: its start stands.
+the front end's odometry step (:mod:`dm2_backend.evaluation.step_check`). Each contradicted step, and its
+neighbours in a stretch twice as wide each round, is held (:func:`hold_of`: an exact edge,
+:meth:`~dm2_backend.pose_graph.PoseGraph.holding`) where its two frames fit best, with the information they give
+(a direction they leave free, along a corridor or across one wall, is not held), and the dense stage solves again
+from its result; this repeats while steps are contradicted, at most :data:`ROUNDS` times. A result that still has
+a contradicted step is not returned: its start stands.
 """
 
 from __future__ import annotations
@@ -17,17 +18,24 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dm2_backend.algorithms.common import fine_distance, lengths
-from dm2_backend.baselines.graph import valid_pairs
+from dm2_backend.algorithms.icp import register
+from dm2_backend.baselines.graph import InformationModel, hessian_information, rmse_floor, valid_pairs
 from dm2_backend.evaluation.step_check import ODOMETRY, REGISTRATION, FramePairs, StepCheck, StepJudge
 from dm2_backend.geometry import se3
 from dm2_backend.prepare.steps import Prepared
 
 log = logging.getLogger(__name__)
 
-#: information (1/m^2, 1/rad^2) of a held step: 1 mm, 1 mrad
-HOLD = 1e6
 #: at most this many times the contradicted steps are held and the stage solved again
 ROUNDS = 4
+
+
+@dataclass(frozen=True)
+class Hold:
+    """A held step: the relative pose and its information (planar (3, 3) on x y yaw, else (6, 6) g2o order)."""
+
+    relative: np.ndarray
+    information: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -37,7 +45,7 @@ class Guarded:
 
     poses: np.ndarray
     check: StepCheck
-    held: dict[int, np.ndarray] = field(default_factory=dict)
+    held: dict[int, Hold] = field(default_factory=dict)
     rounds: tuple[dict, ...] = ()
 
     @property
@@ -60,16 +68,28 @@ def judge_of(prep: Prepared) -> StepJudge:
                   if b == a + 1}
     warm = np.asarray(prep.warm_start, dtype=np.float64)
     odometry = dict(enumerate(se3.relative(warm[:-1], warm[1:])))
-    return StepJudge(FramePairs(prep.frames.points, prep.frames.planar, distance),
-                     {REGISTRATION: registered, ODOMETRY: odometry})
+    pairs = FramePairs(prep.frames.points, prep.frames.planar, distance,
+                       rmse_floor(prep.frames, InformationModel()))
+    return StepJudge(pairs, {REGISTRATION: registered, ODOMETRY: odometry})
 
 
-def guard(judge: StepJudge, poses: np.ndarray,
-          resolve: Callable[[np.ndarray, dict[int, np.ndarray]], np.ndarray]) -> Guarded:
+def hold_of(judge: StepJudge, i: int) -> Hold:
+    """Step ``i`` where its two frames fit best: its best reference polished by point-to-plane (planar:
+    point-to-line) ICP, with their point-to-plane Hessian over the variance of its residuals as the information
+    (:func:`~dm2_backend.baselines.graph.hessian_information`)."""
+    pairs = judge.pairs
+    match = register(pairs.cloud(i + 1), pairs.cloud(i), judge.best_reference(i)[2], (pairs.distance,),
+                     "point-to-plane", hessian=True)
+    pairs.release(set())
+    return Hold(match.T, hessian_information(match.hessian, match.plane_rmse, pairs.floor))
+
+
+def guard(judge: StepJudge, poses: np.ndarray, resolve: Callable[[np.ndarray, dict[int, Hold]], np.ndarray]
+          ) -> Guarded:
     """``poses`` judged step by step; while steps are contradicted (at most :data:`ROUNDS` times), those steps are
     added to the held ones and ``resolve(poses, held)`` solves again from ``poses`` with every held step fixed."""
     check = judge.check(poses)
-    held: dict[int, np.ndarray] = {}
+    held: dict[int, Hold] = {}
     rounds = []
     for r in range(ROUNDS):
         if not check.count:
@@ -79,7 +99,7 @@ def guard(judge: StepJudge, poses: np.ndarray,
         for k in bad:
             for i in range(int(check.steps[k]) - reach, int(check.steps[k]) + reach + 1):
                 if 0 <= i < len(poses) - 1 and i not in held:
-                    held[i] = judge.best_reference(i)[2]
+                    held[i] = hold_of(judge, i)
         log.info("step guard: %d step(s) contradicted by their frames: %s; held and solved again", len(bad),
                  check.describe())
         rounds.append({"contradicted": check.steps[bad].tolist(), "held": len(held)})
