@@ -87,7 +87,9 @@ def sets(path: str | Path | None, section: str) -> bool:
     return isinstance(user, dict) and section in user
 
 
-def dump(cfg: RunConfig | dict, path: str | Path) -> None:
-    """The effective config (or a part of it, as plain values) as YAML (what ``dm2 refine -c`` reads back)."""
+def dump(cfg: RunConfig | dict, path: str | Path, footer: str = "") -> None:
+    """The effective config (or a part of it, as plain values) as YAML (what ``dm2 refine -c`` reads back);
+    ``footer``: YAML comment lines written after it."""
     with atomic_write(path) as fh:
         yaml.safe_dump(cfg.model_dump() if isinstance(cfg, RunConfig) else cfg, fh, sort_keys=False)
+        fh.write(footer)

@@ -63,6 +63,7 @@ class DepthFolder:
     intrinsics: tuple[float, float, float, float]
     intrinsics_from: str
     scale: float
+    scale_from: str = "--depth-scale"
     reference: Trajectory | None = None
     notes: dict = field(default_factory=dict)
 
@@ -162,7 +163,8 @@ def _seven_scenes(path: Path, options: ReadOptions) -> DepthFolder:
         reference = Trajectory(np.stack([read_pose_file(p) for p in pose_files]), stamps,
                                meta={"source": str(path), "frame": "camera-to-world"})
     scale = DEPTH_SCALE["7-scenes"] if options.depth_scale is None else float(options.depth_scale)
-    return DepthFolder("7-scenes", images, stamps, intrinsics, origin, scale, reference)
+    scale_from = "7-Scenes default (millimetres)" if options.depth_scale is None else "--depth-scale"
+    return DepthFolder("7-scenes", images, stamps, intrinsics, origin, scale, scale_from, reference)
 
 
 def _tum(path: Path, options: ReadOptions) -> DepthFolder:
@@ -175,7 +177,8 @@ def _tum(path: Path, options: ReadOptions) -> DepthFolder:
     else:
         intrinsics, origin = TUM_INTRINSICS, "TUM RGB-D default"
     scale = DEPTH_SCALE["tum"] if options.depth_scale is None else float(options.depth_scale)
-    folder = DepthFolder("tum", images, stamps, intrinsics, origin, scale)
+    scale_from = "TUM RGB-D default" if options.depth_scale is None else "--depth-scale"
+    folder = DepthFolder("tum", images, stamps, intrinsics, origin, scale, scale_from)
     gt_path = path / "groundtruth.txt"
     if gt_path.is_file():
         gt = read_tum(gt_path)
@@ -301,6 +304,7 @@ def open_depth(path: Path, options: ReadOptions) -> ScanSequence:
         loader=load, count=len(folder.images), timestamps=folder.timestamps, source=str(path),
         trajectories=refs,
         meta={"layout": folder.layout, "intrinsics": folder.intrinsics, "depth_scale": folder.scale,
+              "intrinsics_from": folder.intrinsics_from, "depth_scale_from": folder.scale_from,
               "stride": stride, "files": folder.images, **folder.notes},
     )
 
@@ -323,7 +327,7 @@ def describe(path: Path) -> list[tuple[str, str]]:
     rows = [
         ("layout", f"{folder.layout}, {len(folder.images)} depth images"),
         ("intrinsics", f"fx {fx:g} fy {fy:g} cx {cx:g} cy {cy:g} ({folder.intrinsics_from})"),
-        ("depth scale", f"{folder.scale:g} units per metre"),
+        ("depth scale", f"{folder.scale:g} units per metre ({folder.scale_from})"),
     ]
     return rows + [(k, v) for k, v in folder.notes.items()]
 

@@ -243,3 +243,34 @@ def test_depth_list_property(tmp_path, stamps, sep):
     got, got_names = read_depth_list(path)
     np.testing.assert_array_equal(got, stamps)
     assert got_names == names
+
+
+def test_the_depth_camera_in_use_is_stated_and_defaults_are_named(tmp_path, caplog):
+    """Intrinsics and depth scale are logged as read, with where each came from; a default assumed gets a line of
+    its own; the run folder's config.yaml states them (comments) after the config it can read back."""
+    import logging
+
+    import yaml
+
+    from dm2_backend import config
+    from dm2_backend.pipeline.inputs import depth_sensor, log_sensor
+    from dm2_backend.pipeline.run_writer import sensor_comment
+
+    folder = seven_scenes(tmp_path / "seq")
+    assumed = depth_sensor(open_scans(folder))
+    assert assumed["intrinsics"] == {"fx": 585.0, "fy": 585.0, "cx": 320.0, "cy": 240.0}
+    assert assumed["depth_scale"] == 1000.0 and assumed["assumed"] == ["intrinsics", "depth_scale"]
+    with caplog.at_level(logging.INFO, logger="dm2_backend.pipeline.inputs"):
+        log_sensor(assumed)
+    lines = [r.getMessage() for r in caplog.records]
+    assert "fx 585 fy 585 cx 320 cy 240 (7-Scenes default)" in lines[0] and "1000 units per metre" in lines[0]
+    assert len(lines) == 2 and "intrinsics and depth scale assumed" in lines[1]
+    (folder / "camera-intrinsics.txt").write_text("500 0 320\n0 500 240\n0 0 1\n")
+    given = depth_sensor(open_scans(folder, options=ReadOptions(depth_scale=5000.0)))
+    assert given["from"] == {"intrinsics": "camera-intrinsics.txt", "depth_scale": "--depth-scale"}
+    assert given["assumed"] == [] and given["intrinsics"]["fx"] == 500.0
+    path = tmp_path / "config.yaml"
+    config.dump(config.load(None), path, footer=sensor_comment(given))
+    assert "fx 500 fy 500 cx 320 cy 240 (camera-intrinsics.txt); depth scale 5000" in path.read_text()
+    assert config.load(path) == config.load(None) and yaml.safe_load(path.read_text())["seed"] == 0
+    assert depth_sensor(open_scans(DATA / "carmen" / "aces.clf.bz2")) is None if (DATA / "carmen").is_dir() else True

@@ -61,6 +61,7 @@ def load_inputs(
     max_diff: float = 0.01,
 ) -> RunInputs:
     scans = open_scans(scans_path, scans_format, options)
+    log_sensor(depth_sensor(scans))
     given, fmt, full = None, None, None
     if poses_path is not None:
         full = read_trajectory(poses_path, poses_format, options)
@@ -84,6 +85,37 @@ def load_inputs(
         gt, gt_frames = gt_for_scans(gt, scans, gt_path, max_diff)
     relations = load_relations(relations_path) if relations_path is not None else None
     return RunInputs(scans, given, fmt, poses_path, gt, relations, gt_frames, full)
+
+
+#: where a depth source's intrinsics or depth scale came from when nothing was given for them
+ASSUMED = ("default",)
+
+
+def depth_sensor(scans: ScanSequence) -> dict | None:
+    """What a depth-image source back-projects with: intrinsics, depth scale (units per metre), pixel stride, where
+    each came from, and which were assumed (layout defaults); None for other sources."""
+    meta = scans.meta
+    if "intrinsics" not in meta or "depth_scale" not in meta:
+        return None
+    fx, fy, cx, cy = (float(v) for v in meta["intrinsics"])
+    sources = {"intrinsics": str(meta.get("intrinsics_from", "")), "depth_scale": str(meta.get("depth_scale_from", ""))}
+    return {"layout": meta.get("layout"), "intrinsics": {"fx": fx, "fy": fy, "cx": cx, "cy": cy},
+            "depth_scale": float(meta["depth_scale"]), "stride": meta.get("stride"),
+            "from": sources, "assumed": [k for k, v in sources.items() if any(a in v for a in ASSUMED)]}
+
+
+def log_sensor(sensor: dict | None) -> None:
+    """One line stating the depth camera in use, and one more when defaults were assumed."""
+    if sensor is None:
+        return
+    k = sensor["intrinsics"]
+    log.info("depth camera: fx %g fy %g cx %g cy %g (%s), depth scale %g units per metre (%s), pixel stride %s",
+             k["fx"], k["fy"], k["cx"], k["cy"], sensor["from"]["intrinsics"], sensor["depth_scale"],
+             sensor["from"]["depth_scale"], sensor["stride"])
+    if sensor["assumed"]:
+        log.warning("depth camera: %s assumed from the %s layout's defaults; give --intrinsics / --depth-scale if "
+                    "your camera differs", " and ".join(a.replace("_", " ") for a in sensor["assumed"]),
+                    sensor["layout"])
 
 
 #: the fewest scans ground truth must match to be evaluated

@@ -24,7 +24,7 @@ from dm2_backend.maps.run_maps import write_run_maps
 from dm2_backend.memory import peak_rss_mb, release_mapped
 from dm2_backend.pipeline import outputs
 from dm2_backend.pipeline.full_rate import corrected_full_rate
-from dm2_backend.pipeline.inputs import RunInputs
+from dm2_backend.pipeline.inputs import RunInputs, depth_sensor
 from dm2_backend.pipeline.run_report import PrepareSummary, RunReport
 from dm2_backend.prepare.steps import Prepared
 from dm2_backend.stage_log import StageLog
@@ -86,6 +86,16 @@ def map_metrics(sampler: MapSampler, poses: np.ndarray) -> dict[str, float]:
     return {"map_entropy": q.entropy, "map_plane_variance_m2": q.plane_variance}
 
 
+def sensor_comment(sensor: dict | None) -> str:
+    """The depth camera as YAML comments for ``config.yaml`` (read options, not config: given on the command line)."""
+    if sensor is None:
+        return ""
+    k = sensor["intrinsics"]
+    return (f"# depth camera as read (--intrinsics, --depth-scale): fx {k['fx']:g} fy {k['fy']:g} cx {k['cx']:g} "
+            f"cy {k['cy']:g} ({sensor['from']['intrinsics']}); depth scale {sensor['depth_scale']:g} units per metre "
+            f"({sensor['from']['depth_scale']}); stride {sensor['stride']}\n")
+
+
 def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, final: np.ndarray, method: str,
               stages: StageLog, details: dict | None = None, epochs: list[dict] | None = None,
               sampler: MapSampler | None = None, start: np.ndarray | None = None,
@@ -103,10 +113,13 @@ def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, fina
             sampler = map_sampler(inputs)
     with stages.stage("map_metrics"):
         maps = {name: map_metrics(sampler, poses) for name, poses in poses_of.items() if poses is not None}
-    config.dump(cfg, out / "config.yaml")
+    sensor = depth_sensor(inputs.scans)
+    config.dump(cfg, out / "config.yaml", footer=sensor_comment(sensor))
     # the plugins as run: ``auto`` resolved
     config.dump({name: section.model_dump() for name, section in prep.resolved.items()}, out / "resolved.yaml")
     details = dict(details or {})
+    if sensor is not None:
+        details["sensor"] = sensor
     trajectories = {name: None if poses is None else trajectory_of(poses, inputs) for name, poses in poses_of.items()}
     with stages.stage("trajectories_and_plots"):
         written = _write_trajectories_and_plots(out, inputs, prep, trajectories, method, details)
