@@ -136,15 +136,18 @@ def test_a_jump_in_the_real_keyframes_is_flagged_and_nothing_far_from_it(break_i
 def test_files_and_plot_hold_the_profile(tmp_path):
     _, seq, gt = street()
     profiles = {"truth": profile(seq, gt), "broken": profile(seq, one_frame(gt, 40))}
-    names = write_profiles(tmp_path, profiles, gt[:, :3, 3])
+    names = write_profiles(tmp_path, profiles, gt[:, :3, 3], steps={"held": [39, 40], "contradicted": []})
     assert names == ["consistency.json", "consistency.csv", "consistency.png"]
     doc = json.loads((tmp_path / "consistency.json").read_text())
+    assert doc["steps"] == {"held": [39, 40], "contradicted": []}  # the step guard's decisions beside the scores
     assert np.allclose(doc["broken"]["score_m"], profiles["broken"].score_m)
     assert doc["broken"]["segments"][0]["first"] <= 40 <= doc["broken"]["segments"][0]["last"]
     rows = list(csv.DictReader((tmp_path / "consistency.csv").open()))
     assert len(rows) == len(gt)
     assert [int(r["broken_flagged"]) for r in rows] == profiles["broken"].flagged.astype(int).tolist()
     assert float(rows[40]["stamp_s"]) == pytest.approx(4.0)
+    assert [i for i, r in enumerate(rows) if r["step_held"] == "1"] == [39, 40]
+    assert not any(r["step_contradicted"] == "1" for r in rows)
     fig = plots.consistency_figure(gt[:, :3, 3], profiles)
     top, series = fig.axes[0], fig.axes[2]  # the colour bar is axes[1]
     assert np.allclose(top.collections[0].get_offsets(), gt[:, :2, 3])  # x-y top view of the given positions

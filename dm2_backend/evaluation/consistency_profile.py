@@ -328,17 +328,24 @@ def _profile(views: dict[str, np.ndarray], stamps: np.ndarray | None, voxel: flo
 
 
 def write_profiles(folder: Path, profiles: dict[str, ConsistencyProfile], positions: np.ndarray,
-                   stem: str = "consistency") -> list[str]:
+                   stem: str = "consistency", steps: dict[str, list[int]] | None = None) -> list[str]:
     """``{stem}.json`` (each profile's summary and per-frame scores), ``{stem}.csv`` (one row per frame) and
-    ``{stem}.png`` (:func:`plots.consistency_figure` over ``positions``). Returns the names written."""
+    ``{stem}.png`` (:func:`plots.consistency_figure` over ``positions``). ``steps``: per-step marks (e.g. the step
+    guard's ``held`` and ``contradicted`` steps: frame i marks its step to i+1), a column ``step_<name>`` each and
+    a ``steps`` entry in the JSON. Returns the names written."""
     folder.mkdir(parents=True, exist_ok=True)
     first = next(iter(profiles.values()))
+    steps = steps or {}
     doc = {label: {**p.summary(), "score_m": _floats(p.score_m), "views_m": {k: _floats(v) for k, v in
                                                                            p.views_m.items()}}
            for label, p in profiles.items()}
+    if steps:
+        doc["steps"] = {name: sorted(int(i) for i in marked) for name, marked in steps.items()}
     with atomic_write(folder / f"{stem}.json") as fh:
         json.dump(doc, fh, indent=1, allow_nan=False)
     columns = ["frame", "stamp_s"] + [f"{safe_name(label)}_{c}" for label in profiles for c in ("score_m", "flagged")]
+    columns += [f"step_{name}" for name in steps]
+    marks = {name: set(int(i) for i in marked) for name, marked in steps.items()}
     with atomic_write(folder / f"{stem}.csv", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(columns)
@@ -347,7 +354,7 @@ def write_profiles(folder: Path, profiles: dict[str, ConsistencyProfile], positi
             row = [i, "" if first.stamps is None else repr(float(first.stamps[i]))]
             for label, p in profiles.items():
                 row += ["" if not np.isfinite(p.score_m[i]) else f"{p.score_m[i]:.6g}", int(flags[label][i])]
-            w.writerow(row)
+            w.writerow(row + [int(i in marked) for marked in marks.values()])
     plots.save(plots.consistency_figure(positions, profiles), folder / f"{stem}.png")
     return [f"{stem}.json", f"{stem}.csv", f"{stem}.png"]
 

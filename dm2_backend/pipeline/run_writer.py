@@ -86,6 +86,14 @@ def map_metrics(sampler: MapSampler, poses: np.ndarray) -> dict[str, float]:
     return {"map_entropy": q.entropy, "map_plane_variance_m2": q.plane_variance}
 
 
+def guard_marks(details: dict) -> dict[str, list[int]]:
+    """The step guard's held and contradicted steps of a refine (``details["start"]["dense"]``), else none."""
+    guard = ((details.get("start") or {}).get("dense") or {}).get("step_guard")
+    if not guard:
+        return {}
+    return {"held": list(guard["held"]), "contradicted": list(guard["check"]["contradicted"])}
+
+
 def sensor_comment(sensor: dict | None) -> str:
     """The depth camera as YAML comments for ``config.yaml`` (read options, not config: given on the command line)."""
     if sensor is None:
@@ -127,7 +135,7 @@ def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, fina
     with stages.stage("consistency"):
         profiles = consistency_profiles(inputs.scans, {"warm start": prep.warm_start, method: final},
                                         output_timestamps(inputs), prep.frames.planar)
-        written += write_profiles(out, profiles, final[:, :3, 3])
+        written += write_profiles(out, profiles, final[:, :3, 3], steps=guard_marks(details))
     log.info("consistency: %s", "; ".join(f"{name} {len(p.segments)} flagged stretch(es), {int(p.flagged.sum())} "
                                           f"frames" for name, p in profiles.items()))
     with stages.stage("maps"):  # after the profiles: each stage's memory peaks alone, not on the other's leftovers
