@@ -48,6 +48,9 @@ SEVEN_SCENES_INTRINSICS = (585.0, 585.0, 320.0, 240.0)
 TUM_INTRINSICS = (525.0, 525.0, 319.5, 239.5)
 DEPTH_SCALE = {"7-scenes": 1000.0, "tum": 5000.0}
 SEVEN_SCENES_RATE = 30.0
+SEVEN_SCENES_DEFAULT, TUM_DEFAULT = "7-Scenes default", "TUM RGB-D default"
+#: where intrinsics or a depth scale came from when nothing was given for them: the layout's defaults
+ASSUMED = (SEVEN_SCENES_DEFAULT, TUM_DEFAULT)
 TUM_MAX_DIFF = 0.02
 DEFAULT_STRIDE = 2
 _FRAME = re.compile(r"frame-(\d+)\.depth\.png")
@@ -63,7 +66,7 @@ class DepthFolder:
     intrinsics: tuple[float, float, float, float]
     intrinsics_from: str
     scale: float
-    scale_from: str = "--depth-scale"
+    scale_from: str
     reference: Trajectory | None = None
     notes: dict = field(default_factory=dict)
 
@@ -152,7 +155,7 @@ def _seven_scenes(path: Path, options: ReadOptions) -> DepthFolder:
     elif (path / "camera-intrinsics.txt").is_file():
         intrinsics, origin = read_intrinsics_file(path / "camera-intrinsics.txt"), "camera-intrinsics.txt"
     else:
-        intrinsics, origin = SEVEN_SCENES_INTRINSICS, "7-Scenes default"
+        intrinsics, origin = SEVEN_SCENES_INTRINSICS, SEVEN_SCENES_DEFAULT
     pose_files = [p.with_name(p.name.replace(".depth.png", ".pose.txt")) for p in images]
     stamps = index / SEVEN_SCENES_RATE
     reference = None
@@ -163,7 +166,7 @@ def _seven_scenes(path: Path, options: ReadOptions) -> DepthFolder:
         reference = Trajectory(np.stack([read_pose_file(p) for p in pose_files]), stamps,
                                meta={"source": str(path), "frame": "camera-to-world"})
     scale = DEPTH_SCALE["7-scenes"] if options.depth_scale is None else float(options.depth_scale)
-    scale_from = "7-Scenes default (millimetres)" if options.depth_scale is None else "--depth-scale"
+    scale_from = SEVEN_SCENES_DEFAULT if options.depth_scale is None else "--depth-scale"
     return DepthFolder("7-scenes", images, stamps, intrinsics, origin, scale, scale_from, reference)
 
 
@@ -175,9 +178,9 @@ def _tum(path: Path, options: ReadOptions) -> DepthFolder:
     if options.intrinsics is not None:
         intrinsics, origin = tuple(options.intrinsics), "--intrinsics"
     else:
-        intrinsics, origin = TUM_INTRINSICS, "TUM RGB-D default"
+        intrinsics, origin = TUM_INTRINSICS, TUM_DEFAULT
     scale = DEPTH_SCALE["tum"] if options.depth_scale is None else float(options.depth_scale)
-    scale_from = "TUM RGB-D default" if options.depth_scale is None else "--depth-scale"
+    scale_from = TUM_DEFAULT if options.depth_scale is None else "--depth-scale"
     folder = DepthFolder("tum", images, stamps, intrinsics, origin, scale, scale_from)
     gt_path = path / "groundtruth.txt"
     if gt_path.is_file():
@@ -305,6 +308,8 @@ def open_depth(path: Path, options: ReadOptions) -> ScanSequence:
         trajectories=refs,
         meta={"layout": folder.layout, "intrinsics": folder.intrinsics, "depth_scale": folder.scale,
               "intrinsics_from": folder.intrinsics_from, "depth_scale_from": folder.scale_from,
+              "assumed": [name for name, given in (("intrinsics", folder.intrinsics_from), ("depth_scale",
+                                                   folder.scale_from)) if given in ASSUMED],
               "stride": stride, "files": folder.images, **folder.notes},
     )
 

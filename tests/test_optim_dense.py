@@ -547,3 +547,4 @@ def test_thin_cells_keep_their_scatter_and_thick_ones_do_not():
     kept = planes.kept_scatter(np.stack(cells), "thin")
     assert kept.tolist() == [True, True, False, False]  # thin: under a quarter of the width's std, 7 mm
     assert planes.kept_scatter(np.stack(cells), "all").all() and not planes.kept_scatter(np.stack(cells), "none").any()
+

@@ -234,7 +234,8 @@ def assemble(
 ) -> Topology:
     """Topology from per-anchor (neighbour, kind) lists, best first; duplicates and the anchor itself
     dropped, then filled up with temporal neighbours to k. With ``temporal`` and ``successor`` frame i+1 is
-    always in frame i's group (in place of its last candidate that is not a loop): every step is registered."""
+    always in frame i's group (in place of its last candidate that is not a loop partner, or of its last loop
+    partner when all are): every step is registered."""
     n = len(candidates)
     groups = np.full((n, k), -1, dtype=np.int64)
     kinds: dict[tuple[int, int], str] = {}

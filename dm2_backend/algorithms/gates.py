@@ -157,11 +157,9 @@ def plane_residuals(source: Cloud, target: Cloud, T: np.ndarray, distance: float
     return out
 
 
-def plane_residual(source: Cloud, target: Cloud, T: np.ndarray, distance: float) -> tuple[float, int]:
-    """Rms of :func:`plane_residuals` over the matched points, and how many those are (rms inf if none)."""
-    r = plane_residuals(source, target, T, distance)
-    r = r[np.isfinite(r)]
-    return (float(np.sqrt(np.mean(r**2))), len(r)) if len(r) else (float("inf"), 0)
+def truncated_squares(residuals: np.ndarray, distance: float) -> np.ndarray:
+    """Squared residuals truncated at ``distance``; a point without a match (NaN) costs ``distance`` squared."""
+    return np.minimum(np.nan_to_num(np.abs(residuals), nan=distance), distance) ** 2
 
 
 #: one-sided z of :func:`significantly_worse` (a chance of 1 in 2,000 that equally good poses are told apart)
@@ -180,7 +178,6 @@ def significantly_worse(source: Cloud, target: Cloud, worse: np.ndarray, better:
     on = np.isfinite(b)
     if on.sum() < MIN_MATCHED:
         return False
-    a = plane_residuals(source, target, worse, distance)[on]
-    d = np.minimum(np.nan_to_num(np.abs(a), nan=distance), distance) ** 2 - b[on] ** 2
+    d = truncated_squares(plane_residuals(source, target, worse, distance)[on], distance) - b[on] ** 2
     spread = float(np.std(d, ddof=1))
     return bool(np.mean(d) > Z_WORSE * spread / np.sqrt(len(d))) if spread > 0 else bool(np.mean(d) > 0)

@@ -2,23 +2,20 @@
 
 Each step ``i -> i+1`` is placed at the candidate's relative pose and at each reference step (the valid
 registration of the pair, and the front end's odometry step): frame ``i+1``'s points are matched to frame ``i``'s
-nearest points within the registration's fine correspondence distance, and the rms of their point-to-plane
-(planar scans: point-to-line) residuals is taken. The step's *excess* is how much larger its mean squared residual
-is than the best reference's, as a fraction of the latter. A step is *contradicted* when
+nearest points within the registration's fine correspondence distance, and their point-to-plane (planar scans:
+point-to-line) residuals are taken, truncated at that distance (a point without a match costs the distance, so a
+step that slides the frames apart costs what it lost). The step's *excess* is how much larger its mean truncated
+square is than the best reference's, as a fraction of the latter. A step is *contradicted* when
 
-- its excess lies beyond the sequence's own spread: the median excess plus :data:`RATIO` robust sigmas (1.4826 x
-  the median absolute deviation) of the excesses of the steps that differ from their reference (a multi-frame
-  solution and the pairwise registrations differ by a little everywhere; a step that breaks stands out by an
-  order of magnitude; fewer than :data:`MIN_STEPS` such steps: no spread is taken), and
+- its excess lies more than :data:`SIGMAS` robust sigmas (1.4826 x the median absolute deviation) above the median
+  excess of the steps that differ from their reference (fewer than :data:`MIN_STEPS` such steps: no spread is
+  taken), and
 - the two frames fit every reference better than the candidate beyond chance, point by point
   (:func:`~dm2_backend.algorithms.gates.significantly_worse`): a registration can slide into a spurious minimum
   along a corridor, where the odometry's step, which the candidate keeps, fits the frames as well.
 
-Why: a multi-frame objective can trade a step for a sharper map in the mean. On real depth frames (7-Scenes
-RedKitchen 500-999) the dense stage moved a stretch of steps 4-11 cm away from the steps that both the reference
-and the frames' registration give, while every whole-map check (map entropy, each frame against the others'
-planes) called the result better; the two frames' own residual at those steps was 1.25-2.2x the registration's,
-where every other step was within 1.05x.
+Steps whose references match fewer than :data:`~dm2_backend.algorithms.gates.MIN_MATCHED` points are not judged.
+Why each rule: ``docs/decisions/0001-step-guard.md``.
 """
 
 from __future__ import annotations
@@ -28,15 +25,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from dm2_backend.algorithms.common import Cloud
-from dm2_backend.algorithms.gates import plane_residual, plane_residuals, significantly_worse
+from dm2_backend.algorithms.gates import MIN_MATCHED, plane_residuals, significantly_worse, truncated_squares
 from dm2_backend.geometry import se3
 
 #: a step whose excess lies more than this many robust sigmas above the sequence's median excess stands out
-RATIO = 10.0
+SIGMAS = 10.0
 #: the fewest steps the sequence's spread is taken over; with fewer the point-by-point test judges alone
 MIN_STEPS = 20
-#: the fewest matched points a residual is taken over (fewer: the step is not judged)
-MIN_MATCHED = 10
 
 REGISTRATION = "registration"
 ODOMETRY = "odometry"
@@ -44,8 +39,8 @@ ODOMETRY = "odometry"
 
 @dataclass(frozen=True)
 class StepCheck:
-    """Per step ``steps[k]`` (frame ``steps[k]`` to the next): the candidate's residual, the best reference's
-    residual and which reference that was, the excess, and whether the data contradicts the step."""
+    """Per judged step ``steps[k]`` (frame ``steps[k]`` to the next): the candidate's truncated rms residual, the
+    best reference's and which reference that was, the excess, and whether the data contradicts the step."""
 
     steps: np.ndarray
     residual_m: np.ndarray
@@ -78,11 +73,11 @@ class StepCheck:
         return {"steps": self.steps.tolist(), "residual_m": self.residual_m.tolist(),
                 "reference_residual_m": self.reference_residual_m.tolist(), "reference": list(self.reference),
                 "excess": self.excess.tolist(), "threshold": self.threshold, "fit_m": self.fit_m,
-                "matched": self.matched.tolist(), "contradicted": np.flatnonzero(self.contradicted).tolist()}
+                "matched": self.matched.tolist(), "contradicted": self.steps[self.contradicted].tolist()}
 
 
 class FramePairs:
-    """The frames' points as clouds with normals (built once), for residuals of frame ``i+1`` against ``i``."""
+    """The frames' points as clouds with normals (built when needed), for residuals of frame ``i+1`` against ``i``."""
 
     def __init__(self, points: list[np.ndarray], planar: bool, distance: float, floor: float = 0.0) -> None:
         """``distance``: the correspondence distance (m); ``floor``: the least noise a residual is taken to have
@@ -95,10 +90,11 @@ class FramePairs:
             self._clouds[i] = Cloud(np.asarray(self.points[i]), self.planar, 2.0 * self.distance)
         return self._clouds[i]
 
-    def residual(self, i: int, relative: np.ndarray) -> tuple[float, int]:
-        """Rms point-to-plane residual (m) of frame ``i+1`` placed at ``relative`` in frame ``i``, and how many of
-        its points found a neighbour within the distance (:func:`~dm2_backend.algorithms.gates.plane_residual`)."""
-        return plane_residual(self.cloud(i + 1), self.cloud(i), relative, self.distance)
+    def residual(self, i: int, relative: np.ndarray) -> tuple[float, float, int]:
+        """Frame ``i+1`` placed at ``relative`` in frame ``i``: the sum of its points' truncated squared residuals
+        (m^2), the number of its points, and how many found a neighbour within the distance."""
+        r = plane_residuals(self.cloud(i + 1), self.cloud(i), relative, self.distance)
+        return float(truncated_squares(r, self.distance).sum()), len(r), int(np.isfinite(r).sum())
 
     def release(self, keep: set[int]) -> None:
         """Drop the clouds of frames not in ``keep``."""
@@ -112,58 +108,73 @@ class StepJudge:
 
     def __init__(self, pairs: FramePairs, references: dict[str, dict[int, np.ndarray]]) -> None:
         self.pairs, self.references = pairs, references
-        self._best: dict[int, tuple[float, str, np.ndarray]] = {}
+        self._best: dict[int, tuple[float, str, np.ndarray] | None] = {}
 
-    def best_reference(self, i: int) -> tuple[float, str, np.ndarray]:
-        """The reference step of lowest residual: (residual, name, relative pose); residual inf where none."""
+    def best_reference(self, i: int) -> tuple[float, str, np.ndarray] | None:
+        """The reference step that fits the frames best: (truncated rms, name, relative pose); None where no
+        reference matches :data:`~dm2_backend.algorithms.gates.MIN_MATCHED` points."""
         if i not in self._best:
-            best = (float("inf"), "", np.eye(4))
+            best = None
             for name, by_step in self.references.items():
                 if i in by_step:
-                    value, _ = self.pairs.residual(i, by_step[i])
-                    if value < best[0]:
-                        best = (value, name, by_step[i])
+                    squares, points, matched = self.pairs.residual(i, by_step[i])
+                    rms = float(np.sqrt(squares / points)) if points else float("inf")
+                    if matched >= MIN_MATCHED and (best is None or rms < best[0]):
+                        best = (rms, name, by_step[i])
             self._best[i] = best
         return self._best[i]
 
+    def fit(self, poses: np.ndarray) -> float:
+        """How well all the steps of ``poses`` fit their frames: the truncated rms residual (m) over every point of
+        every second frame (inf for poses that are not finite, NaN for fewer than two frames)."""
+        return self._residuals(poses)[1]
+
     def check(self, poses: np.ndarray) -> StepCheck:
-        """Every step of ``poses``; the sequence's spread is taken over the steps judged."""
-        rows, squares, points = [], 0.0, 0
-        for i in range(len(poses) - 1):
-            self.pairs.release({i, i + 1})
-            r = plane_residuals(self.pairs.cloud(i + 1), self.pairs.cloud(i), se3.relative(poses[i], poses[i + 1]),
-                                self.pairs.distance)
-            on = np.isfinite(r)
-            own = float(np.sqrt(np.mean(r[on] ** 2))) if on.any() else float("inf")
-            squares += float(np.sum(r[on] ** 2)) + (len(r) - int(on.sum())) * self.pairs.distance**2
-            points += len(r)
-            rows.append((i, own, int(on.sum()), *self.best_reference(i)))
-        self.pairs.release(set())
-        fit = float(np.sqrt(squares / points)) if points else float("nan")
-        rows = [r for r in rows if r[2] >= MIN_MATCHED and np.isfinite(r[1]) and 0 < r[3] < np.inf]
+        """Every step of ``poses`` judged; the sequence's spread is taken over the steps judged."""
+        rows, fit = self._residuals(poses)
         if not rows:
             empty = np.zeros(0)
             return StepCheck(np.zeros(0, int), empty, empty, (), np.zeros((0, 4, 4)), empty, np.zeros(0, int), 0.0,
                              np.zeros(0, bool), fit)
         idx, own, matched, ref = (np.array([r[k] for r in rows]) for k in range(4))
-        poses_ref = np.stack([r[5] for r in rows])
-        excess = own**2 / ref**2 - 1.0
-        threshold = spread_threshold(excess[own != ref])
+        steps, ref_steps = np.stack([r[6] for r in rows]), np.stack([r[5] for r in rows])
+        excess = own**2 / np.maximum(ref, 1e-12) ** 2 - 1.0
+        differ = ~np.all(np.isclose(steps, ref_steps, rtol=0.0, atol=1e-12), axis=(1, 2))
+        threshold = spread_threshold(excess[differ])
         contradicted = np.zeros(len(rows), bool)
-        for k in np.flatnonzero(excess > threshold):
+        for k in np.flatnonzero(differ & (excess > threshold)):
             i = int(idx[k])
-            step = se3.relative(poses[i], poses[i + 1])
-            contradicted[k] = all(significantly_worse(self.pairs.cloud(i + 1), self.pairs.cloud(i), step, by_step[i],
-                                                      self.pairs.distance)
+            contradicted[k] = all(significantly_worse(self.pairs.cloud(i + 1), self.pairs.cloud(i), steps[k],
+                                                      by_step[i], self.pairs.distance)
                                   for by_step in self.references.values() if i in by_step)
             self.pairs.release(set())
-        return StepCheck(idx.astype(int), own, ref, tuple(r[4] for r in rows), poses_ref, excess,
+        return StepCheck(idx.astype(int), own, ref, tuple(r[4] for r in rows), ref_steps, excess,
                          matched.astype(int), threshold, contradicted, fit)
+
+    def _residuals(self, poses: np.ndarray) -> tuple[list[tuple], float]:
+        """Per step with a reference: (step, truncated rms, matched points, the best reference's rms, its name,
+        its relative pose, the candidate's relative pose); and the fit of all the steps."""
+        poses = np.asarray(poses, dtype=np.float64)
+        if len(poses) < 2:
+            return [], float("nan")
+        if not np.isfinite(poses).all():
+            return [], float("inf")
+        rows, squares, points = [], 0.0, 0
+        for i in range(len(poses) - 1):
+            self.pairs.release({i, i + 1})
+            step = se3.relative(poses[i], poses[i + 1])
+            total, n, matched = self.pairs.residual(i, step)
+            squares, points = squares + total, points + n
+            best = self.best_reference(i)
+            if best is not None and n:
+                rows.append((i, float(np.sqrt(total / n)), matched, *best, step))
+        self.pairs.release(set())
+        return rows, float(np.sqrt(squares / points)) if points else float("nan")
 
 
 def spread_threshold(excess: np.ndarray) -> float:
-    """The median of ``excess`` plus :data:`RATIO` robust sigmas; 0 with fewer than :data:`MIN_STEPS` values."""
+    """The median of ``excess`` plus :data:`SIGMAS` robust sigmas; 0 with fewer than :data:`MIN_STEPS` values."""
     if len(excess) < MIN_STEPS:
         return 0.0
     median = float(np.median(excess))
-    return median + RATIO * 1.4826 * float(np.median(np.abs(excess - median)))
+    return median + SIGMAS * 1.4826 * float(np.median(np.abs(excess - median)))

@@ -87,10 +87,6 @@ def load_inputs(
     return RunInputs(scans, given, fmt, poses_path, gt, relations, gt_frames, full)
 
 
-#: where a depth source's intrinsics or depth scale came from when nothing was given for them
-ASSUMED = ("default",)
-
-
 def depth_sensor(scans: ScanSequence) -> dict | None:
     """What a depth-image source back-projects with: intrinsics, depth scale (units per metre), pixel stride, where
     each came from, and which were assumed (layout defaults); None for other sources."""
@@ -101,7 +97,7 @@ def depth_sensor(scans: ScanSequence) -> dict | None:
     sources = {"intrinsics": str(meta.get("intrinsics_from", "")), "depth_scale": str(meta.get("depth_scale_from", ""))}
     return {"layout": meta.get("layout"), "intrinsics": {"fx": fx, "fy": fy, "cx": cx, "cy": cy},
             "depth_scale": float(meta["depth_scale"]), "stride": meta.get("stride"),
-            "from": sources, "assumed": [k for k, v in sources.items() if any(a in v for a in ASSUMED)]}
+            "from": sources, "assumed": list(meta.get("assumed", []))}
 
 
 def log_sensor(sensor: dict | None) -> None:

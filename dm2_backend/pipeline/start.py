@@ -232,7 +232,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     judge = step_guard.judge_of(prep)
     guarded = step_guard.guard(judge, result.poses, resolve)
     result.poses = guarded.poses
-    start_fit = judge.check(start.poses).fit_m
+    start_fit = judge.fit(start.poses)
     # never worse than where it started, judged without ground truth: each frame against the map the others make
     candidates = {"warm start": prep.warm_start, start.name.value: start.poses, "dense": result.poses}
     agreement = agreement_score(cells, candidates, voxel, judges=(start.name.value, "dense"))
@@ -242,12 +242,12 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     chosen = min(finite, key=finite.get) if judged else start.name.value
     reason = f"{chosen} agrees better" if judged else "no plane seen by two frames to judge by"
     cut = sequence_cuts(prep, result.poses)
-    if chosen == "dense" and not guarded.clean:  # held and solved again, a step is still contradicted
-        log.warning("dense stage's result not kept: its frames contradict %s", guarded.check.describe())
-        chosen, reason = start.name.value, f"its frames contradict {guarded.check.describe()}"
     if chosen == "dense" and cut:  # its frames agree, its steps do not: the start stands
         log.warning("dense stage's result not kept: it cuts the sequence at %s", cut.describe())
         chosen, reason = start.name.value, f"it cuts the sequence at {cut.describe()}"
+    if chosen == "dense" and not guarded.clean:  # held and solved again, a step is still contradicted
+        log.warning("dense stage's result not kept: its frames contradict %s", guarded.check.describe())
+        chosen, reason = start.name.value, f"its frames contradict {guarded.check.describe()}"
     if chosen == "dense" and guarded.check.fit_m > start_fit:  # sharper as a whole, each step fits worse
         fits = f"{guarded.check.fit_m * 1e3:.4g} mm against the start's {start_fit * 1e3:.4g} mm"
         log.info("dense stage's result not kept: its steps fit their frames worse than the start's (%s)", fits)

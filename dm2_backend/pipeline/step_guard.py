@@ -1,4 +1,4 @@
-"""The step guard: refine never returns a step that the two frames' own data contradicts.
+"""The step guard: the dense stage's contradicted steps are held and solved again.
 
 After the dense stage every consecutive step of its result is judged against the pair's valid registration and
 the front end's odometry step (:mod:`dm2_backend.evaluation.step_check`). Each contradicted step, and its
@@ -12,6 +12,7 @@ a contradicted step is not returned: its start stands.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -40,13 +41,14 @@ class Hold:
 
 @dataclass(frozen=True)
 class Guarded:
-    """The poses after the guard, their final :class:`StepCheck`, the steps held (step -> relative pose held) and
-    one record per round of holding."""
+    """The poses after the guard, their final :class:`StepCheck`, the steps held (step -> :class:`Hold`), one
+    record per round of holding and the guard's seconds."""
 
     poses: np.ndarray
     check: StepCheck
     held: dict[int, Hold] = field(default_factory=dict)
     rounds: tuple[dict, ...] = ()
+    seconds: float = 0.0
 
     @property
     def clean(self) -> bool:
@@ -55,7 +57,7 @@ class Guarded:
 
     def summary(self) -> dict:
         return {"held": sorted(self.held), "rounds": list(self.rounds), "contradicted": self.check.count,
-                "check": self.check.summary()}
+                "seconds": self.seconds, "check": self.check.summary()}
 
 
 def judge_of(prep: Prepared) -> StepJudge:
@@ -73,14 +75,19 @@ def judge_of(prep: Prepared) -> StepJudge:
     return StepJudge(pairs, {REGISTRATION: registered, ODOMETRY: odometry})
 
 
-def hold_of(judge: StepJudge, i: int) -> Hold:
+def hold_of(judge: StepJudge, i: int) -> Hold | None:
     """Step ``i`` where its two frames fit best: its best reference polished by point-to-plane (planar:
     point-to-line) ICP, with their point-to-plane Hessian over the variance of its residuals as the information
-    (:func:`~dm2_backend.baselines.graph.hessian_information`)."""
+    (:func:`~dm2_backend.baselines.graph.hessian_information`); None where no reference matches enough points to
+    say where (the step is not held)."""
+    best = judge.best_reference(i)
+    if best is None:
+        return None
     pairs = judge.pairs
-    match = register(pairs.cloud(i + 1), pairs.cloud(i), judge.best_reference(i)[2], (pairs.distance,),
-                     "point-to-plane", hessian=True)
+    match = register(pairs.cloud(i + 1), pairs.cloud(i), best[2], (pairs.distance,), "point-to-plane", hessian=True)
     pairs.release(set())
+    if match.hessian is None or not np.isfinite(match.T).all():
+        return None
     return Hold(match.T, hessian_information(match.hessian, match.plane_rmse, pairs.floor))
 
 
@@ -88,6 +95,7 @@ def guard(judge: StepJudge, poses: np.ndarray, resolve: Callable[[np.ndarray, di
           ) -> Guarded:
     """``poses`` judged step by step; while steps are contradicted (at most :data:`ROUNDS` times), those steps are
     added to the held ones and ``resolve(poses, held)`` solves again from ``poses`` with every held step fixed."""
+    t0 = time.perf_counter()
     check = judge.check(poses)
     held: dict[int, Hold] = {}
     rounds = []
@@ -98,11 +106,14 @@ def guard(judge: StepJudge, poses: np.ndarray, resolve: Callable[[np.ndarray, di
         reach = 2**r - 1  # a held step hands its tension to its neighbours: each round holds a wider stretch
         for k in bad:
             for i in range(int(check.steps[k]) - reach, int(check.steps[k]) + reach + 1):
-                if 0 <= i < len(poses) - 1 and i not in held:
-                    held[i] = hold_of(judge, i)
+                hold = hold_of(judge, i) if 0 <= i < len(poses) - 1 and i not in held else None
+                if hold is not None:
+                    held[i] = hold
+        if not held:  # no contradicted step's frames say where it belongs
+            break
         log.info("step guard: %d step(s) contradicted by their frames: %s; held and solved again", len(bad),
                  check.describe())
         rounds.append({"contradicted": check.steps[bad].tolist(), "held": len(held)})
         poses = resolve(poses, held)
         check = judge.check(poses)
-    return Guarded(poses, check, held, tuple(rounds))
+    return Guarded(poses, check, held, tuple(rounds), time.perf_counter() - t0)
