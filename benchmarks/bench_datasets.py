@@ -174,20 +174,16 @@ def room(frames: int, path: str) -> Callable[[Env], Inputs]:
     return load
 
 
-def redkitchen(env: Env) -> Inputs:
-    folder = DATA / "depth3d" / "redkitchen_000-499"
-    _need(folder)
-    args = ["-s", str(folder), "--warm-start", "icp", "--gt", str(folder), "--gt-format", "depth"]
-    return Inputs(args, 500,
-                  {"scans": str(folder), "gt": "its reference poses (KinectFusion)", "warm_start": "icp"})
-
-
-def redkitchen_500(env: Env) -> Inputs:
-    folder = DATA / "depth3d" / "redkitchen_500-999"
-    _need(folder)
-    args = ["-s", str(folder), "--warm-start", "icp", "--gt", str(folder), "--gt-format", "depth"]
-    return Inputs(args, 500,
-                  {"scans": str(folder), "gt": "its reference poses (KinectFusion)", "warm_start": "icp"})
+def seven_scenes(folder_name: str) -> Callable[[Env], Inputs]:
+    """A 7-Scenes folder of ``../shared/data/depth3d`` refined from the ``icp`` warm start, scored against its
+    reference poses."""
+    def load(env: Env) -> Inputs:
+        folder = DATA / "depth3d" / folder_name
+        _need(folder)
+        args = ["-s", str(folder), "--warm-start", "icp", "--gt", str(folder), "--gt-format", "depth"]
+        return Inputs(args, 500,
+                      {"scans": str(folder), "gt": "its reference poses (KinectFusion)", "warm_start": "icp"})
+    return load
 
 
 #: the drifted-reference input: a rotation and a translation growing linearly over the sequence to these
@@ -367,9 +363,9 @@ DATASETS: dict[str, Dataset] = {d.name: d for d in [
     Dataset("intel", "Intel Research Lab, CARMEN log (real 2D laser), icp warm start", "relations",
             carmen("intel")),
     Dataset("redkitchen", "7-Scenes RedKitchen frames 0-499 (real depth camera), icp warm start", "ape",
-            redkitchen),
+            seven_scenes("redkitchen_000-499")),
     Dataset("redkitchen-500", "7-Scenes RedKitchen frames 500-999 (real depth camera), icp warm start", "ape",
-            redkitchen_500),
+            seven_scenes("redkitchen_500-999")),
     Dataset("redkitchen-drift", "7-Scenes RedKitchen frames 500-999 with its reference poses plus a smooth drift as "
             "the input (locally exact, at the frames' 30 Hz)", "ape", drifted_reference("redkitchen_500-999", None)),
     Dataset("redkitchen-drift-100hz", "the same drifted reference sampled at 100 Hz", "ape",
