@@ -121,8 +121,8 @@ class OptimConfig(BaseModel):
     #: guessed weight of the pose graph throughout
     dense_odometry_noise: bool = True
     #: the first-order DeepMapping2 epochs (Adam on the M-Net BCE, Chamfer and consistency losses over anchor
-    #: groups); None: on, except after the dense stage, from whose result they only make the map blurrier
-    #: (simulated 3D LiDAR 200 frames: dense 0.0006 m, the epochs after it 0.0032, the sharpest map the dense one)
+    #: groups); None: on only when the dense stage did not run (after it, kept or not, they trade the steps the
+    #: frames support for a sharper map)
     first_order: bool | None = None
     #: epochs at the start in which the poses hold still while the occupancy field learns the map (an
     #: untrained field pulls them anywhere); None: 1 when polishing a locally accurate 3D start, else 0

@@ -270,3 +270,11 @@ def test_a_dense_result_whose_steps_fit_their_frames_worse_is_not_kept(room_sequ
     np.testing.assert_array_equal(out.poses, truth)
     assert out.dense["returned"] == "prepared" and "fit their frames worse" in out.why
     assert out.dense["step_guard"]["check"]["fit_m"] > out.dense["start_fit_m"]
+    # nor do the first-order epochs trade those steps for a sharper map afterwards: they run only without the stage
+    from dm2_backend.config_schema import RunConfig
+    from dm2_backend.pipeline.parallel import build
+
+    assert out.dense_ran and not out.refined
+    assert build(prep, out, RunConfig(), progress=False).epochs == 0
+    assert build(prep, start_module.Start(truth, start_module.StartKind.PREPARED, "no dense stage"), RunConfig(),
+                 progress=False).epochs > 0

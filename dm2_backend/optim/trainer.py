@@ -102,8 +102,8 @@ class Optimiser:
         ``map_metric``: the map entropy of poses (lower = sharper), recorded per epoch and, with
         ``cfg.select == "map"``, what chooses the returned poses among the start and the epochs;
         ``from_graph``: ``warm_start`` is the pose-graph solution (locally accurate by construction);
-        ``dense``: ``warm_start`` is the dense stage's result (then the first-order epochs run only when
-        ``cfg.first_order`` asks for them);
+        ``dense``: the dense stage ran (``warm_start`` is its result, or the start whose steps its result did
+        not keep; then the first-order epochs run only when ``cfg.first_order`` asks for them);
         ``trace_metric``: the accuracy recorded a few times per epoch with the loss (each epoch row's ``trace``);
         ``samples``: the points of :func:`sample_points` computed ahead (a memory-mapped array shared by the
         ranks); ``dist``: this process's rank when several optimise together (see ``distributed``)."""

@@ -132,7 +132,7 @@ def build(prep: Prepared, start: Start, cfg: RunConfig, watch: Watch | None = No
                      device=device, metric=watch.metric, map_metric=watch.map_metric,
                      progress=progress and dist.rank == 0, samples=samples, dist=dist,
                      from_graph=start.locally_accurate, trace_metric=watch.trace,
-                     dense=start.refined)
+                     dense=start.dense_ran)
 
 
 def optimise_rank(prep: Prepared, start: Start, samples: str, cfg: RunConfig, sess: Session,

@@ -79,6 +79,11 @@ class Start:
         return self.dense.get("returned") == "dense"
 
     @property
+    def dense_ran(self) -> bool:
+        """The dense stage ran from this start (``poses`` are its result, or the start it did not improve on)."""
+        return bool(self.dense)
+
+    @property
     def locally_accurate(self) -> bool:
         """The pose-graph solution, or the dense stage's result: both agree with the registrations."""
         return self.name is StartKind.GRAPH or self.refined
