@@ -237,7 +237,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     judge = step_guard.judge_of(prep)
     guarded = step_guard.guard(judge, result.poses, resolve)
     result.poses = guarded.poses
-    start_fit = judge.fit(start.poses)
+    start_fit = judge.fit(start.poses)  # reported beside the result's (``step_guard.check.fit_m``)
     # never worse than where it started, judged without ground truth: each frame against the map the others make
     candidates = {"warm start": prep.warm_start, start.name.value: start.poses, "dense": result.poses}
     agreement = agreement_score(cells, candidates, voxel, judges=(start.name.value, "dense"))
@@ -253,10 +253,6 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     if chosen == "dense" and not guarded.clean:  # held and solved again, a step is still contradicted
         log.warning("dense stage's result not kept: its frames contradict %s", guarded.check.describe())
         chosen, reason = start.name.value, f"its frames contradict {guarded.check.describe()}"
-    if chosen == "dense" and guarded.check.fit_m > start_fit:  # sharper as a whole, each step fits worse
-        fits = f"{guarded.check.fit_m * 1e3:.4g} mm against the start's {start_fit * 1e3:.4g} mm"
-        log.info("dense stage's result not kept: its steps fit their frames worse than the start's (%s)", fits)
-        chosen, reason = start.name.value, f"its steps fit their frames worse than the start's ({fits})"
     summary = {"voxel_m": voxel, "range_noise_m": noise, "hessian_edges": graph.meta["hessian_edges"],
                "cell_m": cells.size, "cells": len(cells), "cells_seconds": built.seconds, "seconds": result.seconds,
                "rounds": len(result.history), "stopped": result.stopped,
