@@ -143,7 +143,6 @@ def constraint(source: Cloud, target: Cloud, T: np.ndarray, distance: float) -> 
     return float(np.linalg.eigvalsh(n.T @ n / len(n))[0])
 
 
-
 def plane_residuals(source: Cloud, target: Cloud, T: np.ndarray, distance: float) -> np.ndarray:
     """Point-to-plane (planar: point-to-line) residual (m) of each ``source`` point placed at ``T`` against its
     nearest ``target`` point's plane; NaN where no target point lies within ``distance``."""

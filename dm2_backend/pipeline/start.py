@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.algorithms.common import fine_distance, lengths, project_planar
+from dm2_backend.algorithms.common import lengths, project_planar
 from dm2_backend.algorithms.pairwise import COARSE
 from dm2_backend.baselines import gtsam_backend
 from dm2_backend.baselines.graph import InformationModel, build_graph, valid_pairs
@@ -97,13 +97,9 @@ def sequence_cuts(prep: Prepared, poses: np.ndarray) -> continuity.Cuts:
     """The steps of ``poses`` that neither the front end's odometry (the warm start) nor the valid registration of
     the two frames explains (:func:`dm2_backend.evaluation.continuity.cuts`; the smallest cut: the registration's
     coarse correspondence distance, how far a scan-matching step slides)."""
-    registered = {a: edge.relative for (a, b), edge in valid_pairs(prep.topology, prep.pairwise, prep.frames).items()
-                  if b == a + 1}
-    scale = lengths(prep.frames)
-    registration = prep.resolved.get("registration")
-    fine = registration.options.get("max_distance") if registration is not None else None
-    slip = COARSE * float(fine or fine_distance(scale))
-    return continuity.cuts(poses, prep.warm_start, registered, slip, scale.range_median or 1.0)
+    slip = COARSE * step_guard.correspondence_distance(prep)
+    return continuity.cuts(poses, prep.warm_start, step_guard.consecutive_registrations(prep), slip,
+                           lengths(prep.frames).range_median or 1.0)
 
 
 def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None,

@@ -5,8 +5,8 @@ the front end's odometry step (:mod:`dm2_backend.evaluation.step_check`). Each c
 neighbours in a stretch twice as wide each round, is held (:func:`hold_of`: an exact edge,
 :meth:`~dm2_backend.pose_graph.PoseGraph.holding`) where its two frames fit best, with the information they give
 (a direction they leave free, along a corridor or across one wall, is not held), and the dense stage solves again
-from its result; this repeats while steps are contradicted, at most :data:`ROUNDS` times. A result that still has
-a contradicted step is not returned: its start stands.
+from its result; this repeats while steps are contradicted, at most :data:`ROUNDS` times. :func:`guard` returns the
+poses and the final verdicts; ``pipeline.start.dense_start`` does not return a result with a contradicted step left.
 """
 
 from __future__ import annotations
@@ -60,19 +60,28 @@ class Guarded:
                 "seconds": self.seconds, "check": self.check.summary()}
 
 
+def correspondence_distance(prep: Prepared) -> float:
+    """The registration's fine correspondence distance (m): its ``max_distance`` as configured, else the one it
+    derives from the frames (:func:`~dm2_backend.algorithms.common.fine_distance`)."""
+    registration = prep.resolved.get("registration")
+    fine = registration.options.get("max_distance") if registration is not None else None
+    return float(fine or fine_distance(lengths(prep.frames)))
+
+
+def consecutive_registrations(prep: Prepared) -> dict[int, np.ndarray]:
+    """Step i -> the valid registration of frame i+1 in frame i, where the preparation has one."""
+    return {a: edge.relative for (a, b), edge in valid_pairs(prep.topology, prep.pairwise, prep.frames).items()
+            if b == a + 1}
+
+
 def judge_of(prep: Prepared) -> StepJudge:
     """The judge of a preparation's steps: its frames, the valid registrations of consecutive frames and the
     warm start's steps, the residuals taken within the registration's fine correspondence distance."""
-    registration = prep.resolved.get("registration")
-    fine = registration.options.get("max_distance") if registration is not None else None
-    distance = float(fine or fine_distance(lengths(prep.frames)))
-    registered = {a: edge.relative for (a, b), edge in valid_pairs(prep.topology, prep.pairwise, prep.frames).items()
-                  if b == a + 1}
     warm = np.asarray(prep.warm_start, dtype=np.float64)
     odometry = dict(enumerate(se3.relative(warm[:-1], warm[1:])))
-    pairs = FramePairs(prep.frames.points, prep.frames.planar, distance,
+    pairs = FramePairs(prep.frames.points, prep.frames.planar, correspondence_distance(prep),
                        rmse_floor(prep.frames, InformationModel()))
-    return StepJudge(pairs, {REGISTRATION: registered, ODOMETRY: odometry})
+    return StepJudge(pairs, {REGISTRATION: consecutive_registrations(prep), ODOMETRY: odometry})
 
 
 def hold_of(judge: StepJudge, i: int) -> Hold | None:
