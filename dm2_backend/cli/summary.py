@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from dm2_backend.evaluation.kitti_odometry import result_line
 from dm2_backend.pipeline.run_report import RunReport
 
 
@@ -16,6 +17,9 @@ def print_summary(report: RunReport, out: Path) -> None:
             click.echo(f"{key:<28} warm start {before[key]:10.4f}  ->  {report.method} {after[key]:10.4f}")
     if "error" in after:
         click.echo(f"evaluation failed: {after['error']}", err=True)
+    kitti = report.details.get("kitti_odometry")
+    if kitti and kitti["applicable"]:  # a path of 100 m or less has no segment: nothing to say
+        click.echo(result_line(kitti["t_err_percent"], kitti["r_err_deg_per_100m"], kitti["segments"]))
     for text in report.cautions or []:
         click.echo(f"caution: {text}")
     if report.details.get("stopped"):

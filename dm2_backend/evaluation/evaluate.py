@@ -1,7 +1,7 @@
 """One evaluation of an estimated trajectory, shared by ``dm2 eval`` and every run's ``report.json``.
 
-Against ground truth: APE/RPE through evo and the paper's ATE; against Freiburg relations: the relations
-metric; with scans: the map's sharpness (entropy and plane variance) at the estimated poses.
+Against ground truth: APE/RPE through evo, the paper's ATE and the KITTI odometry metric; against Freiburg
+relations: the relations metric; with scans: the map's sharpness (entropy and plane variance) at the estimated poses.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from dm2_backend.evaluation.ape_rpe import evaluate_poses
+from dm2_backend.evaluation.kitti_odometry import kitti_odometry_error
 from dm2_backend.evaluation.map_quality import MapSampler, estimate_map
 from dm2_backend.evaluation.paper_ate import paper_ate
 from dm2_backend.evaluation.relations import MAX_DT, relations_error
@@ -38,9 +39,10 @@ class EvalOptions:
 def evaluate(est: Trajectory, label: str = "", path: str | Path = "", *, gt: Trajectory | None = None,
              relations: np.ndarray | None = None, sampler: MapSampler | None = None,
              scans: ScanSequence | None = None, gt_frames: np.ndarray | None = None,
-             options: EvalOptions = EvalOptions()) -> EstimateReport:
+             options: EvalOptions = EvalOptions(), kitti_frame: np.ndarray | None = None) -> EstimateReport:
     """Every metric that the given references allow for the estimate ``est``; ``gt_frames``: the poses of
-    ``est`` that ``gt`` holds, in its order (None: all)."""
+    ``est`` that ``gt`` holds, in its order (None: all); ``kitti_frame``: the KITTI odometry metric evaluates
+    ``kitti_frame @ T @ inv(kitti_frame)`` (KITTI's ``Tr``: LiDAR-frame poses back in the camera frame)."""
     entry = EstimateReport(label=label, path=str(path), positions=est.positions)
     if gt is not None:
         covered = est if gt_frames is None else est.subset(gt_frames)
@@ -50,6 +52,8 @@ def evaluate(est: Trajectory, label: str = "", path: str | Path = "", *, gt: Tra
                                      by_index=options.by_index)
         if entry.poses.n_matched >= 3:
             entry.paper = paper_ate(np.array(entry.poses.ref.poses_se3), entry.poses.est_raw)
+        # on the associated poses as they are (the devkit aligns nothing)
+        entry.kitti = kitti_odometry_error(np.array(entry.poses.ref.poses_se3), entry.poses.est_raw, kitti_frame)
     if relations is not None:
         entry.relations = relations_error(est, relations, max_dt=options.relations_max_dt, source=path or None)
     if sampler is not None and scans is not None:

@@ -4,8 +4,8 @@ run reports is :mod:`.run_compare`, the text tables :mod:`.text_table`.
 
 Evaluation JSON (``dm2 eval --json``): ``format`` ("dm2-eval/1"), ``ground_truth``, ``relations``,
 ``settings`` and ``estimates`` (a list with ``label``, ``path``, ``association``, ``alignment`` and
-``metrics``: ``ape_trans``/``ape_rot``/``rpe_trans``/``rpe_rot`` with evo's statistics, ``paper_ate`` and
-``relations``). CSV and Markdown hold one row per estimate and metric with the columns of
+``metrics``: ``ape_trans``/``ape_rot``/``rpe_trans``/``rpe_rot`` with evo's statistics, ``paper_ate``,
+``kitti_odometry`` and ``relations``). CSV and Markdown hold one row per estimate and metric with the columns of
 :data:`COLUMNS`; ``value`` is the headline figure of the row (rmse for APE/RPE, mean for relations, the
 paper's figure for the paper ATE).
 """
@@ -19,6 +19,7 @@ import numpy as np
 
 from dm2_backend.evaluation.ape_rpe import STAT_KEYS, PoseErrors
 from dm2_backend.evaluation.cautions import pose_cautions, standing_still_rmse
+from dm2_backend.evaluation.kitti_odometry import KittiOdometryError
 from dm2_backend.evaluation.map_quality import MapQuality
 from dm2_backend.evaluation.paper_ate import LABEL as PAPER_LABEL
 from dm2_backend.evaluation.paper_ate import PaperATE
@@ -54,6 +55,7 @@ class EstimateReport:
     relations: RelationsResult | None = None
     positions: np.ndarray | None = None  # estimated positions as read (plots without ground truth)
     map: MapQuality | None = None  # map sharpness of the scans at these poses (``dm2 eval --scans``)
+    kitti: KittiOdometryError | None = None  # the KITTI odometry metric (t_err %, r_err deg/100 m)
 
 
 @dataclass
@@ -122,6 +124,9 @@ def to_json(report: EvalReport) -> dict:
                 "definition": "DeepMapping2 utils/geometry_utils.py compute_ate: rigid alignment; "
                               "trans = sqrt(mean per-frame distance), rot = mean |yaw error| (deg)",
             }
+        if est.kitti is not None:
+            entry["metrics"]["kitti_odometry"] = {k: _num(v) if isinstance(v, float) else v
+                                                  for k, v in est.kitti.as_dict().items()}
         if est.relations is not None:
             r = est.relations
             entry["metrics"]["relations"] = {"used": r.used, "skipped": r.skipped, "planar": r.planar,
@@ -144,6 +149,8 @@ def run_metrics(est: EstimateReport) -> dict[str, float]:
     if est.paper is not None:
         out["paper_ate_trans"] = est.paper.trans
         out["paper_ate_rot_deg"] = est.paper.rot_deg
+    if est.kitti is not None:
+        out.update(est.kitti.metrics())  # kitti_t_err_percent, kitti_r_err_deg_per_100m (where applicable)
     if est.relations is not None:
         out["relations_trans_mean_m"] = est.relations.stats["trans_mean"]
         out["relations_rot_mean_deg"] = est.relations.stats["rot_mean"]
@@ -187,10 +194,17 @@ def map_line(report: EvalReport) -> list[str]:
             f"points; lower entropy / plane variance = sharper"]
 
 
+def kitti_lines(report: EvalReport) -> list[str]:
+    """Each estimate's KITTI odometry line (the figures, or why the metric does not apply)."""
+    return [f"{est.label}: {est.kitti.line()}" for est in report.estimates if est.kitti is not None]
+
+
 def terminal_text(report: EvalReport) -> str:
     lines = [line for est in report.estimates for line in describe(est)] + map_line(report)
     header, body = display_rows(report)
     lines += ["", format_table(header, body)]
+    if kitti_lines(report):
+        lines += ["", *kitti_lines(report)]
     if any(e.paper is not None for e in report.estimates):
         lines.append(f"\n{PAPER_LABEL}: the DeepMapping2 paper's definition (trans = sqrt of the mean "
                      "distance after rigid alignment, sqrt(m); rot = mean |yaw error|); not comparable "

@@ -12,7 +12,16 @@ from evo.tools import file_interface
 
 from dm2_backend.atomic import atomic_write
 from dm2_backend.evaluation.paper_ate import LABEL as PAPER_LABEL
-from dm2_backend.evaluation.report import COLUMNS, EvalReport, describe, display_rows, map_line, rows, to_json
+from dm2_backend.evaluation.report import (
+    COLUMNS,
+    EvalReport,
+    describe,
+    display_rows,
+    kitti_lines,
+    map_line,
+    rows,
+    to_json,
+)
 from dm2_backend.evaluation.text_table import fmt
 
 
@@ -45,6 +54,8 @@ def write_markdown(report: EvalReport, path: str | Path) -> None:
     lines += [f"- {line}" for line in map_line(report)]
     lines += ["", "| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     lines += ["| " + " | ".join(fmt(c) for c in r) + " |" for r in body]
+    if kitti_lines(report):
+        lines += ["", *(f"- {line}" for line in kitti_lines(report))]
     if any(e.paper is not None for e in report.estimates):
         lines += ["", f"*{PAPER_LABEL}*: DeepMapping2's official definition (sqrt of the mean distance after "
                   "rigid alignment; mean absolute yaw error). Not comparable with APE."]
