@@ -3,11 +3,13 @@ packages add through the ``dm2.formats`` entry-point group (see ``registry.load_
 
 from dm2_backend.formats import (  # noqa: F401  (each module registers itself)
     bag,
+    balm,
     carmen,
     depth,
     dm2_priors,
     euroc,
     g2o,
+    hba,
     kitti,
     kitti_raw,
     nclt,

@@ -118,8 +118,8 @@ def output_folder(kw: dict, command: str, cfg: RunConfig, inputs, resume: bool =
     if int(os.environ.get("RANK", "0")) != 0:
         return contextlib.nullcontext()
     fp = fingerprint(cfg, command=command, scans=kw["scans"] and Path(kw["scans"]).resolve(),
-                     frames=len(inputs.scans), poses=kw["poses"] and Path(kw["poses"]).resolve(),
-                     poses_content=digest(kw["poses"]))
+                     frames=len(inputs.scans), poses=inputs.given_path and Path(inputs.given_path).resolve(),
+                     poses_content=digest(inputs.given_path))  # --poses, or the poses file of the scans' layout
     return run_folder(kw["out"], command, force=kw["force"], resume=resume, fp=fp)
 
 

@@ -62,9 +62,15 @@ def load_inputs(
 ) -> RunInputs:
     scans = open_scans(scans_path, scans_format, options)
     log_sensor(depth_sensor(scans))
+    carried = poses_path is None and scans.meta.get("poses_file")  # a layout holding its poses (HBA's pose.json)
+    if carried:
+        poses_path, poses_format = Path(scans.meta["poses_file"]), scans.meta.get("poses_format")
     given, fmt, full = None, None, None
     if poses_path is not None:
         full = read_trajectory(poses_path, poses_format, options)
+        if carried and len(full) != len(scans):
+            raise InputError(poses_path, f"{len(full)} poses for the {len(scans)} scans of "
+                                         f"{scans.meta.get('scans_folder', scans.source)} (one pose per scan)")
         fmt = full.meta.get("format")
         scans, given = associate_scans(scans, full, max_diff)
         if len(given) == len(full) or given.timestamps is None or fmt == "carmen":

@@ -16,6 +16,7 @@ from dm2_backend.errors import InputError
 from dm2_backend.evaluation import plots, topology_log
 from dm2_backend.formats import TRAJECTORY_FORMATS, write_trajectory
 from dm2_backend.formats.dm2_priors import write_priors
+from dm2_backend.formats.hba import write_hba_folder
 from dm2_backend.formats.kitti import lidar_to_camera, read_calib_tr
 from dm2_backend.stages import Frames, Pairwise, Topology
 from dm2_backend.trajectory import Trajectory
@@ -56,6 +57,15 @@ def write_trajectories(out: Path, traj: Trajectory, given_path: Path | None, giv
         except InputError as exc:
             log.warning("skipped %s: %s", name, exc.message)
     return written
+
+
+def write_layout(out: Path, traj: Trajectory, scans) -> list[str]:
+    """The result in the layout of a scan source that carries its poses file, for that layout's own tools: an
+    HBA folder's as ``hba/pose.json`` (HBA's ``data_path`` is that folder with the input's ``pcd/`` in it;
+    the input's own ``pose.json`` is never written). Returns the files written (none for other sources)."""
+    if scans.meta.get("layout") != "hba":
+        return []
+    return write_hba_folder(out / "hba", traj)
 
 
 #: frames placed and down-sampled at a time by :func:`write_map` (its memory is that of one chunk and the map)

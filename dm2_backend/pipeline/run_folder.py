@@ -48,7 +48,7 @@ INPUT_ORDER = ["command", "scans", "frames", "poses", "poses_content"]
 OUTPUT_NAMES = ("config.yaml", "resolved.yaml", "report.json", "warm_start.*", "topology.*", "trajectory.png",
                 "errors.png", "epochs.png", "consistency.*", "map.*", "mnet*", "octomap.bt", "maps.json", "prior",
                 *CHECKPOINTS, "poses*", "*_lidar_*", "graph.g2o", "velodyne", "times.txt", "info.json", "README.txt",
-                "*.rrd")
+                "*.rrd", "hba")
 #: a marker larger than this is not one dm2 wrote
 MARKER_MAX_BYTES = 1 << 20
 

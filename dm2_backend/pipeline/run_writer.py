@@ -17,9 +17,11 @@ from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.cautions import pose_cautions
 from dm2_backend.evaluation.consistency_profile import consistency_profiles, write_profiles
 from dm2_backend.evaluation.evaluate import EvalOptions, evaluate
+from dm2_backend.evaluation.kitti_odometry import KittiOdometryError
 from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.evaluation.paper_ate import paper_ate
 from dm2_backend.evaluation.report import run_metrics
+from dm2_backend.formats.kitti import read_calib_tr
 from dm2_backend.maps.run_maps import write_run_maps
 from dm2_backend.memory import peak_rss_mb, release_mapped
 from dm2_backend.pipeline import outputs
@@ -42,14 +44,23 @@ def metrics_of(traj: Trajectory, inputs: RunInputs) -> dict[str, float]:
 def evaluation_of(traj: Trajectory, inputs: RunInputs) -> tuple[dict[str, float], list[str]]:
     """:func:`metrics_of` and the cautions on those metrics (an ill-posed rotation APE, the standing-still
     reference; see ``evaluation/cautions.py``)."""
+    return run_evaluation(traj, inputs)[:2]
+
+
+def run_evaluation(traj: Trajectory, inputs: RunInputs
+                   ) -> tuple[dict[str, float], list[str], KittiOdometryError | None]:
+    """:func:`evaluation_of` and the KITTI odometry metric (None without ground truth). A KITTI ground truth
+    read with its calibration is in the LiDAR frame: the metric takes both back to the camera frame, as the
+    KITTI devkit evaluates."""
     try:
         # the run's ground truth is already one pose per scan (or per listed scan): paired by index
+        calib = inputs.gt.meta.get("calib") if inputs.gt is not None else None
         est = evaluate(traj, gt=inputs.gt, relations=inputs.relations, gt_frames=inputs.gt_frames,
-                       options=EvalOptions(by_index=True))
+                       options=EvalOptions(by_index=True), kitti_frame=read_calib_tr(calib) if calib else None)
     except InputError as exc:
         log.warning("evaluation failed: %s", exc.message)
-        return {"error": exc.message}, []
-    return run_metrics(est), pose_cautions(est.poses) if est.poses is not None else []
+        return {"error": exc.message}, [], None
+    return run_metrics(est), pose_cautions(est.poses) if est.poses is not None else [], est.kitti
 
 
 def output_timestamps(inputs: RunInputs) -> np.ndarray:
@@ -147,7 +158,9 @@ def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, fina
         details["warm_start"] = _warm_summary(prep.warm_report)
     details["consistency"] = {name: p.summary() for name, p in profiles.items()}
     with stages.stage("evaluation"):
-        final_metrics, cautions = evaluation_of(trajectories["final"], inputs)
+        final_metrics, cautions, kitti = run_evaluation(trajectories["final"], inputs)
+        if kitti is not None:
+            details["kitti_odometry"] = kitti.as_dict()
         metrics = {name: None if traj is None else {**metrics_of(traj, inputs), **maps[name]}
                    for name, traj in trajectories.items() if name != "final"}
     timings = {**stages.seconds, "total": time.perf_counter() - started}
@@ -184,6 +197,7 @@ def _write_trajectories_and_plots(out: Path, inputs: RunInputs, prep: Prepared, 
     final = trajectories["final"].poses
     written = outputs.write_trajectories(out, trajectories["final"], inputs.given_path, inputs.given_format)
     written += outputs.write_trajectories(out, trajectories["warm_start"], None, None, stem="warm_start")
+    written += outputs.write_layout(out, trajectories["final"], inputs.scans)  # HBA's hba/pose.json
     if inputs.given_full is not None:  # the input trajectory at its own rate, corrected
         full_rate = corrected_full_rate(inputs.given_full, inputs.given, final)
         written += outputs.write_trajectories(out, full_rate.trajectory, inputs.given_path, inputs.given_format,
