@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import enum
 import hashlib
+import logging
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from dm2_backend.errors import InputError
-from dm2_backend.trajectory import Trajectory, associate_by_time
+from dm2_backend.trajectory import Trajectory, associate_by_time, interpolate_gaps
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -111,7 +114,10 @@ def associate_scans(
 ) -> tuple[ScanSequence, Trajectory]:
     """Pair scans with poses by timestamp (when both have them) or by index.
 
-    By index the counts must match; by time every scan must find a pose within ``max_diff`` seconds.
+    By index the counts must match; by time every scan must find a pose within ``max_diff`` seconds, or, from a
+    trajectory denser than the scans, have one interpolated at its stamp across a short gap (a dropout of a few
+    samples: ``trajectory.interpolate_gaps``; logged, and counted in the returned trajectory's
+    ``meta["interpolated_gaps"]``).
     """
     timed = scans.timestamps is not None and poses.timestamps is not None
     if by == "time" or (by == "auto" and timed):
@@ -119,6 +125,10 @@ def associate_scans(
             raise InputError(scans.source, "association by time needs timestamps on scans and poses")
         i_scan, i_pose = associate_by_time(scans.timestamps, poses.timestamps, max_diff)
         if len(i_scan) < len(scans):
+            filled = interpolate_gaps(scans.timestamps, poses, i_scan, i_pose)
+            if filled is not None:
+                log.info("%s", filled.describe())
+                return scans, filled.trajectory
             if by == "auto" and len(scans) == len(poses):
                 return scans, poses  # stamps in different clocks; the counts agree, pair by index
             raise InputError(

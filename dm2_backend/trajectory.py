@@ -147,6 +147,75 @@ def associate_by_time(a: np.ndarray, b: np.ndarray, max_diff: float) -> tuple[np
     return ia[keep], ib[keep]
 
 
+#: a stamp with no pose within --max-diff takes one interpolated from a dense trajectory when that has a pose on
+#: each side of it within this many of its own (median) periods, or within one period of the stamps: dropouts of
+#: a few samples (motion capture), no longer than the stamps' own spacing, not holes across which the motion is
+#: unknown
+GAP_PERIODS = 5
+#: "dense": at least this many poses per period of the stamps (a trajectory at the stamps' own rate, whose median
+#: period differs from theirs only by clock jitter, is not dense and its gaps are not bridged)
+DENSE_FACTOR = 2
+
+
+@dataclass(frozen=True)
+class GapFill:
+    """One pose per stamp from a dense trajectory: the associated pose where one lies within ``max_diff``, else
+    interpolated on SE(3) at the stamp (:func:`interpolate_gaps`)."""
+
+    trajectory: Trajectory
+    #: indices of the stamps whose pose was interpolated
+    interpolated: np.ndarray
+    #: the widest interval between the two poses an interpolated one lies between (s), the trajectory's period (s)
+    widest: float
+    period: float
+
+    def summary(self) -> dict:
+        return {"interpolated": len(self.interpolated), "of": len(self.trajectory), "widest_gap_s": self.widest,
+                "period_s": self.period}
+
+    def describe(self, what: str = "scan poses") -> str:
+        """``interpolated 2 of 241 scan poses from the trajectory (gaps up to 0.03 s, 3 periods)``."""
+        return (f"interpolated {len(self.interpolated)} of {len(self.trajectory)} {what} from the trajectory "
+                f"(gaps up to {self.widest:.3g} s, {self.widest / self.period:.3g} periods)")
+
+
+def interpolate_gaps(stamps: np.ndarray, traj: Trajectory, i_a: np.ndarray, i_b: np.ndarray) -> GapFill | None:
+    """Poses at every one of ``stamps`` (sorted) from ``traj`` associated with them as ``i_a``, ``i_b`` by
+    :func:`associate_by_time`: the associated pose where there is one (unchanged, with its own stamp), else
+    interpolated at the stamp (``se3.interpolate``: slerp and linear) from the poses on either side, when the
+    trajectory is dense (:data:`DENSE_FACTOR`) and both lie within :data:`GAP_PERIODS` of its periods or one period
+    of the stamps. None when the
+    trajectory is not dense or some stamp is not so bracketed."""
+    a = np.asarray(stamps, dtype=np.float64)
+    b = traj.timestamps
+    if b is None or len(b) < 2 or len(a) == 0:
+        return None
+    period = float(np.median(np.diff(b)))
+    a_period = float(np.median(np.diff(a))) if len(a) > 1 else np.inf  # one stamp: any trajectory is denser
+    if not 0 < period * DENSE_FACTOR <= a_period:
+        return None
+    missing = np.setdiff1d(np.arange(len(a)), i_a)
+    right = np.searchsorted(b, a[missing], side="left")  # first pose at or after the stamp
+    left = right - 1
+    if (left < 0).any() or (right >= len(b)).any():
+        return None
+    limit = max(GAP_PERIODS * period, a_period if np.isfinite(a_period) else 0.0)
+    if ((a[missing] - b[left]) > limit).any() or ((b[right] - a[missing]) > limit).any():
+        return None
+    nearest = np.empty(len(a), dtype=int)
+    nearest[i_a] = i_b
+    nearest[missing] = np.where(a[missing] - b[left] <= b[right] - a[missing], left, right)
+    out = traj.subset(nearest)
+    poses, times = out.poses.copy(), out.timestamps.copy()
+    for i, lo, hi in zip(missing, left, right, strict=True):
+        poses[i] = se3.interpolate(b[[lo, hi]], traj.poses[[lo, hi]], a[i:i + 1])[0]
+        times[i] = a[i]
+    widest = float((b[right] - b[left]).max()) if len(missing) else 0.0
+    fill = GapFill(replace(out, poses=poses, timestamps=times, meta=dict(traj.meta)), missing, widest, period)
+    fill.trajectory.meta["interpolated_gaps"] = fill.summary()
+    return fill
+
+
 def associate_by_index(n_a: int, n_b: int) -> tuple[np.ndarray, np.ndarray]:
     """Pair the first min(n_a, n_b) items by index."""
     n = min(n_a, n_b)

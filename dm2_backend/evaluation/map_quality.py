@@ -16,6 +16,7 @@ points, so the same points are sampled for every estimate and the numbers of two
 from __future__ import annotations
 
 import hashlib
+import logging
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -27,7 +28,9 @@ from dm2_backend.progress import progress as progress_of
 from dm2_backend.scan_scale import point_spacing
 from dm2_backend.scans import ScanSequence
 from dm2_backend.threads import ordered_map
-from dm2_backend.trajectory import Trajectory, associate_by_time
+from dm2_backend.trajectory import Trajectory, associate_by_time, interpolate_gaps
+
+log = logging.getLogger(__name__)
 
 DEFINITION = ("mean over sampled map points of 1/2 ln det(2 pi e Sigma) (map_entropy, nats) and of the "
               "smallest eigenvalue of Sigma (map_plane_variance_m2), Sigma the covariance of the map points "
@@ -195,11 +198,16 @@ def estimate_map(sampler: MapSampler, scans: ScanSequence, est: Trajectory, max_
 
 def poses_of_scans(scans: ScanSequence, est: Trajectory, max_diff: float = 0.01, source=None) -> np.ndarray:
     """One pose of ``est`` per scan, associated by time (else by index); every scan needs its pose, so that
-    every estimate is scored on the same map points."""
+    every estimate is scored on the same map points; from an estimate denser than the scans, a scan in a short
+    gap of it takes the pose interpolated at its stamp (``trajectory.interpolate_gaps``, logged)."""
     if scans.timestamps is not None and est.timestamps is not None:
         i_scan, i_pose = associate_by_time(scans.timestamps, est.timestamps, max_diff)
         if len(i_scan) == len(scans):
             return est.poses[i_pose[np.argsort(i_scan)]]
+        filled = interpolate_gaps(scans.timestamps, est, i_scan, i_pose)
+        if filled is not None:
+            log.info("%s: %s", source or "estimate", filled.describe())
+            return filled.trajectory.poses
         if len(est) != len(scans):
             raise InputError(source, f"only {len(i_scan)} of {len(scans)} scans have a pose within {max_diff} s "
                                       "(see --max-diff)")
