@@ -137,11 +137,13 @@ def indefinite(info: np.ndarray) -> np.ndarray:
     return w[:, 0] < -1e-9 * np.maximum(np.abs(w).max(axis=1), 1.0)
 
 
-def _project_information(info: np.ndarray, lines: np.ndarray, path: Path, project: bool = True) -> int:
+def _project_information(info: np.ndarray, lines: np.ndarray, path: Path, project: bool = True,
+                         warn: bool = True) -> int:
     """Replace (in place) information matrices that are not positive semi-definite by the nearest ones that
     are, with negative eigenvalues raised to :data:`PSD_FLOOR` of the largest (kept invertible, so that
     gtsam's and g2o's Cholesky factorisations work); one warning says how many and the first line. Returns
-    how many were not positive semi-definite; ``project=False`` warns and keeps them as they are.
+    how many were not positive semi-definite; ``project=False`` warns (unless ``warn=False``: the caller
+    says how its solver weighs them) and keeps them as they are.
 
     Real graphs hold such matrices (SE-Sync's ``cubicle.g2o``). ``gtsam.readG2o`` keeps them as they are and
     its noise model then factorises them wrongly without a word (an LLT of an indefinite matrix; NaN sigmas
@@ -152,9 +154,10 @@ def _project_information(info: np.ndarray, lines: np.ndarray, path: Path, projec
     top = np.maximum(np.abs(w).max(axis=1), 1.0)
     bad = w[:, 0] < -1e-9 * top
     if bad.any() and not project:
-        log.warning("%s: %d of %d information matrices are not positive semi-definite (first on line %d); "
-                    "optimised as the file writes them (--information nearest-psd: the nearest positive-definite "
-                    "ones)", path, int(bad.sum()), len(info), int(lines[int(np.argmax(bad))]))
+        if warn:
+            log.warning("%s: %d of %d information matrices are not positive semi-definite (first on line %d); "
+                        "optimised as the file writes them (--information nearest-psd: the nearest "
+                        "positive-definite ones)", path, int(bad.sum()), len(info), int(lines[int(np.argmax(bad))]))
     elif bad.any():
         floor = PSD_FLOOR * np.abs(w[bad]).max(axis=1, keepdims=True)
         wb = np.maximum(w[bad], floor)
@@ -194,9 +197,10 @@ def _fill_missing(ids: np.ndarray, known: dict[int, np.ndarray], edges: np.ndarr
     return len(known) - before
 
 
-def read_g2o(path: str | Path, information: str = "file") -> PoseGraph:
+def read_g2o(path: str | Path, information: str = "file", warn: bool = True) -> PoseGraph:
     """Parse a g2o file; :class:`InputError` naming the line for anything malformed. ``information``: how
-    matrices that are not positive semi-definite are read (:data:`INFORMATION_MODES`)."""
+    matrices that are not positive semi-definite are read (:data:`INFORMATION_MODES`); ``warn=False``: no
+    warning for those kept as written (the solver's own says how it weighs them)."""
     if information not in INFORMATION_MODES:
         raise ValueError(f"information must be one of {', '.join(INFORMATION_MODES)}, not {information!r}")
     path = Path(path)
@@ -217,7 +221,7 @@ def read_g2o(path: str | Path, information: str = "file") -> PoseGraph:
     relative = _poses_from(e_values[:, :k], e_lines, is3d, path).reshape(-1, 4, 4)
     matrices = _upper_to_full(e_values[:, k:], 6 if is3d else 3)
     _check_magnitudes(matrices, e_lines, path)
-    not_psd = _project_information(matrices, e_lines, path, project=information == "nearest-psd")
+    not_psd = _project_information(matrices, e_lines, path, project=information == "nearest-psd", warn=warn)
     ids = np.union1d(v_ids, edges.reshape(-1)).astype(int)
     known = {int(n): T for n, T in zip(v_ids, v_poses, strict=True)}
     with np.errstate(over="ignore", invalid="ignore"):  # chained huge numbers: refused just below, no warnings

@@ -3,6 +3,7 @@ node, optional robust kernel, Levenberg-Marquardt."""
 
 from __future__ import annotations
 
+import logging
 import time
 
 import gtsam
@@ -27,6 +28,8 @@ ESTIMATORS = {
     "dcs": gtsam.noiseModel.mEstimator.DCS,
 }
 assert set(ESTIMATORS) == set(KERNELS)
+
+log = logging.getLogger(__name__)
 
 
 def components(graph: PoseGraph) -> np.ndarray:
@@ -106,20 +109,44 @@ def lm_params(options: SolverOptions) -> gtsam.LevenbergMarquardtParams:
     return params
 
 
-def optimize(graph: PoseGraph, options: SolverOptions | None = None) -> GraphResult:
-    """Levenberg-Marquardt from the graph's initial poses. GTSAM whitens each edge by a square root of its
-    information, which a matrix that is not positive semi-definite does not have: such a graph is refused
-    (one line) rather than weighed by a wrong factorisation."""
-    options = options or SolverOptions()
+def warn_indefinite(graph: PoseGraph) -> int:
+    """One warning when information matrices are not positive semi-definite: GTSAM weighs them as
+    ``gtsam.readG2o`` does (by the Cholesky factor Eigen returns for each, which for such a matrix is not a
+    square root of it), which is the answer a user asking for GTSAM's gets. Returns how many."""
     bad = indefinite(graph.information)
     if bad.any():
-        raise InputError(graph.meta.get("source"), f"{int(bad.sum())} information matrices are not positive "
-                         "semi-definite and GTSAM can only weigh an edge by a square root of its information: "
-                         "`dm2 baseline g2o` optimises the matrices as the file writes them, --information "
-                         "nearest-psd uses the nearest positive-definite ones")
+        first = graph.edges[int(np.argmax(bad))].tolist()
+        log.warning("%s: %d of %d information matrices are not positive semi-definite (first: edge %d-%d); GTSAM "
+                    "weighs the file as given, as gtsam.readG2o does (a partial Cholesky factor of each; "
+                    "--information nearest-psd: the nearest positive-definite ones)",
+                    graph.meta.get("source", "graph"), int(bad.sum()), len(bad), *first)
+    return int(bad.sum())
+
+
+def _check_finite(graph: PoseGraph, fg: gtsam.NonlinearFactorGraph, initial: gtsam.Values) -> None:
+    """Refuse (one line) a graph whose GTSAM error is not finite at the start: an information matrix that is
+    diagonal with a negative entry gets NaN sigmas in GTSAM (the file's matrix is at fault, not the poses,
+    which the reader checked)."""
+    if np.isfinite(fg.error(initial)):
+        return
+    offset = fg.size() - len(graph.edges)  # the anchor priors come first
+    bad = [k for k in range(len(graph.edges)) if not np.isfinite(fg.at(offset + k).error(initial))]
+    where = f" (first: edge {graph.edges[bad[0], 0]}-{graph.edges[bad[0], 1]})" if bad else ""
+    raise InputError(graph.meta.get("source"), f"GTSAM's error is not finite on {len(bad)} edges{where}: an "
+                     "information matrix with a negative diagonal entry gets NaN sigmas in GTSAM; --information "
+                     "nearest-psd uses the nearest positive-definite ones")
+
+
+def optimize(graph: PoseGraph, options: SolverOptions | None = None) -> GraphResult:
+    """Levenberg-Marquardt from the graph's initial poses. Information matrices that are not positive
+    semi-definite are weighed as GTSAM weighs them (one warning, :func:`warn_indefinite`), unless that
+    makes the error NaN (refused, one line)."""
+    options = options or SolverOptions()
+    warn_indefinite(graph)
     t = time.perf_counter()
     fg = factor_graph(graph, options)
     initial = to_values(graph)
+    _check_finite(graph, fg, initial)
     try:
         optimizer = gtsam.LevenbergMarquardtOptimizer(fg, initial, lm_params(options))
         result = optimizer.optimize()

@@ -8,6 +8,7 @@ import click
 
 from dm2_backend.baselines.options import GRAPH_METHODS, KERNELS, METHODS, SolverOptions
 from dm2_backend.cli.run_setup import command_started, output_folder, prepare_run, run_options
+from dm2_backend.cli.suggest import Choice
 from dm2_backend.cli.summary import print_summary
 from dm2_backend.formats.g2o import INFORMATION_MODES
 from dm2_backend.pipeline.run_folder import run_folder
@@ -46,14 +47,15 @@ def read_graph_gt(kw: dict):
 
 \b
 With --graph FILE.g2o (gtsam, g2o) an existing pose graph is optimised instead of scans.""")
-@click.argument("method", type=click.Choice(list(METHODS)))
+@click.argument("method", type=Choice(list(METHODS)))
 @run_options(scans_required=False)
 @click.option("--graph", "graph_path", type=path_type, default=None,
               help="Optimise this g2o pose graph (no scans needed).")
-@click.option("--information", type=click.Choice(INFORMATION_MODES), default="file", show_default=True,
+@click.option("--information", type=Choice(INFORMATION_MODES), default="file", show_default=True,
               help="With --graph: information matrices that are not positive semi-definite are optimised as the "
-                   "file writes them (g2o; GTSAM cannot weigh them), or read as the nearest positive-definite ones.")
-@click.option("--robust", type=click.Choice([*KERNELS, "none"]), default=None,
+                   "file writes them (g2o; gtsam: weighed as gtsam.readG2o weighs them, with a warning), or read as "
+                   "the nearest positive-definite ones.")
+@click.option("--robust", type=Choice([*KERNELS, "none"]), default=None,
               help="Robust kernel on every edge [default: cauchy for graphs built from scans (registrations "
                    "have outliers), none for --graph].")
 @click.option("--robust-k", type=float, default=None, help="Kernel threshold (whitened residual).")

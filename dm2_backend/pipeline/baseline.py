@@ -17,9 +17,8 @@ from dm2_backend.baselines.options import GRAPH_METHODS, METHODS, GraphResult, S
 from dm2_backend.config_schema import RunConfig
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import plots
-from dm2_backend.evaluation.cautions import pose_cautions
 from dm2_backend.evaluation.evaluate import EvalOptions, evaluate
-from dm2_backend.evaluation.report import run_metrics
+from dm2_backend.evaluation.report import estimate_cautions, run_metrics
 from dm2_backend.formats import write_trajectory
 from dm2_backend.formats.g2o import read_g2o, write_g2o
 from dm2_backend.memory import peak_rss_mb
@@ -81,7 +80,7 @@ def optimise_file(method: str, path: Path, out: Path, options: SolverOptions, gt
     ``poses.npy``, ``trajectory.png`` and ``report.json``. ``gt``: one pose per vertex (in id order); the
     report then holds the metrics of the file's vertices (``initial_metrics``) and of the result."""
     t_start = time.perf_counter()
-    graph = read_g2o(path, information)
+    graph = read_g2o(path, information, warn=method != "gtsam")  # GTSAM's warning says how it weighs them
     t_read = time.perf_counter() - t_start
     if gt is not None and len(gt) != len(graph):
         raise InputError(gt.meta.get("source"), f"{len(gt)} ground-truth poses for the {len(graph)} vertices of "
@@ -121,4 +120,4 @@ def graph_metrics(gt: Trajectory, initial: np.ndarray, final: np.ndarray, planar
     before = evaluate(Trajectory(initial, planar=planar), gt=gt, options=options)
     after = evaluate(Trajectory(final, planar=planar), gt=gt, options=options)
     return {"initial_metrics": run_metrics(before), "metrics": run_metrics(after),
-            "cautions": pose_cautions(after.poses)}
+            "cautions": estimate_cautions(after)}
