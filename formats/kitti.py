@@ -8,6 +8,7 @@ exists and has one time per pose, from ``times.txt`` next to the poses file.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -57,16 +58,32 @@ def lidar_to_camera(poses: np.ndarray, Tr: np.ndarray) -> np.ndarray:
     return Tr @ np.asarray(poses, dtype=np.float64) @ se3.inverse(Tr)
 
 
-def read_times(path: str | Path, count: int | None = None) -> np.ndarray:
-    """One time (s) a line; checks the count against ``count`` and that times increase."""
+def read_times(path: str | Path, count: int | None = None, duplicates_ok: bool = False) -> np.ndarray:
+    """One time (s) a line; checks the count against ``count`` and that times increase (with
+    ``duplicates_ok``: do not decrease)."""
     path = Path(path)
     rows, lines = _text.read_table(path, (1,), "one time per line")
     stamps = rows[:, 0]
     if count is not None and len(stamps) != count:
         raise InputError(path, f"{len(stamps)} times for {count} poses")
     traj = Trajectory(poses=se3.identity(len(stamps)), timestamps=stamps)
-    _text.validate(traj, path, lines)
+    _text.validate(traj, path, lines, duplicates_ok)
     return stamps
+
+
+def times_for(traj: Trajectory, path: str | Path, options: ReadOptions | None = None) -> Trajectory:
+    """``traj`` with the stamps of the times file ``path`` (one a line, one per pose). A repeated stamp (what
+    ``--out-times`` writes for a trajectory that has one) is handled as ``options.duplicate_times`` says, as
+    the TUM reader does: every pose kept with one warning, the later poses of a run dropped, or refused."""
+    path = Path(path)
+    rows, lines = _text.read_table(path, (1,), "one time per line")
+    if len(rows) != len(traj):
+        raise InputError(path, f"{len(rows)} times for {len(traj)} poses")
+    meta = dict(traj.meta)
+    stamps, kept, lines, repeats_ok = _text.duplicate_times(path, rows[:, 0], np.arange(len(rows)), lines,
+                                                            options or ReadOptions(), meta)
+    _text.validate(Trajectory(poses=se3.identity(len(stamps)), timestamps=stamps), path, lines, repeats_ok)
+    return replace(traj.subset(kept), timestamps=stamps, meta={**meta, "times": str(path)})
 
 
 def _sibling_times(path: Path, count: int) -> Path | None:
@@ -74,7 +91,7 @@ def _sibling_times(path: Path, count: int) -> Path | None:
     if times == path or not times.is_file():
         return None
     try:
-        read_times(times, count)
+        read_times(times, count, duplicates_ok=True)  # repeats: as the read options say (times_for)
     except InputError:
         return None
     return times
@@ -88,8 +105,7 @@ def read_kitti(path: str | Path, options: ReadOptions | None = None) -> Trajecto
     traj = _text.validate(Trajectory(poses=_to_poses(rows)), path, lines)
     times = Path(options.times) if options.times else _sibling_times(path, len(traj))
     if times is not None:
-        traj.timestamps = read_times(times, len(traj))
-        traj.meta["times"] = str(times)
+        traj = times_for(traj, times, options)
     if options.calib:
         traj = traj.with_poses(camera_to_lidar(traj.poses, read_calib_tr(options.calib)))
         traj.meta["frame"] = "lidar"
@@ -160,5 +176,6 @@ FORMAT = trajectory_format(
         suffixes=(".txt", ".kitti"),
         sniff=sniff,
         stamped=False,  # times.txt beside (written with ``options.times``)
+        repeated_stamps=True,  # written as the trajectory has them, read as ``duplicate_times`` says (times_for)
     )
 )

@@ -136,7 +136,8 @@ def test_bad_times(tmp_path, times, line, problem):
     (tmp_path / "p.txt").write_text(GOOD * 3)
     (tmp_path / "t.txt").write_text(times)
     with pytest.raises(InputError, match=problem) as info:
-        read_kitti(tmp_path / "p.txt", ReadOptions(times=tmp_path / "t.txt"))
+        # a repeated stamp is refused when asked (kept by default: test_convert_times_file_with_repeated_stamps)
+        read_kitti(tmp_path / "p.txt", ReadOptions(times=tmp_path / "t.txt", duplicate_times="error"))
     assert info.value.line == line and info.value.source.endswith("t.txt")
     with pytest.raises(InputError):
         read_times(tmp_path / "t.txt")

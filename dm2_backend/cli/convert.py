@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import click
@@ -15,19 +14,21 @@ from dm2_backend.cli.options import (
     topic_option,
 )
 from dm2_backend.formats import TRAJECTORY_FORMATS, format_for_output, read_trajectory, write_trajectory
-from dm2_backend.formats.kitti import read_times
+from dm2_backend.formats.kitti import times_for
+from dm2_backend.formats.registry import ReadOptions
 from dm2_backend.trajectory import Trajectory
 
 #: formats whose writer puts the stamps in a file of their own (``--out-times``)
 TIMES_FILE_FORMATS = ("kitti",)
 
 
-def with_times(traj: Trajectory, times: Path | None) -> Trajectory:
-    """``traj`` with the stamps of ``times`` (one a line) when its format has none of its own (g2o, .npy);
-    readers that take ``--times`` themselves (KITTI) have used it already."""
+def with_times(traj: Trajectory, times: Path | None, options: ReadOptions | None = None) -> Trajectory:
+    """``traj`` with the stamps of ``times`` (one a line; a repeated one as ``--duplicate-times`` says) when its
+    format has none of its own (g2o, .npy); readers that take ``--times`` themselves (KITTI) have used it
+    already."""
     if times is None or traj.timestamps is not None:
         return traj
-    return replace(traj, timestamps=read_times(times, len(traj)))
+    return times_for(traj, times, options)
 
 
 def stamps_note(traj: Trajectory, fmt: str, input_path: Path, output_path: Path, out_times: Path | None) -> str | None:
@@ -62,7 +63,7 @@ def command(
     fmt = dst_fmt or format_for_output(output_path)
     if out_times is not None and fmt not in TIMES_FILE_FORMATS:
         raise click.UsageError(f"--out-times is for {', '.join(TIMES_FILE_FORMATS)} output, not {fmt}")
-    traj = with_times(read_trajectory(input_path, src_fmt, options), times)
+    traj = with_times(read_trajectory(input_path, src_fmt, options), times, options)
     if fmt in TRAJECTORY_FORMATS:
         note = stamps_note(traj, fmt, input_path, output_path, out_times)
         if note:
