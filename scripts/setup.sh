@@ -23,4 +23,4 @@ extras=""
 .venv/bin/pip install --quiet --disable-pip-version-check -e ".${extras}" 2>&1 | grep -v "^WARNING: Location" || true
 .venv/bin/python -c "import dm2_backend, open3d, torch, gtsam, evo, rosbags" \
     || { echo "setup: dm2 did not install" >&2; exit 1; }
-echo "setup: ready (.venv/bin/dm2)"
+echo "setup: ready: dm2 is installed in .venv, not on your PATH: run \`source .venv/bin/activate\` (then \`dm2 ...\`), or call .venv/bin/dm2"

@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from dm2_backend.atomic import clean_stale, is_temporary
+from dm2_backend.cli.suggest import SuggestingGroup
 from dm2_backend.prepare.steps import default_cache_dir
 
 path_type = click.Path(path_type=Path)
@@ -45,7 +46,7 @@ def _parse_age(text: str) -> float:
                                  param_hint="--older-than") from exc
 
 
-@click.group("cache")
+@click.group("cache", cls=SuggestingGroup)
 def command() -> None:
     """The preparation cache (frames, warm start, topology, registrations) shared by refine and baseline."""
 

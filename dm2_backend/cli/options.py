@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from dm2_backend.cli.suggest import Choice
 from dm2_backend.formats import ReadOptions
 
 
@@ -48,7 +49,7 @@ depth_scale_option = click.option(
     help="Depth units per metre [default: 1000 for 7-Scenes, 5000 for TUM RGB-D].",
 )
 duplicate_times_option = click.option(
-    "--duplicate-times", type=click.Choice(["keep", "keep-first", "error"]), default="keep", show_default=True,
-    help="A repeated timestamp in a TUM/EuRoC file: keep every pose as evo does (with a warning), keep the first "
-         "pose of each, or refuse the file.",
+    "--duplicate-times", type=Choice(["keep", "keep-first", "error"]), default="keep", show_default=True,
+    help="A repeated timestamp in a TUM/EuRoC file or a KITTI times file: keep every pose as evo does (with a "
+         "warning), keep the first pose of each, or refuse the file.",
 )

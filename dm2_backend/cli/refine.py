@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from dm2_backend.cli.run_setup import command_started, output_folder, path_type, prepare_run, run_options
+from dm2_backend.cli.suggest import Choice
 from dm2_backend.cli.summary import print_summary
 from dm2_backend.errors import InputError
 
@@ -14,7 +15,7 @@ from dm2_backend.errors import InputError
 @click.option("--epochs", type=click.IntRange(min=1), default=None,
               help="First-order epochs (at least 1); they run after the dense stage only with "
                    "optimiser.first_order: true, or without it (optimiser.dense: false).")
-@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None, help="Torch device.")
+@click.option("--device", type=Choice(["auto", "cpu", "cuda"]), default=None, help="Torch device.")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run in --out from its checkpoint.")
 @click.option("--nproc", type=click.IntRange(min=1), default=None,
               help="Optimise in N processes (torch.distributed: gloo on CPU, NCCL with one GPU each) "

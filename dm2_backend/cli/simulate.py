@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from dm2_backend.cli.suggest import Choice
 from dm2_backend.pipeline.run_folder import run_folder
 
 
@@ -14,11 +15,11 @@ from dm2_backend.pipeline.run_folder import run_folder
 @click.option("--out", "-o", type=click.Path(path_type=Path), required=True, help="Folder to write.")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
               help="Scene, path, noise and drift seed.")
-@click.option("--path", "path_kind", type=click.Choice(["loop", "eight", "walk", "rpy", "across"]), default=None,
+@click.option("--path", "path_kind", type=Choice(["loop", "eight", "walk", "rpy", "across"]), default=None,
               help="street: laps of a loop or of a figure-eight [default: loop]; room: walk round the table "
                    "looking at the walls, turn the camera in place (rpy) or go round near the walls looking across "
                    "the room (across) [default: walk].")
-@click.option("--scene", type=click.Choice(["street", "corridors", "hospital", "room"]), default="street",
+@click.option("--scene", type=Choice(["street", "corridors", "hospital", "room"]), default="street",
               show_default=True,
               help="street: buildings, walls, poles and cars along a street; corridors: a ring of featureless "
                    "corridors for a front-facing 2D laser (planar; a frame every 0.25 m; --range default 8 m; "
