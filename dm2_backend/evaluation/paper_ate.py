@@ -16,6 +16,12 @@ rotation_representation)`` (commit bc13e4a9826a3c8a5180c4b957b97d80e9a6a4a7), ca
 
 The same associated pose pairs as APE/RPE are used. The alignment is this metric's own, independent of
 ``--align``.
+
+Where the yaw is no heading the rotation figure is kept (it is the paper's definition) and
+:attr:`PaperATE.caution` says why it is not comparable: adding Euler angles composes rotations only about one
+shared axis, so the figure means a heading error only where the poses' z axes are vertical. With EuRoC's body
+frame (IMU x up, z horizontal) and an estimate in a world frame turned about the vertical (any VIO's), it
+reads 50-90 deg where the whole rotation error after the same alignment is 2 deg.
 """
 
 from __future__ import annotations
@@ -24,10 +30,17 @@ from dataclasses import dataclass
 
 import numpy as np
 from evo.core.geometry import umeyama_alignment
+from scipy.spatial.transform import Rotation
 
 from dm2_backend.geometry import se3
 
 LABEL = "paper ATE"
+#: the poses' z axes count as not vertical when their median angle from the vertical line exceeds this (closer
+#: to horizontal than to vertical: the last Euler angle is then no heading)
+TILT_DEG = 45.0
+#: the yaw error contradicts the rotation error it is a part of when its mean exceeds the mean whole rotation
+#: error (after the same alignment) by this factor (for motion about z the two are equal)
+PART_SLACK = 1.1
 
 
 @dataclass
@@ -40,10 +53,33 @@ class PaperATE:
     rot_errors_deg: np.ndarray  # per-frame absolute yaw error, degrees
     rotation: np.ndarray  # 3x3 alignment rotation applied to the estimate
     translation: np.ndarray  # alignment translation
+    #: mean whole rotation error (geodesic angle) of the estimate's orientations after the same alignment, deg
+    whole_rot_deg: float = float("nan")
+    #: median angle of the ground truth's / the estimate's z axes from the vertical line, deg
+    tilt_deg: tuple[float, float] = (float("nan"), float("nan"))
 
     @property
     def count(self) -> int:
         return len(self.trans_errors)
+
+    @property
+    def caution(self) -> str | None:
+        """Why the rotation figure is not comparable (with APE rot, or the paper's planar LiDAR figures), or
+        None where its yaw is the heading."""
+        why = []
+        if self.rot_deg > PART_SLACK * self.whole_rot_deg + 1e-6:
+            why.append(f"here it reads {self.rot_deg:.3g} deg, more than the whole rotation error after its "
+                       f"alignment ({self.whole_rot_deg:.3g} deg mean), of which a yaw error is a part")
+        tilted = [f"{t:.0f} deg ({name})" for name, t in zip(("ground truth", "estimate"), self.tilt_deg,
+                                                              strict=True) if t > TILT_DEG]
+        if tilted:
+            why.append(f"the poses' z axes lie {' and '.join(tilted)} from the world's z (median): a body or "
+                       f"camera frame with z not up, as EuRoC's IMU frame or a camera's")
+        if not why:
+            return None
+        return (f"{LABEL} rot is not comparable with APE rot: it compares yaw angles (the last Euler XYZ angle, the "
+                f"alignment's yaw added, the orientations not aligned), a rotation error only where every z axis is "
+                f"the world's z; {'; '.join(why)}")
 
 
 def paper_ate(gt_poses: np.ndarray, est_poses: np.ndarray) -> PaperATE:
@@ -62,6 +98,7 @@ def paper_ate(gt_poses: np.ndarray, est_poses: np.ndarray) -> PaperATE:
     yaw_gt = se3.wrap_angle(se3.matrix_to_euler_xyz(gt_poses[:, :3, :3])[:, 2])
     rot = np.abs(yaw_est - yaw_gt)
     rot = np.where(rot > np.pi, 2 * np.pi - rot, rot)
+    whole = Rotation.from_matrix(np.swapaxes(gt_poses[:, :3, :3], 1, 2) @ R @ est_poses[:, :3, :3]).magnitude()
     return PaperATE(
         trans=float(np.sqrt(np.mean(trans_errors))),
         rot_deg=float(np.degrees(np.mean(rot))),
@@ -69,4 +106,12 @@ def paper_ate(gt_poses: np.ndarray, est_poses: np.ndarray) -> PaperATE:
         rot_errors_deg=np.degrees(rot),
         rotation=R,
         translation=t,
+        whole_rot_deg=float(np.degrees(np.mean(whole))),
+        tilt_deg=(_tilt_deg(gt_poses), _tilt_deg(est_poses)),
     )
+
+
+def _tilt_deg(poses: np.ndarray) -> float:
+    """Median angle (deg) of the poses' z axes from the vertical line (up or down alike)."""
+    z = poses[:, 2, 2] / np.maximum(np.linalg.norm(poses[:, :3, 2], axis=1), 1e-12)
+    return float(np.degrees(np.median(np.arccos(np.clip(np.abs(z), 0.0, 1.0)))))

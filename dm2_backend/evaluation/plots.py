@@ -23,6 +23,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
+from matplotlib.patches import Patch
 from matplotlib.ticker import MaxNLocator
 
 from dm2_backend.atomic import atomic_write
@@ -294,42 +295,75 @@ def plot_topology(path: str | Path, positions: np.ndarray, closures: dict[str, n
     return save(topology_figure(positions, closures, loop_edges, title, limit), path)
 
 
-def consistency_figure(positions: np.ndarray, profiles: dict[str, object], title: str = "") -> Figure:
-    """A consistency profile (:mod:`dm2_backend.evaluation.consistency_profile`) along the trajectory: the top
-    view of ``positions`` (the last profile's poses) coloured by its per-frame score with flagged frames
-    ringed, and every profile's score over the frames with its threshold (dashed) and flagged segments shaded."""
-    top, _ = view_axes(positions)
-    fig = Figure(figsize=(13, 5.5), layout="constrained")  # the colour bar beside the top view, clear of the series
-    ax = fig.add_subplot(1, 2, 1)
-    last_label, last = list(profiles.items())[-1]
-    score = last.score_m
-    size = float(np.clip(4000.0 / max(len(score), 1), 4, 30))
-    x, y = positions[:, top[0]], positions[:, top[1]]
-    ax.plot(x, y, color="0.7", lw=0.8)
-    sc = ax.scatter(x, y, c=score, s=size, cmap="viridis", linewidths=0, vmin=0.0,
-                    vmax=float(np.nanmax(score)) if np.isfinite(score).any() else 1.0)
-    flagged = last.flagged
-    if flagged.any():
-        ax.scatter(x[flagged], y[flagged], s=size * 4, facecolors="none", edgecolors="red", linewidths=1.0,
-                   label="flagged")
-        ax.legend(loc="best", fontsize=8)
-    fig.colorbar(sc, ax=ax, label="frame vs the others' planes, RMS [m]")
-    _setup(ax, top, f"{last_label}: where frames disagree with the map")
-    ax2 = fig.add_subplot(1, 2, 2)
-    frames = np.arange(len(score))
-    for k, (label, prof) in enumerate(profiles.items()):
+#: title of a consistency map panel (``{label}``: the estimate's)
+CONSISTENCY_MAP_TITLE = "{label}: where frames disagree with the map"
+
+
+def consistency_figure(positions: np.ndarray | dict[str, np.ndarray], profiles: dict[str, object],
+                       title: str = "", positions_by_label: dict[str, np.ndarray] | None = None) -> Figure:
+    """Consistency profiles (:mod:`dm2_backend.evaluation.consistency_profile`) along the trajectory: one top-view
+    panel per profile, of that estimate's positions coloured by its own per-frame score (one colour scale for
+    all, from 0) with its flagged frames ringed, and a panel of every profile's score over the frames in the
+    colour of its map's path, with its threshold (dashed) and its flagged frames shaded in that colour, each
+    profile in a band of its own (one legend entry ``flagged: <label>`` each, so no two shadings blend).
+
+    ``positions``: (N,3) positions (the last profile's poses: every panel is drawn over them), or a dict
+    label -> positions; ``positions_by_label`` adds or overrides labels' own positions."""
+    own = dict(positions) if isinstance(positions, dict) else {}
+    own.update(positions_by_label or {})
+    fallback = positions if not isinstance(positions, dict) else list(positions.values())[-1]
+    items = list(profiles.items())
+    k_all = len(items)
+    scores = [np.asarray(p.score_m, dtype=np.float64) for _, p in items]
+    finite = np.concatenate([s[np.isfinite(s)] for s in scores]) if scores else np.zeros(0)
+    vmax = float(finite.max()) if len(finite) and finite.max() > 0 else 1.0
+    n = max((len(s) for s in scores), default=0)
+    # the colour bar beside the maps, clear of the series
+    if k_all == 1:
+        fig = Figure(figsize=(13, 5.5), layout="constrained")
+        grid = fig.add_gridspec(1, 2)
+        map_slots, series_slot = [grid[0, 0]], grid[0, 1]
+    else:
+        fig = Figure(figsize=(max(13.0, 5.5 * k_all), 11), layout="constrained")
+        grid = fig.add_gridspec(2, k_all)
+        map_slots, series_slot = [grid[0, k] for k in range(k_all)], grid[1, :]
+    maps, sc = [], None
+    for k, ((label, prof), score) in enumerate(zip(items, scores, strict=True)):
+        pos = np.asarray(own.get(label, fallback), dtype=np.float64).reshape(-1, 3)
+        top, _ = view_axes(pos)
+        ax = fig.add_subplot(map_slots[k])
+        maps.append(ax)
+        size = float(np.clip(4000.0 / max(len(score), 1), 4, 30))
+        x, y = pos[:, top[0]], pos[:, top[1]]
+        ax.plot(x, y, color=f"C{k}", lw=0.8, alpha=0.6)
+        sc = ax.scatter(x, y, c=score, s=size, cmap="viridis", linewidths=0, vmin=0.0, vmax=vmax)
+        flagged = np.asarray(prof.flagged, dtype=bool)
+        if flagged.any():
+            ax.scatter(x[flagged], y[flagged], s=size * 4, facecolors="none", edgecolors="red", linewidths=1.0,
+                       label=f"flagged ({int(flagged.sum())} frames)")
+            ax.legend(loc="best", fontsize=8)
+        _setup(ax, top, CONSISTENCY_MAP_TITLE.format(label=label))
+    if sc is not None:
+        fig.colorbar(sc, ax=maps, label="frame vs the others' planes, RMS [m]")
+    ax2 = fig.add_subplot(series_slot)
+    handles = []
+    for k, ((label, prof), score) in enumerate(zip(items, scores, strict=True)):
         colour = f"C{k}"
-        ax2.plot(frames, prof.score_m, lw=1.0, color=colour, label=label)
+        line, = ax2.plot(np.arange(len(score)), score, lw=1.0, color=colour, label=label)
         ax2.axhline(prof.threshold_m, ls="--", lw=0.8, color=colour)
+        band = (1.0 - (k + 1) / k_all, 1.0 - k / k_all)  # the first profile's band on top
         for seg in prof.segments:
-            ax2.axvspan(seg.first - 0.5, seg.last + 0.5, color=colour, alpha=0.15)
+            ax2.axvspan(seg.first - 0.5, seg.last + 0.5, ymin=band[0], ymax=band[1], color=colour, alpha=0.25)
+        none = "" if prof.segments else " (none)"
+        handles += [line, Patch(facecolor=colour, alpha=0.25, label=f"flagged: {label}{none}")]
     ax2.set_xlabel("frame")
     ax2.set_ylabel("RMS distance to the others' planes [m]")
-    ax2.set_xlim(-0.5, len(score) - 0.5)
+    ax2.set_xlim(-0.5, n - 0.5)
     ax2.set_ylim(bottom=0.0)
     ax2.grid(True, alpha=0.3)
-    ax2.legend(loc="best", fontsize=8)
-    ax2.set_title("per-frame score (dashed: flag threshold, shaded: flagged)")
+    ax2.legend(handles=handles, loc="best", fontsize=8)
+    bands = ", a band per estimate" if k_all > 1 else ""
+    ax2.set_title(f"per-frame score (dashed: flag threshold; shaded: flagged frames{bands})")
     if title:
         fig.suptitle(title)
     return fig

@@ -116,7 +116,7 @@ def to_json(report: EvalReport) -> dict:
                                          **{k: _num(v) for k, v in m.stats.items()}}
             entry["standing_still_ape_trans_rmse_m"] = _num(standing_still_rmse(
                 np.asarray(pe.ref.positions_xyz), pe.align, pe.align_origin))
-            entry["cautions"] = pose_cautions(pe)
+            entry["cautions"] = estimate_cautions(est)
         if est.paper is not None:
             entry["metrics"]["paper_ate"] = {
                 "label": PAPER_LABEL, "count": est.paper.count, "trans_sqrt_m": _num(est.paper.trans),
@@ -164,6 +164,13 @@ def display_rows(report: EvalReport) -> tuple[list[str], list[list]]:
     return header, body
 
 
+def estimate_cautions(est: EstimateReport) -> list[str]:
+    """The cautions on an estimate's figures against ground truth: :func:`pose_cautions` and, where its yaw is no
+    rotation error, the paper ATE rot's (:attr:`PaperATE.caution`)."""
+    out = pose_cautions(est.poses) if est.poses is not None else []
+    return out + ([est.paper.caution] if est.paper is not None and est.paper.caution else [])
+
+
 def describe(est: EstimateReport) -> list[str]:
     """Lines on how an estimate was associated and aligned."""
     lines = []
@@ -209,4 +216,6 @@ def terminal_text(report: EvalReport) -> str:
         lines.append(f"\n{PAPER_LABEL}: the DeepMapping2 paper's definition (trans = sqrt of the mean "
                      "distance after rigid alignment, sqrt(m); rot = mean |yaw error|); not comparable "
                      "with APE")
+        lines += [f"{e.label}: caution: {e.paper.caution}" for e in report.estimates
+                  if e.paper is not None and e.paper.caution]
     return "\n".join(lines)

@@ -13,7 +13,7 @@ from matplotlib.figure import Figure
 
 from dm2_backend.atomic import atomic_path, atomic_write
 from dm2_backend.errors import InputError
-from dm2_backend.evaluation import plots, topology_log
+from dm2_backend.evaluation import drawn_alignment, plots, topology_log
 from dm2_backend.formats import TRAJECTORY_FORMATS, write_trajectory
 from dm2_backend.formats.dm2_priors import write_priors
 from dm2_backend.formats.hba import write_hba_folder
@@ -114,20 +114,28 @@ def write_plots(out: Path, estimates: dict[str, np.ndarray], gt: Trajectory | No
     With ground truth of one pose per estimated pose, every estimate is drawn after its SE(3) alignment onto
     the ground truth, so the ground-truth line and the estimates (and the per-frame errors, measured after
     the same alignment) share one frame; with ground truth of another length it is left out rather than
-    drawn in a frame the estimates are not in."""
+    drawn in a frame the estimates are not in. Where the console cautions that the SE(3) alignment is not
+    meaningful (a path nearly a point or a line, :mod:`~dm2_backend.evaluation.drawn_alignment`), that estimate
+    is aligned at its first pose instead, ``per_frame`` is replaced by its translation error after that
+    alignment, and the title says so."""
     figures: dict[str, Figure] = {}
     pos = {k: np.asarray(v)[:, :3, 3] for k, v in estimates.items()}
-    gt_pos, title = (gt.positions if gt is not None else None), ""
+    gt_pos, title, drawn = (gt.positions if gt is not None else None), "", {}
     if gt_pos is not None:
         if len(gt_pos) >= 3 and all(len(p) == len(gt_pos) for p in pos.values()):
-            pos = {k: aligned_to(gt_pos, p) for k, p in pos.items()}
-            title = "estimates aligned to the ground truth (SE(3))"
+            drawn = {k: drawn_alignment.from_poses(gt.poses, v) for k, v in estimates.items()}
+            pos = {k: d.positions for k, d in drawn.items()}
+            title = drawn_alignment.title(drawn)
         else:
             title = f"ground truth ({len(gt_pos)} poses) not drawn: not one pose per estimated pose"
             gt_pos = None
     figures["trajectory.png"] = plots.trajectory_figure(gt_pos, pos, title)
     if per_frame:
         last = list(estimates)[-1]
+        if last in drawn:
+            title = drawn_alignment.title({last: drawn[last]})
+            if drawn[last].instead_of is not None:
+                per_frame = {"translation error": (drawn[last].trans_errors, "m")}
         figures["errors.png"] = plots.error_map_figure(last, pos[last], per_frame, gt_pos, title)
     if epochs:
         fig = plots.epochs_figure(epochs, start)
