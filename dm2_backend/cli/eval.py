@@ -8,10 +8,11 @@ import click
 import numpy as np
 
 from dm2_backend.cli.options import depth_scale_option, duplicate_times_option, intrinsics_option, read_options
+from dm2_backend.cli.suggest import Choice
 from dm2_backend.errors import InputError
-from dm2_backend.evaluation import plots
+from dm2_backend.evaluation import drawn_alignment, plots
 from dm2_backend.evaluation.ape_rpe import ALIGN_MODES, DELTA_UNITS
-from dm2_backend.evaluation.consistency_profile import consistency_profiles, write_profiles
+from dm2_backend.evaluation.consistency_profile import consistency_profiles, flag_text, write_profiles
 from dm2_backend.evaluation.evaluate import EvalOptions, evaluate
 from dm2_backend.evaluation.map_quality import MapSampler, poses_of_scans
 from dm2_backend.evaluation.relations import MAX_DT, load_relations
@@ -55,18 +56,18 @@ def _plots(
     folder: Path, report: EvalReport, gt_positions: np.ndarray | None, run_report: Path | None
 ) -> list:
     written = []
-    estimates = {}
-    for est in report.estimates:
-        pe = est.poses
-        estimates[est.label] = pe.est.positions_xyz if pe is not None else est.positions
-    written.append(plots.plot_trajectories(folder / "trajectories.png", gt_positions, estimates))
-    for est in report.estimates:
-        if est.poses is None:
-            continue
-        m = est.poses.metrics
-        errors = {"APE trans": (m["ape_trans"].errors, "m"), "APE rot": (m["ape_rot"].errors, "deg")}
-        written.append(plots.plot_error_map(folder / f"errors_{safe_name(est.label)}.png", est.label,
-                                            est.poses.est.positions_xyz, errors, gt_positions))
+    # each estimate as evaluated, or aligned at its first pose where the console cautions that the
+    # SE(3)/Sim(3) alignment is not meaningful (drawn_alignment); the titles name the alignment
+    drawn = {est.label: drawn_alignment.from_pose_errors(est.poses) for est in report.estimates
+             if est.poses is not None}
+    estimates = {est.label: drawn[est.label].positions if est.label in drawn else est.positions
+                 for est in report.estimates}
+    written.append(plots.plot_trajectories(folder / "trajectories.png", gt_positions, estimates,
+                                           drawn_alignment.title(drawn) if drawn else ""))
+    for label, d in drawn.items():
+        errors = {"APE trans": (d.trans_errors, "m"), "APE rot": (d.rot_errors_deg, "deg")}
+        written.append(plots.plot_error_map(folder / f"errors_{safe_name(label)}.png", label, d.positions, errors,
+                                            gt_positions, drawn_alignment.title({label: d})))
     if run_report is not None:
         out = plots.plot_run_epochs(folder / "epochs.png", read_run_report(run_report))
         if out is None:
@@ -80,12 +81,8 @@ def _profiles(folder: Path, scans, at_scans: dict[str, np.ndarray]) -> list[Path
     """Each estimate's consistency profile, its flagged stretches printed, the files written to ``folder``."""
     profiles = consistency_profiles(scans, at_scans, scans.timestamps, looks_planar(scans, None))
     for label, prof in profiles.items():
-        stretches = "; ".join(f"frames {s.first}-{s.last}" + (f" ({s.start_s:.3f}-{s.end_s:.3f} s)" if s.start_s
-                              is not None else "") + f" peak {s.peak_m:.3g} m at {s.peak_frame}"
-                              for s in prof.segments) or "none"
-        click.echo(f"consistency: {label}: frames agree to {prof.level_m:.3g} m (lower quartile), flagged above "
-                   f"{prof.threshold_m:.3g} m: {stretches}")
-    return [folder / name for name in write_profiles(folder, profiles, list(at_scans.values())[-1][:, :3, 3])]
+        click.echo(f"consistency: {label}: {flag_text(prof.summary())}")
+    return [folder / name for name in write_profiles(folder, profiles, {k: v[:, :3, 3] for k, v in at_scans.items()})]
 
 
 #: the alignment line printed above the table
@@ -146,7 +143,7 @@ def _alignment(align: str | None, align_flag: bool, scale_flag: bool, align_orig
               help="Freiburg .relations file (t1 t2 x y z roll pitch yaw); --gt may then be omitted.")
 @click.option("--relations-max-dt", type=float, default=MAX_DT, show_default=True,
               help="Max. seconds between a relation stamp and the nearest estimated pose.")
-@click.option("--align", type=click.Choice(ALIGN_MODES), default=None,
+@click.option("--align", type=Choice(ALIGN_MODES), default=None,
               help="Alignment onto the ground truth [default: se3; none with --align-origin].")
 @click.option("--align-origin", is_flag=True, help="Align the first poses only (evo's --align_origin).")
 @click.option("-a", "align_flag", is_flag=True, help="SE(3) Umeyama alignment, as evo's -a (= --align se3).")
@@ -158,7 +155,7 @@ def _alignment(align: str | None, align_flag: bool, scale_flag: bool, align_orig
 @click.option("--label", "labels", multiple=True,
               help="Name of each estimate in the table and outputs (repeat, in the order of the estimates).")
 @click.option("--delta", type=float, default=1.0, show_default=True, help="RPE pair distance.")
-@click.option("--delta-unit", type=click.Choice(list(DELTA_UNITS)), default="f", show_default=True,
+@click.option("--delta-unit", type=Choice(list(DELTA_UNITS)), default="f", show_default=True,
               help="RPE delta unit: f frames, m metres.")
 @click.option("--json", "json_path", type=path_type, default=None, help="Write the results as JSON.")
 @click.option("--csv", "csv_path", type=path_type, default=None, help="Write the table as CSV.")

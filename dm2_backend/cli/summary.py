@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from dm2_backend.evaluation.consistency_profile import flag_text
 from dm2_backend.evaluation.kitti_odometry import result_line
 from dm2_backend.pipeline.run_report import RunReport
 
@@ -28,8 +29,5 @@ def print_summary(report: RunReport, out: Path) -> None:
     mem = report.peak_rss_mb
     click.echo(f"{report.frames} frames in {t['total']:.1f} s, peak memory {mem:.0f} MiB")
     for stage, profile in (report.details.get("consistency") or {}).items():
-        stretches = ", ".join(f"{s['first']}-{s['last']}" for s in profile["segments"]) or "none"
-        level = "no frame scored" if profile["level_m"] is None else f"frames agree to {profile['level_m']:.3g} m"
-        caution = " (planar scans: the profile is validated on 3D data only)" if report.planar else ""
-        click.echo(f"consistency of the {stage}: {level}; flagged frames: {stretches}{caution}")
+        click.echo(f"consistency of the {stage}: {flag_text(profile)}")
     click.echo(f"wrote {out}")

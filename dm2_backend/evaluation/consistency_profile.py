@@ -11,21 +11,24 @@ frame's score (m) is the largest of three views of "the others":
 - **all**: every other frame (leave-one-out, robust weights), which sees a revisit that does not line up (a
   wrong loop closure, a drift that shows where the path comes back).
 
-A frame needs its cells at full density (``CELLS_PER_FRAME``) for its score to mean anything: a sequence longer
-than ``MAX_CELLS`` holds at that density is read a second time, a stretch of frames at a time
-(:func:`_stretched_views`), so memory stays bounded and every frame is judged as in a short sequence.
+A frame needs its cells at full density (``CELLS_PER_FRAME``) for its score to mean anything (fewer cells a
+frame make a true frame's score noise): the scans are summed into cells once, and a sequence longer than
+``MAX_CELLS`` cells is judged a stretch of frames at a time (:func:`_stretched_views`), so memory stays bounded
+and every frame is judged as in a short sequence.
 
-Segments scoring ``RATIO`` times the level of the sequence's agreeing frames (its lower quartile) are flagged
-with their frame and time ranges. Validated in 3D (real LiDAR keyframes, a LiDAR ray-cast through their map, a
-procedural street: no flag on the true or front-end poses, every jump, drifting stretch and wrong closure found);
-on a sparse 2D simulation (260 points a scan, 3 m between frames) the truth itself gets flags.
+Segments scoring above the flag threshold are flagged with their frame and time ranges: ``RATIO`` times the
+level of the sequence's agreeing frames (its lower quartile), and at least ``FLOOR`` times the noise the planes
+measure (a frame placed within the sensor's own noise is not misplaced, however sharp the rest). Cases and their
+results: ``benchmarks/consistency_cases.py`` and the tests (true, refined-to-floor and broken poses of 3D and 2D
+simulations, real LiDAR keyframes, a ray-cast through their map, a simulated depth camera, the noise-free
+DeepMapping set).
 """
 
 from __future__ import annotations
 
 import csv
 import json
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -36,16 +39,22 @@ from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.report_writers import safe_name
 from dm2_backend.geometry.voxels import group_rows
 from dm2_backend.memory import release_freed_memory
-from dm2_backend.optim.planes import Cells, assign, cells_from_scans, chunks, disagreement, fit
+from dm2_backend.optim.planes import Assignment, Cells, Planes, assign, cells_from_scans, chunks, disagreement, fit
 from dm2_backend.progress import progress as progress_of
 from dm2_backend.scan_scale import derive_scale
 from dm2_backend.scans import ScanSequence
+from dm2_backend.stages import ScanScale
 
 #: a frame's points may lie this many noise sigmas from the others' planes before their distance is capped
 #: (a wrong frame scores high, one stray object cannot dominate it)
 CAP = 10.0
 #: a frame is flagged when its score is this multiple of the level of the agreeing frames (the lower quartile)
 RATIO = 1.75
+#: ... and this multiple of the noise the planes measure (sigma of a point's distance to its plane)
+FLOOR = 1.0
+#: the noise is taken as at least this share of the scans' point spacing (a noise-free simulation's planes measure
+#: the float rounding of its coordinates: no map shows a misplacement that fine)
+RESOLUTION = 0.01
 #: planes (nearest voxel centres) a cell of a judged frame is measured against
 NEAREST_PLANES = 8
 #: the worst share of a frame's points left out of its score (surfaces the reference could not see)
@@ -56,6 +65,7 @@ JUDGED_CELLS = 1024
 GAP = 2
 #: the cells kept per frame (as the dense stage keeps them) and in all
 CELLS_PER_FRAME, MAX_CELLS = 2048, 1_500_000
+
 
 
 @dataclass(frozen=True)
@@ -84,6 +94,9 @@ class ConsistencyProfile:
     voxel_m: float
     window: int
     stamps: np.ndarray | None
+    #: the sensor's noise as the planes measure it (robust sigma of a point's distance to its plane, m; at the
+    #: sharpest of the poses profiled together, at least ``RESOLUTION`` of the point spacing)
+    noise_m: float = float("nan")
 
     @property
     def flagged(self) -> np.ndarray:
@@ -98,14 +111,37 @@ class ConsistencyProfile:
         return {"frames": len(self.score_m), "frames_scored": len(finite), "level_m": _number(self.level_m),
                 "median_m": float(np.median(finite)) if len(finite) else None,
                 "p90_m": float(np.percentile(finite, 90)) if len(finite) else None,
-                "threshold_m": _number(self.threshold_m), "voxel_m": self.voxel_m, "window_frames": self.window,
+                "threshold_m": _number(self.threshold_m), "noise_m": _number(self.noise_m),
+                "voxel_m": self.voxel_m, "window_frames": self.window,
                 "flagged_frames": int(self.flagged.sum()), "segments": [vars(s) for s in self.segments]}
 
 
-def profile_voxel(scans: ScanSequence) -> float:
+#: flagged stretches a console line names (the worst first); the rest are in ``consistency.csv``
+NAMED = 3
+
+
+def flag_text(summary: dict) -> str:
+    """One line from a profile's :meth:`ConsistencyProfile.summary`: the level, how many stretches are flagged and
+    the worst ``NAMED`` of them (by peak score)."""
+    if summary["level_m"] is None:
+        return "no frame scored"
+    level = f"frames agree to {summary['level_m']:.3g} m, flagged above {summary['threshold_m']:.3g} m"
+    segments = summary["segments"]
+    if not segments:
+        return f"{level}: no flagged frame"
+    worst = sorted(segments, key=lambda s: -s["peak_m"])[:NAMED]
+    named = ", ".join(f"{s['first']}-{s['last']}" + (f" ({s['start_s']:.3f}-{s['end_s']:.3f} s)"
+                                                      if s["start_s"] is not None else "")
+                      + f" peak {s['peak_m']:.3g} m at {s['peak_frame']}" for s in worst)
+    rest = f"; the other {len(segments) - len(worst)} in consistency.csv" if len(segments) > len(worst) else ""
+    return (f"{level}: {len(segments)} flagged stretch{'es' if len(segments) > 1 else ''} "
+            f"({summary['flagged_frames']} frames), worst {named}{rest}")
+
+
+def profile_voxel(scans: ScanSequence, scale: ScanScale | None = None) -> float:
     """The largest plane voxel, from the data as the dense stage takes it: a few per median range, its finest
     quarter at least a point spacing."""
-    scale = derive_scale(scans)
+    scale = scale or derive_scale(scans)
     return max(scale.range_median / 8.0, 4.0 * scale.spacing_raw, 1e-3)
 
 
@@ -122,35 +158,32 @@ def _rms(a: np.ndarray) -> np.ndarray:
         return np.sqrt(a)
 
 
-def _apart(poses: np.ndarray, group: np.ndarray, far: float) -> np.ndarray:
-    """``poses`` with each group moved ``far`` from the others (on a grid), so that frames of different groups
-    never share a voxel: one assignment then holds every group's planes side by side."""
+def _offset(group: np.ndarray, far: float) -> np.ndarray:
+    """Where each group is moved (:func:`_apart`): a grid of ``far`` steps."""
     g = np.asarray(group, dtype=np.int64) + 1
+    return np.stack([g % 64, (g // 64) % 64, g // 4096], -1) * far
+
+
+def _apart(poses: np.ndarray, group: np.ndarray, far: float) -> np.ndarray:
+    """``poses`` with each group moved ``far`` from the others, so that frames of different groups never share a
+    voxel: one assignment then holds every group's planes side by side (``far`` a whole number of voxels: each
+    group's voxels are those it has in place)."""
     out = poses.copy()
-    out[:, :3, 3] += np.stack([g % 64, (g // 64) % 64, g // 4096], 1) * far
+    out[:, :3, 3] += _offset(group, far)
     return out
 
 
-def _against(cells: Cells, poses: np.ndarray, voxel: float, block: np.ndarray, step: int, far: float
-             ) -> np.ndarray:
-    """Per frame, the RMS distance (m) of its cells' means to the nearest plane that the frames of block
-    ``block - step`` make and that reaches the cell (each distance capped at ``CAP`` noise sigmas, weighted by the
-    cell's points, the worst ``TRIM`` left out); NaN for a frame without such a block. A point a jump moved out
-    of its plane's voxel still finds that plane. Every block's planes come from one assignment (:func:`_apart`)."""
-    reference = _apart(poses, block + step, far)
-    judged = _apart(poses, block, far)
-    a = assign(cells, reference, voxel)
-    has_reference = np.isin(block - step, block)
-    if a.voxels == 0:
-        return np.full(len(poses), np.nan)
-    planes = fit(a, reference)
-    tree = cKDTree(a.centre)
-    cells = _spread_subset(cells, JUDGED_CELLS)
-    f = cells.frame.astype(np.int64)
-    best = np.empty(len(cells))
-    for c in chunks(len(cells)):  # bounded temporaries: (chunk, NEAREST_PLANES, 3)
-        world = (judged[f[c], :3, :3] @ cells.mean[c].astype(np.float64)[:, :, None])[:, :, 0] + judged[f[c], :3, 3]
-        _, idx = tree.query(world, k=min(NEAREST_PLANES, a.voxels), distance_upper_bound=voxel)
+def _against(judged: Cells, placed: np.ndarray, a: Assignment, planes: Planes, tree: cKDTree, shift: np.ndarray,
+             has_reference: np.ndarray, cap: float) -> np.ndarray:
+    """Per frame, the RMS distance (m) of the ``judged`` cells' means (at ``placed`` moved by their frame's
+    ``shift`` onto another group's planes) to the nearest plane that reaches the cell (each distance capped at
+    ``cap`` (m), weighted by the cell's points, the worst ``TRIM`` left out); NaN for a frame without
+    ``has_reference``. A point a jump moved out of its plane's voxel still finds that plane."""
+    f = judged.frame.astype(np.int64)
+    best = np.empty(len(judged))
+    for c in chunks(len(judged)):  # bounded temporaries: (chunk, NEAREST_PLANES, 3)
+        world = _placed(judged, placed, c) + shift[f[c]]
+        _, idx = tree.query(world, k=min(NEAREST_PLANES, a.voxels), distance_upper_bound=a.size.max())
         idx = idx.reshape(len(world), -1)
         safe = np.where(idx < a.voxels, idx, 0)
         # a plane reaches half its voxel's edge beyond the voxel (a shifted point still finds it, a patch
@@ -159,7 +192,7 @@ def _against(cells: Cells, poses: np.ndarray, voxel: float, block: np.ndarray, s
         dist = np.abs((planes.normal[safe] * world[:, None, :]).sum(2) - planes.offset[safe])
         best[c] = np.where(found, dist, np.inf).min(1)
     on = np.isfinite(best)
-    return _trimmed_rms(f[on], np.minimum(best[on], CAP * a.sigma), cells.count.astype(np.float64)[on],
+    return _trimmed_rms(f[on], np.minimum(best[on], cap), judged.count.astype(np.float64)[on],
                         has_reference)
 
 
@@ -192,12 +225,25 @@ def _trimmed_rms(frame: np.ndarray, dist: np.ndarray, weight: np.ndarray, judged
 
 def _neighbour_views(cells: Cells, poses: np.ndarray, voxel: float, window: int, first: int = 0
                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Each frame against the block of ``window`` frames before it (past) and after it (future); ``first``: the
-    sequence's number of frame 0 here (blocks are counted from the sequence's start)."""
-    block = (np.arange(len(poses)) + first) // window
+    """Each frame against the planes of the block of ``window`` frames before it (past) and after it (future),
+    all blocks' planes from one assignment; ``first``: the sequence's number of frame 0 here (blocks are counted
+    from the sequence's start)."""
+    n = len(poses)
+    block = (np.arange(n) + first) // window
     reach = float(np.linalg.norm(cells.mean, axis=1).max()) if len(cells) else 0.0
-    far = 2.0 * (float(np.ptp(poses[:, :3, 3], axis=0).max()) + 2.0 * reach) + 10.0 * voxel
-    return _against(cells, poses, voxel, block, 1, far), _against(cells, poses, voxel, block, -1, far)
+    far = voxel * np.ceil((2.0 * (float(np.ptp(poses[:, :3, 3], axis=0).max()) + 2.0 * reach)) / voxel + 10.0)
+    placed = _apart(poses, block, far)
+    a = assign(cells, placed, voxel)
+    if a.voxels == 0:
+        return np.full(n, np.nan), np.full(n, np.nan)
+    planes = fit(a, placed)
+    tree = cKDTree(a.centre)
+    judged = _spread_subset(cells, JUDGED_CELLS)
+    own = _offset(block, far)
+    cap = CAP * a.sigma
+    past = _against(judged, placed, a, planes, tree, _offset(block - 1, far) - own, np.isin(block - 1, block), cap)
+    future = _against(judged, placed, a, planes, tree, _offset(block + 1, far) - own, np.isin(block + 1, block), cap)
+    return past, future
 
 
 def _segments(score: np.ndarray, threshold: float, stamps: np.ndarray | None) -> list[Segment]:
@@ -214,31 +260,32 @@ def _segments(score: np.ndarray, threshold: float, stamps: np.ndarray | None) ->
     return out
 
 
-def threshold_of(score: np.ndarray) -> tuple[float, float]:
+def threshold_of(score: np.ndarray, noise: float = 0.0) -> tuple[float, float]:
     """The level of the sequence's agreeing frames (the lower quartile of the scores: it holds while up to
-    three quarters of the frames are broken) and the flag threshold, ``RATIO`` times that level."""
+    three quarters of the frames are broken) and the flag threshold: ``RATIO`` times that level, and at least
+    ``FLOOR`` times the sensor's ``noise`` (a frame placed within the sensor's own noise is not misplaced)."""
     finite = score[np.isfinite(score)]
     if len(finite) == 0:
         return float("nan"), float("inf")
     level = float(np.percentile(finite, 25))
-    return level, RATIO * level
+    return level, max(RATIO * level, FLOOR * noise)
 
 
 def consistency_profiles(scans: ScanSequence, candidates: dict[str, np.ndarray], stamps: np.ndarray | None = None,
                          planar: bool = False, voxel: float | None = None, seed: int = 0,
                          progress: bool = False) -> dict[str, ConsistencyProfile]:
-    """The profile of each set of poses (one per scan), the scans summed into cells once (twice for a sequence
-    longer than the cell budget holds at ``CELLS_PER_FRAME``: :func:`_stretched_views`). ``planar``: 2D scans,
-    their lines seen as vertical walls."""
-    voxel = voxel or profile_voxel(scans)
+    """The profile of each set of poses (one per scan), the scans summed into cells once. A sequence longer than
+    ``MAX_CELLS`` cells is judged a stretch at a time (bounded memory; every frame as in a short sequence).
+    ``planar``: 2D scans, their lines seen as vertical walls."""
+    scale = derive_scale(scans)
+    voxel = voxel or profile_voxel(scans, scale)
     release_freed_memory()
     candidates = {name: np.asarray(poses, dtype=np.float64) for name, poses in candidates.items()}
-    cells = _cells(scans, voxel, MAX_CELLS, seed, planar, progress)
-    if len(scans) * CELLS_PER_FRAME <= MAX_CELLS:
-        views = {name: _views(cells, poses, voxel) for name, poses in candidates.items()}
-    else:
-        views = _stretched_views(scans, cells, candidates, voxel, seed, planar, progress)
-    return {name: _profile(views[name], stamps, voxel, window_frames(poses, voxel))
+    cells = _cells(scans, voxel, seed, planar, progress)
+    views = _stretched_views(cells, len(scans), candidates, voxel, progress)
+    # the sensor's: as measured at the poses that make the sharpest planes, at least the scans' resolution
+    noise = max(min(measured for _, measured in views.values()), RESOLUTION * scale.spacing_raw)
+    return {name: _profile(views[name][0], noise, stamps, voxel, window_frames(poses, voxel))
             for name, poses in candidates.items()}
 
 
@@ -248,60 +295,55 @@ def consistency_profile(scans: ScanSequence, poses: np.ndarray, stamps: np.ndarr
     return consistency_profiles(scans, {"poses": poses}, stamps, planar, voxel, seed)["poses"]
 
 
-def _cells(scans: ScanSequence, voxel: float, budget: int, seed: int, planar: bool, progress: bool) -> Cells:
-    """The profiles' cells: a quarter voxel, every cell's scatter (a judge of the poses, not the dense stage's
-    objective: its settings stay those its thresholds were measured with)."""
-    # the cubes of a sensor-frame grid, on which the flags were validated: along the beams the real keyframes' last
-    # frames score higher and a jump stands out less (its peak 2.8x the level, against 3.4x)
-    cells = cells_from_scans(scans, voxel / 4.0, CELLS_PER_FRAME, budget, seed, progress, keep_scatter="all",
-                             along_beams=False)
+def _cells(scans: ScanSequence, voxel: float, seed: int, planar: bool, progress: bool) -> Cells:
+    """The profiles' cells: a quarter voxel, ``CELLS_PER_FRAME`` a frame, every cell's scatter (a judge of the
+    poses, not the dense stage's objective: its settings stay those its thresholds were measured with)."""
+    # the cubes of a sensor-frame grid: along the beams a jump stands out less against the last frames' scores
+    cells = cells_from_scans(scans, voxel / 4.0, CELLS_PER_FRAME, len(scans) * CELLS_PER_FRAME, seed, progress,
+                             keep_scatter="all", along_beams=False)
     return cells.extruded(voxel) if planar else cells
 
 
-def _views(cells: Cells, poses: np.ndarray, voxel: float) -> dict[str, np.ndarray]:
-    every = _rms(disagreement(assign(cells, poses, voxel), poses, CAP, bounded=True))
-    past, future = _neighbour_views(cells, poses, voxel, window_frames(poses, voxel))
-    return {"all": every, "past": past, "future": future}
-
-
-def _stretched_views(scans: ScanSequence, sparse: Cells, candidates: dict[str, np.ndarray], voxel: float,
-                     seed: int, planar: bool, progress: bool) -> dict[str, dict[str, np.ndarray]]:
-    """The views of a sequence too long for ``CELLS_PER_FRAME`` cells a frame within ``MAX_CELLS``: with fewer
-    cells a frame a score is noise (the true poses of a 10,000-frame street, 150 cells a frame, flagged half
-    their frames). The scans are read again a stretch at a time at full density: each frame is judged by its
-    own dense cells, against the dense neighbouring blocks (past, future) and against the map of the stretch's
-    dense cells and every other frame's ``sparse`` cells in the voxels the stretch reaches (all)."""
-    n = len(scans)
+def _stretched_views(cells: Cells, n: int, candidates: dict[str, np.ndarray], voxel: float, progress: bool
+                     ) -> dict[str, tuple[dict[str, np.ndarray], float]]:
+    """The views of every frame, and the noise the planes measure (m), a stretch of frames at a time: each frame
+    is judged against the neighbouring blocks (past, future) and against the map of the stretch's cells and
+    every other frame's cells in the voxels the stretch reaches (all)."""
     margin = 2 * max(window_frames(poses, voxel) for poses in candidates.values())
-    length = max(MAX_CELLS // (2 * CELLS_PER_FRAME) - 2 * margin, 2 * margin)  # with the sparse cells: one budget
+    length = max(MAX_CELLS // CELLS_PER_FRAME - 2 * margin, 2 * margin)
     views = {name: {view: np.full(n, np.nan) for view in ("all", "past", "future")} for name in candidates}
-    sparse_keys = {name: _voxel_keys(sparse, poses, voxel) for name, poses in candidates.items()}
+    noise: dict[str, list[float]] = {name: [] for name in candidates}
+    whole = length >= n
+    keys = {} if whole else {name: _voxel_keys(cells, poses, voxel) for name, poses in candidates.items()}
+    bounds = np.searchsorted(cells.frame, np.arange(n + 1))  # cells are in frame order
     for s in progress_of(range(0, n, length), "profile stretches", total=-(-n // length), unit="stretch",
-                         enabled=progress):
+                         enabled=progress and not whole):
         release_freed_memory()  # the last stretch's blocks
         e = min(n, s + length)
         a, b = max(0, s - margin), min(n, e + margin)
-        dense = _cells(scans.subset(np.arange(a, b)), voxel, (b - a) * CELLS_PER_FRAME, seed + s, planar, False)
+        part = slice(bounds[a], bounds[b])
+        local = Cells(cells.frame[part] - np.int32(a), cells.count[part], cells.mean[part], cells.scatter[part],
+                      cells.size)
         judged = slice(s - a, e - a)
         for name, poses in candidates.items():
-            past, future = _neighbour_views(dense, poses[a:b], voxel, window_frames(poses, voxel), first=a)
+            past, future = _neighbour_views(local, poses[a:b], voxel, window_frames(poses, voxel), a)
             views[name]["past"][s:e], views[name]["future"][s:e] = past[judged], future[judged]
-            mixed = _with_reach(replace(dense, frame=dense.frame + np.int32(a)), a, b, sparse, sparse_keys[name],
-                                poses, voxel)
-            views[name]["all"][s:e] = _rms(disagreement(assign(mixed, poses, voxel), poses, CAP, bounded=True))[s:e]
-    return views
+            mixed = cells if whole else _with_reach(cells, part, keys[name])
+            assigned = assign(mixed, poses, voxel)
+            views[name]["all"][s:e] = _rms(disagreement(assigned, poses, CAP, bounded=True))[s:e]
+            noise[name].append(assigned.sigma)
+    return {name: (views[name], float(np.median(noise[name]))) for name in candidates}
 
 
-def _with_reach(dense: Cells, a: int, b: int, sparse: Cells, sparse_keys: np.ndarray, poses: np.ndarray,
-                voxel: float) -> Cells:
-    """The cells of frames ``a..b-1`` (``dense``) and the ``sparse`` cells of the other frames that fall in a
-    voxel (``sparse_keys``: :func:`_voxel_keys`) one of them occupies at ``poses``: the others cannot share a plane
-    with them."""
-    other = (sparse.frame < a) | (sparse.frame >= b)
-    inv, _ = group_rows(np.concatenate([_voxel_keys(dense, poses, voxel), sparse_keys[other]]))
-    near = np.flatnonzero(other)[np.isin(inv[len(dense):], inv[:len(dense)])]
-    return Cells(*(np.concatenate([getattr(dense, f), getattr(sparse, f)[near]])
-                   for f in ("frame", "count", "mean", "scatter")), dense.size)
+def _with_reach(cells: Cells, part: slice, keys: np.ndarray) -> Cells:
+    """The cells of one stretch (``part``) and those of the other frames that fall in a voxel (``keys``:
+    :func:`_voxel_keys`) one of the stretch's cells occupies: the others cannot share a plane with them."""
+    inside = np.zeros(len(cells), bool)
+    inside[part] = True
+    inv, _ = group_rows(np.concatenate([keys[inside], keys[~inside]]))
+    near = np.flatnonzero(~inside)[np.isin(inv[int(inside.sum()):], inv[:int(inside.sum())])]
+    keep = np.sort(np.concatenate([np.flatnonzero(inside), near]))
+    return Cells(cells.frame[keep], cells.count[keep], cells.mean[keep], cells.scatter[keep], cells.size)
 
 
 def _voxel_keys(cells: Cells, poses: np.ndarray, voxel: float) -> np.ndarray:
@@ -317,22 +359,23 @@ def _placed(cells: Cells, poses: np.ndarray, part: slice) -> np.ndarray:
     return (poses[f, :3, :3] @ cells.mean[part].astype(np.float64)[:, :, None])[:, :, 0] + poses[f, :3, 3]
 
 
-def _profile(views: dict[str, np.ndarray], stamps: np.ndarray | None, voxel: float, window: int
+def _profile(views: dict[str, np.ndarray], noise: float, stamps: np.ndarray | None, voxel: float, window: int
              ) -> ConsistencyProfile:
     stacked = np.stack(list(views.values()))
     score = np.where(np.isfinite(stacked).any(0), np.nanmax(np.where(np.isfinite(stacked), stacked, -np.inf), 0),
                      np.nan)
-    level, threshold = threshold_of(score)
+    level, threshold = threshold_of(score, noise)
     return ConsistencyProfile(score, views, level, threshold, _segments(score, threshold, stamps), voxel, window,
-                              stamps)
+                              stamps, noise)
 
 
-def write_profiles(folder: Path, profiles: dict[str, ConsistencyProfile], positions: np.ndarray,
+def write_profiles(folder: Path, profiles: dict[str, ConsistencyProfile],
+                   positions: np.ndarray | dict[str, np.ndarray],
                    stem: str = "consistency", steps: dict[str, list[int]] | None = None) -> list[str]:
     """``{stem}.json`` (each profile's summary and per-frame scores), ``{stem}.csv`` (one row per frame) and
-    ``{stem}.png`` (:func:`plots.consistency_figure` over ``positions``). ``steps``: per-step marks (e.g. the step
-    guard's ``held`` and ``contradicted`` steps: frame i marks its step to i+1), a column ``step_<name>`` each and
-    a ``steps`` entry in the JSON. Returns the names written."""
+    ``{stem}.png`` (:func:`plots.consistency_figure` over ``positions``, or each estimate's: label -> positions).
+    ``steps``: per-step marks (e.g. the step guard's ``held`` and ``contradicted`` steps: frame i marks its step to
+    i+1), a column ``step_<name>`` each and a ``steps`` entry in the JSON. Returns the names written."""
     folder.mkdir(parents=True, exist_ok=True)
     first = next(iter(profiles.values()))
     steps = steps or {}

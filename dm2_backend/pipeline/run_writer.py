@@ -14,13 +14,12 @@ from dm2_backend import config
 from dm2_backend.config_schema import RunConfig
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import plots
-from dm2_backend.evaluation.cautions import pose_cautions
 from dm2_backend.evaluation.consistency_profile import consistency_profiles, write_profiles
 from dm2_backend.evaluation.evaluate import EvalOptions, evaluate
 from dm2_backend.evaluation.kitti_odometry import KittiOdometryError
 from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.evaluation.paper_ate import paper_ate
-from dm2_backend.evaluation.report import run_metrics
+from dm2_backend.evaluation.report import estimate_cautions, run_metrics
 from dm2_backend.formats.kitti import read_calib_tr
 from dm2_backend.maps.run_maps import write_run_maps
 from dm2_backend.memory import peak_rss_mb, release_mapped
@@ -60,7 +59,7 @@ def run_evaluation(traj: Trajectory, inputs: RunInputs
     except InputError as exc:
         log.warning("evaluation failed: %s", exc.message)
         return {"error": exc.message}, [], None
-    return run_metrics(est), pose_cautions(est.poses) if est.poses is not None else [], est.kitti
+    return run_metrics(est), estimate_cautions(est), est.kitti
 
 
 def output_timestamps(inputs: RunInputs) -> np.ndarray:
@@ -139,6 +138,8 @@ def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, fina
     details = dict(details or {})
     if sensor is not None:
         details["sensor"] = sensor
+    if inputs.given is not None and "interpolated_gaps" in inputs.given.meta:  # scan poses bridged across gaps
+        details["interpolated_gaps"] = inputs.given.meta["interpolated_gaps"]
     trajectories = {name: None if poses is None else trajectory_of(poses, inputs) for name, poses in poses_of.items()}
     with stages.stage("trajectories_and_plots"):
         written = _write_trajectories_and_plots(out, inputs, prep, trajectories, method, details)
@@ -146,7 +147,8 @@ def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, fina
     with stages.stage("consistency"):
         profiles = consistency_profiles(inputs.scans, {"warm start": prep.warm_start, method: final},
                                         output_timestamps(inputs), prep.frames.planar)
-        written += write_profiles(out, profiles, final[:, :3, 3], steps=guard_marks(details))
+        written += write_profiles(out, profiles, {"warm start": prep.warm_start[:, :3, 3], method: final[:, :3, 3]},
+                                  steps=guard_marks(details))
     log.info("consistency: %s", "; ".join(f"{name} {len(p.segments)} flagged stretch(es), {int(p.flagged.sum())} "
                                           f"frames" for name, p in profiles.items()))
     with stages.stage("maps"):  # after the profiles: each stage's memory peaks alone, not on the other's leftovers
