@@ -221,3 +221,29 @@ def test_compare_bad_reports_exit_2(tmp_path):
     (bad / "report.json").write_text("{not json")
     r = run("compare", bad)
     assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1 and "not valid JSON" in r.output
+
+
+def test_each_estimate_takes_its_own_bag_topic(tmp_path):
+    """Two estimates from one bag (as `evo_ape bag` takes one topic per estimate): each --est-topic goes with its
+    --est, in order; the labels name the topics."""
+    from shared_helpers import DATA, need
+
+    bag = DATA / "bags" / "ROS_example.bag"
+    need(bag)
+    args = ["eval", "--gt", str(bag), "--gt-topic", "groundtruth", "-a", "--json", str(tmp_path / "e.json")]
+    result = CliRunner().invoke(cli, args + ["--est", str(bag), "--est-topic", "ORB-SLAM", "--est", str(bag),
+                                             "--est-topic", "S-PTAM"], obj={})
+    assert result.exit_code == 0, result.output
+    estimates = json.loads((tmp_path / "e.json").read_text())["estimates"]
+    assert [e["label"] for e in estimates] == ["ROS_example:ORB-SLAM", "ROS_example:S-PTAM"]
+    single = {}
+    for topic in ("ORB-SLAM", "S-PTAM"):
+        r = CliRunner().invoke(cli, args[:-2] + ["--json", str(tmp_path / f"{topic}.json"), "--est", str(bag),
+                                                 "--est-topic", topic], obj={})
+        assert r.exit_code == 0, r.output
+        single[topic] = json.loads((tmp_path / f"{topic}.json").read_text())["estimates"][0]["metrics"]
+    for e, topic in zip(estimates, ("ORB-SLAM", "S-PTAM"), strict=True):
+        assert e["metrics"]["ape_trans"] == single[topic]["ape_trans"]
+    assert estimates[0]["metrics"]["ape_trans"] != estimates[1]["metrics"]["ape_trans"]
+    wrong = CliRunner().invoke(cli, args + ["--est", str(bag)] * 3 + ["--est-topic", "a", "--est-topic", "b"], obj={})
+    assert wrong.exit_code == 2 and "2 --est-topic for 3 estimates" in wrong.output

@@ -25,8 +25,18 @@ from dm2_backend.pipeline.inputs import looks_planar
 path_type = click.Path(path_type=Path)
 
 
-def _labels(paths: tuple[Path, ...], given: tuple[str, ...] = ()) -> list[str]:
-    """One label per estimate: ``--label`` in order, else the file name (made unique with ``#k``)."""
+def _topics(given: tuple[str, ...], estimates: int) -> list[str | None]:
+    """The bag topic of each estimate: none, one for all, or one per estimate in order."""
+    if len(given) > 1 and len(given) != estimates:
+        raise click.UsageError(f"{len(given)} --est-topic for {estimates} estimates: give one for all, or one per "
+                               "--est, in order")
+    return list(given) if len(given) > 1 else [given[0] if given else None] * estimates
+
+
+def _labels(paths: tuple[Path, ...], given: tuple[str, ...] = (), topics: list[str | None] | None = None
+            ) -> list[str]:
+    """One label per estimate: ``--label`` in order, else the file name (with its topic where the estimates'
+    topics differ; made unique with ``#k``)."""
     if given:
         if len(given) != len(paths):
             raise click.UsageError(f"{len(given)} --label for {len(paths)} estimates: give one per estimate, in order")
@@ -39,6 +49,8 @@ def _labels(paths: tuple[Path, ...], given: tuple[str, ...] = ()) -> list[str]:
         for suffix in (".gz", ".bz2", ".xz", ".zip"):
             name = name.removesuffix(suffix)
         label = (Path(name).stem if p.is_file() else name) or str(p)
+        if topics and len(set(topics)) > 1:
+            label = f"{label}:{topics[len(labels)]}"
         while label in labels:
             label = f"{label}#{len(labels) + 1}"
         labels.append(label)
@@ -124,7 +136,8 @@ def _alignment(align: str | None, align_flag: bool, scale_flag: bool, align_orig
 @click.option("--gt-format", default=None, help="Format of --gt (detected when unambiguous).")
 @click.option("--est-format", default=None, help="Format of every --est (detected when unambiguous).")
 @click.option("--gt-topic", default=None, help="Bag topic of the ground truth.")
-@click.option("--est-topic", default=None, help="Bag topic of the estimates.")
+@click.option("--est-topic", "est_topics", multiple=True,
+              help="Bag topic of the estimates: one for every --est, or one per --est in order.")
 @click.option("--gt-times", type=path_type, default=None, help="KITTI times.txt for --gt.")
 @click.option("--est-times", type=path_type, default=None, help="KITTI times.txt for --est.")
 @click.option("--scans", "scans_path", type=path_type, default=None,
@@ -166,7 +179,7 @@ def _alignment(align: str | None, align_flag: bool, scale_flag: bool, align_orig
 @click.option("--save-evo", "evo_dir", type=path_type, default=None,
               help="Write evo result archives (.zip, readable by evo_res) into this folder.")
 @duplicate_times_option
-def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topic, gt_times, est_times,
+def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topics, gt_times, est_times,
             scans_path, scans_format, scans_topic, scans_times, intrinsics, depth_scale, profile_dir,
             relations_path, relations_max_dt, align, align_origin, align_flag, scale_flag, max_diff, by_index, labels,
             delta, delta_unit, json_path, csv_path, md_path, plot_dir, run_report, evo_dir, duplicate_times) -> None:
@@ -189,7 +202,8 @@ def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topi
         raise click.UsageError("--profile scores the scans at each estimate: give --scans too")
     if run_report is not None and plot_dir is None:
         raise click.UsageError("--run-report is used for the error-vs-epoch plot: give --plot DIR too")
-    est_labels = _labels(est_paths, labels)
+    topics = _topics(est_topics, len(est_paths))
+    est_labels = _labels(est_paths, labels, topics)
     # the scans are read as refine reads them (the same options, parsed by the same function)
     scan_options = read_options(scans_topic, scans_times, None, intrinsics, depth_scale, duplicate_times)
 
@@ -208,12 +222,12 @@ def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topi
                   "delta_unit": delta_unit, "relations_max_dt": relations_max_dt},
         map=None if sampler is None else {"scans_path": str(scans_path), **sampler.settings_summary()},
     )
-    est_options = ReadOptions(topic=est_topic, times=est_times, duplicate_times=duplicate_times)
     options = EvalOptions(align=align, align_origin=align_origin, max_diff=max_diff, by_index=by_index,
                           delta=delta, delta_unit=delta_unit, relations_max_dt=relations_max_dt)
     at_scans = {}
-    for path, label in zip(est_paths, est_labels, strict=True):
-        est = read_trajectory(path, est_format, est_options)
+    for path, label, topic in zip(est_paths, est_labels, topics, strict=True):
+        est = read_trajectory(path, est_format, ReadOptions(topic=topic, times=est_times,
+                                                            duplicate_times=duplicate_times))
         if len(est) == 0:
             raise InputError(path, "no poses")
         if profile_dir is not None:
