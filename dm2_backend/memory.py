@@ -22,9 +22,9 @@ def _malloc_trim():
 
 def release_freed_memory() -> bool:
     """Hand the heap's freed pages back to the system (glibc ``malloc_trim``). Freed small blocks otherwise stay
-    in the process: an OcTree's millions of nodes (1.1 GiB for 8 M leaves), the registrations' threads' arenas
-    (250 MiB after the 80,000 registrations of 20,000 frames), each dense round's temporaries; the next stage's
-    peak then sits on top of them. Call it between stages. False where the C library has no such call."""
+    in the process: an OcTree's millions of nodes, the registrations' threads' arenas, each dense round's
+    temporaries; the next stage's peak then sits on top of them. Call it between stages. False where the C
+    library has no such call."""
     trim = _malloc_trim()
     if trim is None:
         return False
@@ -34,7 +34,8 @@ def release_freed_memory() -> bool:
 
 def peak_rss_mb() -> float:
     """Peak resident memory of this process so far, MiB: Linux's ``VmHWM`` (this program's own: ``ru_maxrss``
-    keeps the peak of the process that forked it across ``exec``, 750 MiB for a run started by the test suite),
+    keeps the peak of the process that forked it across ``exec``: a run started by the test suite would report the
+    suite's peak),
     else ``ru_maxrss``."""
     try:
         with open("/proc/self/status", encoding="ascii") as fh:
@@ -49,8 +50,8 @@ def peak_rss_mb() -> float:
 def release_mapped(arrays: list[np.ndarray]) -> int:
     """Drop the resident pages of the read-only memory-mapped files behind ``arrays`` (views of a ``np.memmap``
     opened with mode "r", e.g. the cached frames' points): the data stays in the file and is read again where
-    touched, but a stage that does not touch it no longer counts it in the process's memory (20,000 3D frames:
-    234 MiB). Returns the number of mappings released; arrays in memory, or copy-on-write maps, are left alone."""
+    touched, but a stage that does not touch it does not count it in the process's memory. Returns the number of
+    mappings released; arrays in memory, or copy-on-write maps, are left alone."""
     seen: dict[int, mmap.mmap] = {}
     for a in arrays:
         base = a

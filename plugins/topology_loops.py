@@ -76,8 +76,7 @@ class LoopsTopology:
     #: a verified closure is measured again on submaps this long on either side (m; default the median range; 0:
     #: off), from the first measurement: a long submap carries the warm start's own drift, a degree or more of yaw
     #: over its length, into the closure. A direction the short submaps leave free is held at the first
-    #: measurement (see ``_measure_short``). On ACES (accepted closures judged against the relations through the
-    #: refined poses): 3.8 deg off at worst -> 1.1, precision 90.7 % -> 97.3 % by the nearest relation
+    #: measurement (see ``_measure_short``; docs/decisions/0012-loop-closures-on-short-submaps.md)
     short_half_length: float | None = None
     #: the short measurement replaces the first only when they differ beyond this chi-square quantile of the short
     #: match's own noise (its point-to-line information over its residuals' variance, each normal's neighbourhood
@@ -87,6 +86,7 @@ class LoopsTopology:
     resolution: float | None = None
     #: a submap point is kept only when another lies within this (m; default 2 cells, twice the likelihood's sigma):
     #: isolated returns (glass, open doors) match nothing and let different alignments score alike; 0 keeps all
+    #: (docs/decisions/0011-loop-closure-overlap-and-support.md)
     support: float | None = None
     #: search window: translation (m) and yaw (degrees) at a fresh closure, growing by ``drift`` m and
     #: ``yaw_drift`` degrees per metre travelled since the last accepted closure, capped
@@ -106,12 +106,13 @@ class LoopsTopology:
     min_fitness: float = 0.5
     #: a closure whose overlap lies in [weak_fitness, min_fitness) and that passes every other test is weak:
     #: trusted only when two other closures (or one that is not weak) agree with it around a cycle
+    #: (docs/decisions/0011-loop-closure-overlap-and-support.md)
     weak_fitness: float = 0.4
     min_constraint: float = 0.1
     max_free_space: float = 0.1
     #: overlap gate over the points in sight of the other visit (within ``reach`` of one of its scan positions)
-    #: instead of over whole submaps; off by default: on ACES it restores the recall lost on the fused warm start
-    #: (96.6 % vs 60.9 %) but its extra closures at the start of the log measure 0.20-0.23 m off (precision 95.5 %)
+    #: instead of over whole submaps; off by default: it restores recall that the weak closures also restore, with
+    #: extra closures that are off (docs/decisions/0011-loop-closure-overlap-and-support.md)
     overlap_in_sight: bool = False
     #: a match ambiguous only along one line (a corridor) becomes a closure across it: it fixes the other
     #: direction and yaw, the graph settles the position along it; trusted like a weak closure

@@ -159,8 +159,8 @@ class Loops3dTopology:
     def _repair(self, frames: Frames, poses: np.ndarray) -> tuple[np.ndarray, list[int]]:
         """The input trajectory with its failed steps repaired: each increment is checked by GICP of the frame
         onto the one before, and where the two disagree by more than ``repair_distance`` the front end failed
-        on that frame (RedKitchen's icp warm start jumps 0.34 m at frame 484, which the frame pair registers
-        to 9 mm of the reference): the registration replaces the increment and the rest of the trajectory
+        on that frame (a jump of the front end that the frame pair's registration does not make): the
+        registration replaces the increment and the rest of the trajectory
         moves with it. Returns the poses and the repaired step indices."""
         if self.repair_distance == 0 or len(poses) < 2:
             return poses, []

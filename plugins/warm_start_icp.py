@@ -25,7 +25,8 @@ Then the steps are checked where drift shows (``windows``, :mod:`dm2_backend.alg
 windows one median scan range long, the warm start's relative pose is compared with the odometry's; a
 disagreement beyond what the odometry's noise (estimated from the per-step differences) explains is judged by the
 window's end scans, and the odometry's increments replace the window's where they lay those scans clearly
-better (scan matching that drifted, e.g. biased by returns that are not surfaces).
+better (scan matching that drifted, e.g. biased by returns that are not surfaces). Why these defaults:
+docs/decisions/0010-fused-warm-start-windows.md.
 
 ``report`` (after ``run``) holds the counts, a per-step record (source and reason) and a per-window record
 (:class:`~dm2_backend.algorithms.drift_windows.WindowVerdict`, also in ``windows``), which the run folder writes

@@ -7,10 +7,10 @@ the odometry's are compared. Where they disagree by more than the odometry's own
 end scans are the judge, where both ends see: the candidate (scan-matched or odometry relative pose) that lays the
 last scans of the window onto its first ones clearly better wins; where they cannot tell the two apart (a hall
 seen along its axis), the odometry does (the scans hold nothing there that the matches could have used), unless
-they lean towards the scan match (no evidence that scan matching drifted: on Intel, whose odometry turns 12° off
-over 2 m, taking it there cost the whole log 0.18 -> 1.03 m); where they see nothing in common (a turn on the spot),
-the scans stay. The odometry's increments replace the window's
-where it wins. Every window gets a :class:`WindowVerdict`."""
+they lean towards the scan match (no evidence that scan matching drifted: the odometry can be the one that turned);
+where they see nothing in common (a turn on the spot), the scans stay. The odometry's increments replace the
+window's where it wins. Every window gets a :class:`WindowVerdict`
+(docs/decisions/0010-fused-warm-start-windows.md)."""
 
 from __future__ import annotations
 

@@ -65,26 +65,23 @@ class PairwiseRegistration:
     free_space_margin: float | None = None
     iterations: int = 30
     #: planar point-to-line: Cauchy reweighting of the residuals with this threshold in robust standard
-    #: deviations (0: plain least squares; see ``icp.icp_2d``). Measured on 200 pairs two frames apart of a
-    #: simulated planar street sequence (2,000 frames, seed 11) against ground truth: along-track bias
-    #: 2.6 -> 0.1 mm, spread 12 -> 5.3 mm, yaw spread 0.061 -> 0.028 deg; the bias, summed over thousands of
-    #: consecutive pairs, had bent the gtsam pose graph (0.087 m loop-closed -> 0.20 m)
+    #: deviations (0: plain least squares; see ``icp.icp_2d``): plain least squares leaves an along-track bias
+    #: that, summed over thousands of consecutive pairs, bends the pose graph
+    #: (docs/decisions/0009-registration-and-pose-graph-defaults.md)
     robust_k: float = 2.3849
-    #: 3D: a pass stops when fitness and inlier rmse change by less than this fraction. Measured on 600 pairs
-    #: of a simulated 3D LiDAR sequence against ground truth: 1e-6 (open3d's usual) and 1e-4 give the same
-    #: relative poses (median error 0.77 / 0.76 cm, 0.037 deg) in 15 and 6 ms a pair
+    #: 3D: a pass stops when fitness and inlier rmse change by less than this fraction (open3d's usual 1e-6 gives
+    #: the same relative poses in more time; docs/decisions/0009-registration-and-pose-graph-defaults.md)
     tolerance: float = 1e-4
-    #: pairs per chunk (the clouds of at most two chunks are held at once: about 500 frames, 75 MB in 3D; a frame
-    #: of 2,000 simulated 3D LiDAR frames was built 1.5 times on average instead of once)
+    #: pairs per chunk (the clouds of at most two chunks are held at once, so memory stays linear; a frame's cloud
+    #: is built again when a later chunk needs it; docs/decisions/0009-registration-and-pose-graph-defaults.md)
     chunk: int = 1024
     #: each registration's information for the pose graph: "isotropic" (from its rmse, overlap and points;
     #: see ``baselines.graph``) or "hessian" (its own point-to-plane, planar: point-to-line, Gauss-Newton Hessian
     #: over its correspondences over the variance of those residuals, ``Pairwise.hessian``: a direction the
     #: matched geometry leaves free, along a corridor or across the one wall a camera sees, gets no weight).
-    #: Measured on the same preparations (isotropic / hessian): simulated street (500 frames) gtsam 0.0275 /
-    #: 0.0308 m, the dense stage at its floor either way (0.00071 / 0.00075 m); ACES gtsam 0.0414 / 0.0489 m,
-    #: refine 0.0344 / 0.0344 m; the planar corridor ring refine from its truth 0.039 / 0.024 m, from its warm
-    #: start 0.0567 / 0.0560 m. The odometry edges keep the median isotropic weight either way. Planar scans with
+    #: Isotropic by default: the pose graphs end no better with the Hessians
+    #: (docs/decisions/0009-registration-and-pose-graph-defaults.md). The odometry edges keep the median
+    #: isotropic weight either way. Planar scans with
     #: ``method: point-to-point`` give no Hessian (their edges stay isotropic). This is the pose graphs' choice
     #: (``dm2 baseline``, the 3D start); planar registrations record their Hessian either way and the dense stage
     #: weighs by it wherever one was recorded
@@ -111,8 +108,8 @@ class PairwiseRegistration:
         anchors, neighbours = rows.tolist(), groups[rows, cols].tolist()
         pairs = sorted({(min(i, j), max(i, j)) for i, j in zip(anchors, neighbours, strict=True)})
         inits = self._inits(poses, pairs, topology)
-        # open3d runs each 3D ICP on all cores already (measured: 2 threads 61 s vs 1 thread 48 s for 8000
-        # GICP pairs); the numpy/scipy planar ICP gains from threads (1.2-1.4x on 2 cores)
+        # open3d runs each 3D ICP on all cores already (threads over pairs only slow it down); the numpy/scipy
+        # planar ICP gains from threads (docs/decisions/0009-registration-and-pose-graph-defaults.md)
         workers = self.workers or (min(8, os.cpu_count() or 1) if frames.planar else 1)
         with ThreadPoolExecutor(workers) as pool:
 

@@ -5,7 +5,7 @@ Edges (``(i, j)``, i < j, the pose of frame j in frame i):
 * odometry ``(i, i+1)`` for every consecutive pair: by default the relative pose ``inv(T_i) @ T_{i+1}`` of
   the initial trajectory (the front end's, or its loop-closed correction, which keeps it locally; scan-to-map
   odometry is locally more accurate than
-  scan-to-scan registration: on ACES 0.043 m against 0.048 m mean relations error, gtsam with Cauchy);
+  scan-to-scan registration: docs/decisions/0009-registration-and-pose-graph-defaults.md);
   with ``odometry="registration"`` the pairwise registration when ``(i, i+1)`` is a valid topology pair,
   else the front end's;
 * loop: every other valid pairwise registration, once per unordered pair.

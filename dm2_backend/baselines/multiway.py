@@ -43,7 +43,7 @@ def available_memory() -> int:
 
 def check_size(nodes: int, available: int | None = None) -> None:
     """Refuse graphs whose dense system would not fit in half the available memory (ACES, 7,374 nodes,
-    needs 15.7 GB and was killed by the kernel), with a clear error instead of an out-of-memory kill."""
+    needs 15.7 GB), with a clear error instead of an out-of-memory kill."""
     available = available if available is not None else available_memory()
     need = dense_bytes(nodes)
     if need > available // 2:

@@ -21,7 +21,7 @@ level of the sequence's agreeing frames (its lower quartile), and at least ``FLO
 measure (a frame placed within the sensor's own noise is not misplaced, however sharp the rest). Cases and their
 results: ``benchmarks/consistency_cases.py`` and the tests (true, refined-to-floor and broken poses of 3D and 2D
 simulations, real LiDAR keyframes, a ray-cast through their map, a simulated depth camera, the noise-free
-DeepMapping set).
+DeepMapping set); why these thresholds: docs/decisions/0013-consistency-profile-thresholds.md.
 """
 
 from __future__ import annotations

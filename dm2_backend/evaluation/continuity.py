@@ -9,15 +9,13 @@ or within how far a scan-matching step slides (``slip_m``, the registration's co
 registrations judge only where there are :data:`MIN_STEPS` of them (else the odometry judges alone); a sequence
 of fewer steps is not judged at all.
 
-Why: a pose graph whose robust kernel meets a clique of wrong registrations can cut the odometry chain. A
-simulated hand-held depth camera looking across a furnished room had a third of its loop registrations slide
-along walls and shelves that look alike; GTSAM's solution (Cauchy kernel on every edge) gave up one odometry edge,
-1.36 m and 50 degrees from the step the front end and the registration measured, and snapped each stretch onto the
-wrong alignments (0.43 m from the truth, from loop-closed poses 0.033 away). Its map was sharper by entropy and its
-frames agreed with the others' planes, each stretch being a consistent picture of a room whose views look alike;
-its steps were not. Why the slide allowance: a scan-matching front end (dm2's own ICP warm start, on a camera
-walking round a room) slides now and then by 0.1-0.27 m where the scans leave a direction free, the registration
-of the same pair slides the same way, and a solution that repairs such a step is not a cut.
+Why: a pose graph whose robust kernel meets a clique of wrong registrations can cut the odometry chain. Where
+many loop registrations slide along walls that look alike, a robust solution can give up one odometry edge and snap
+each stretch onto the wrong alignments; its map can be sharper by entropy and its frames agree with the others'
+planes, each stretch being a consistent picture of a place whose views look alike; its steps are not. Why the
+slide allowance: a scan-matching front end slides now and then where the scans leave a direction free, the
+registration of the same pair slides the same way, and a solution that repairs such a step is not a cut
+(docs/decisions/0002-start-judged-by-planes.md).
 """
 
 from __future__ import annotations

@@ -84,11 +84,7 @@ def loss_regime(cfg: OptimConfig, planar: bool, polish: bool) -> LossRegime:
     or poses that ``loops3d`` closed) the optimiser polishes: the start already satisfies the pairwise
     registrations, so the consistency loss only holds the poses there, and the occupancy field's finest cell
     (memory-bound) is coarser than the corrections left, so its BCE blurs them; the Chamfer distance along the
-    surface normals sharpens the map. Measured from gtsam's solution of the simulated 3D LiDAR 500 frames
-    (0.0378 m): Chamfer only 0.0361, + BCE 0.0433, + consistency no epoch sharper than the start; on the real
-    LiDAR keyframes (map entropy -4.2436): Chamfer only -4.2606, + consistency -4.238 (never below the start),
-    + BCE -4.2598; from their ``loops3d`` poses (-4.2653): all three losses never below the start, Chamfer
-    only -4.2750."""
+    surface normals sharpens the map (docs/decisions/0014-first-order-optimiser-defaults.md)."""
     return LossRegime(
         use_bce=cfg.use_bce if cfg.use_bce is not None else not polish,
         use_consistency=cfg.use_consistency if cfg.use_consistency is not None else not polish,
@@ -100,7 +96,7 @@ def loss_regime(cfg: OptimConfig, planar: bool, polish: bool) -> LossRegime:
 def derive(cfg: OptimConfig, scale: ScanScale, planar: bool = True) -> Lengths:
     """Fill the None lengths from the data's scale (Frames.scale). The unit is twice the point spacing: of the
     down-sampled frames in 2D; of the raw scans (at least the voxel) in 3D, where the frames are a subsample
-    (real LiDAR keyframes: 0.42 m between the 1,024 points of a frame, 0.17 m in the scans). The Chamfer
+    whose points lie several scan spacings apart. The Chamfer
     distance is truncated at ten units (one when polishing a locally accurate 3D start, see the trainer)."""
     spacing = max(scale.spacing or 0.0, scale.voxel or 0.0, 1e-3)
     if not planar and scale.spacing_raw:
@@ -126,12 +122,8 @@ NOISE_WIDTHS = 28.0
 
 def dense_voxel(cfg: OptimConfig, scale: ScanScale, noise: float | None = None) -> float:
     """The plane term's largest voxel: planar patches a few per median range, its finest quarter at least a
-    point spacing, and at least :data:`NOISE_WIDTHS` times the range ``noise`` (m) where it is known. Measured
-    from the truth (the floor) and from gtsam on the LiDAR ray-cast through the real keyframes' mesh: 0.87 m
-    (this rule) 0.0032 / 0.0033 m, 1.2 m 0.0044 / 0.0044, 1.74 m (8 spacings) 0.0047 / 0.0049; on the procedural
-    street (500 frames) 0.88 m 0.0010 / 0.0010, 1.76 m 0.0008 / 0.0010. The noise bound, on planar scans: the
-    corridor ring (2 cm range noise, 1.4 m median range, noise measured 1.1 cm) 0.18 -> 0.31 m, ACES (1.6 cm)
-    0.31 -> 0.45 m (refine 0.0343 m either way); Intel (0.8 cm), the demo and the hospital-like logs keep theirs."""
+    point spacing, and at least :data:`NOISE_WIDTHS` times the range ``noise`` (m) where it is known (planar
+    scans; docs/decisions/0008-dense-voxel-and-planar-information.md)."""
     if cfg.dense_voxel is not None:
         return cfg.dense_voxel
     spacing = scale.spacing_raw or scale.spacing or 0.0
@@ -140,10 +132,9 @@ def dense_voxel(cfg: OptimConfig, scale: ScanScale, noise: float | None = None) 
 
 def pose_regime(cfg: OptimConfig, accurate: bool, polish: bool = False) -> PoseRegime:
     """``drift`` and ``lr_pose`` where the config leaves them None: small steps without drift terms from a
-    locally accurate start, smaller ones when polishing it in 3D (simulated 3D LiDAR 500 frames from gtsam's
-    0.0378 m: lr 0.05 dips the map in the first epochs and ends at map entropy -4.999, 0.02 ends at -5.0065; at
-    2,000 frames, 8 epochs, 0.05 never recovered from its first pose epoch), full steps with drift terms from a
-    drifting start."""
+    locally accurate start, smaller ones when polishing it in 3D (larger ones dip the map in the first pose
+    epochs), full steps with drift terms from a drifting start
+    (docs/decisions/0014-first-order-optimiser-defaults.md)."""
     lr = 1.0 if not accurate else (0.02 if polish else 0.05)
     return PoseRegime(
         drift=cfg.drift if cfg.drift is not None else not accurate,

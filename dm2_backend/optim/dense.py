@@ -245,10 +245,9 @@ def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float
 def _converged(history: list[dict], tolerance: float) -> bool:
     """The last round moved the poses by less than ``tolerance`` noise sigmas; once the odometry is reweighed
     (the rounds after the one that holds ``odometry_noise``), also the graph factors' cost changed by less than
-    ``tolerance`` of itself between two rounds: the new weights move what the odometry holds (density case: steps
-    of 0.2-0.4 mm, below the first test, that cut the RPE 2.6x over three rounds), and the graph's cost alone
-    stopped the depth camera walking round the table while it still moved 2.8 mm a round (5.3 mm from the truth,
-    on its way down from 56)."""
+    ``tolerance`` of itself between two rounds: the new weights move what the odometry holds by steps below the
+    first test that still improve the steps, and the graph's cost alone can settle while the poses still move
+    (docs/decisions/0007-odometry-noise-measured.md)."""
     if history[-1]["step_rms_m"] >= tolerance * history[-1]["sigma"]:
         return False
     marks = [i for i, row in enumerate(history) if "odometry_noise" in row]

@@ -26,7 +26,8 @@ from dm2_backend.pose_graph import PoseGraph
 #: the longest run of steps summed (k = 1 .. WINDOW): long enough to tell the slope from the intercept, short
 #: enough that a drifting solution's error still looks constant over it
 WINDOW = 8
-#: the fewest odometry edges to estimate from (below that the graph keeps its weights)
+#: the fewest odometry edges to estimate from (below that the graph keeps its weights;
+#: docs/decisions/0007-odometry-noise-measured.md)
 MIN_EDGES = 10 * WINDOW
 #: the smallest and largest per-step standard deviation taken (m or rad): exact odometry still gets a finite
 #: weight, odometry that says nothing a non-zero one

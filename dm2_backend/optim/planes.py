@@ -123,14 +123,12 @@ def _beam_cells(unit: np.ndarray, distance: np.ndarray, size: float, reference: 
     its beam's direction binned ``size`` wide at the ``reference`` range (the scan's median), its range binned
     ``size`` deep, and the consecutive range bins of one direction merged (so a cell is a bin deep or more). A
     sensor's noise lies along its beams: cells cut by a fixed grid split a surface whose noisy ranges straddle a bin
-    edge into a near and a far part, each mean pulled along the beam, and those pulls turn the frames (a depth
-    camera across a room, the dense stage alone from the truth: 6.3 mm with the cubic grid, 1.5 mm with that grid
-    cut by the noise-free points, 1.5 mm with these cells). Along the beam only an empty bin parts two cells (two
+    edge into a near and a far part, each mean pulled along the beam, and those pulls turn the frames
+    (docs/decisions/0003-beam-cells.md). Along the beam only an empty bin parts two cells (two
     surfaces, not one surface's noise, while that noise is under a bin). Runs are not capped: a surface seen at a
     grazing angle can make a cell longer than a voxel. Far out the cells are wider (a LiDAR's at three times the
-    median range, three times ``size``): binned no wider than twice ``size`` (by octaves of range), the simulated
-    street's frames passed their share and kept fewer points (its dense stage alone from the truth 0.66 mm, against
-    0.49 with these cells)."""
+    median range, three times ``size``): binned finer there, a frame passes its share of cells and keeps fewer
+    points."""
     if len(distance) == 0:
         return np.zeros(0, np.int64), 0
     direction = np.floor(unit * (reference / size)).astype(np.int64)
@@ -201,7 +199,8 @@ def kept_scatter(scatter: np.ndarray, which: CellScatter) -> np.ndarray:
     """Which cells (their (K,6) scatter) keep it: "all", "none", or "thin": those thinner than a quarter of their
     width (smallest scatter eigenvalue under :data:`FLATNESS` of the middle one, the voxels' flatness test). A
     thicker cell's thickness is mostly the sensor's range noise, which lies along the beam; in the cost its scatter
-    turns the frame to lay its beams along the plane (see the module docstring)."""
+    turns the frame to lay its beams along the plane (see the module docstring;
+    docs/decisions/0004-thin-cell-scatter.md)."""
     if which == "all":
         return np.ones(len(scatter), bool)
     if which == "none":

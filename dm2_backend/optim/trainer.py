@@ -120,9 +120,9 @@ class Optimiser:
         lengths = derive(cfg, frames.scale, frames.planar)
         spread = disagreement(warm_start, topology.groups, pairwise.relative, pairwise.valid,
                               frames.scale.length)
-        # loop-closed poses need no drift terms (they would undo the closures: sim-3d-5000, 0.95 m start, drifted
-        # to 40 m with them); the pose-graph solution agrees with the registrations by construction; other
-        # starts are judged by the measured disagreement
+        # loop-closed poses need no drift terms (they would undo the closures;
+        # docs/decisions/0014-first-order-optimiser-defaults.md); the pose-graph solution agrees with the
+        # registrations by construction; other starts are judged by the measured disagreement
         accurate = (from_graph or topology.loop_closed
                     or locally_accurate(spread, lengths.unit, cfg.accurate_below))
         polish = accurate and not frames.planar

@@ -143,7 +143,7 @@ def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, fina
     trajectories = {name: None if poses is None else trajectory_of(poses, inputs) for name, poses in poses_of.items()}
     with stages.stage("trajectories_and_plots"):
         written = _write_trajectories_and_plots(out, inputs, prep, trajectories, method, details)
-    release_mapped(prep.frames.points)  # the profiles read the scans, not the frames (20,000 3D frames: 234 MiB)
+    release_mapped(prep.frames.points)  # the profiles read the scans, not the frames
     with stages.stage("consistency"):
         profiles = consistency_profiles(inputs.scans, {"warm start": prep.warm_start, method: final},
                                         output_timestamps(inputs), prep.frames.planar)

@@ -1,16 +1,16 @@
 """Where ``dm2 refine``'s optimiser starts: the prepared poses, or the pose-graph solution over the same edges.
 
 A pose graph (odometry + the pairwise registrations, solved by GTSAM with a Cauchy kernel: exactly ``dm2
-baseline gtsam``) converges in a few Levenberg-Marquardt iterations to what the constraints say; first-order
-DeepMapping2 steps from the loop-closed poses do not get that far (simulated 3D LiDAR, 500 frames: gtsam 0.038 m,
-refine from the loop-closed poses 0.055 m). Starting from the graph's solution lets the map losses refine what the
-constraints got wrong. The graph start is taken only when it keeps the sequence's steps (no step that both the
-front end's odometry and the two frames' registration contradict: :mod:`dm2_backend.evaluation.continuity`) and
+baseline gtsam``) converges in a few Levenberg-Marquardt iterations to what the constraints say, further than
+first-order DeepMapping2 steps from the loop-closed poses get. Starting from the graph's solution lets the map
+losses refine what the constraints got wrong. The graph start is taken only when it keeps the sequence's steps
+(no step that both the front end's odometry and the two frames' registration contradict:
+:mod:`dm2_backend.evaluation.continuity`) and
 its frames agree better than the prepared poses' with the planes the other frames make (the dense stage's cells:
 :class:`DenseCells`; without the dense stage, its map is sharper by mean map entropy), both judged without ground
 truth, so a graph that a clique of wrong registrations cut or bent does not start the optimiser; nor is a dense
-result that cuts a step kept. (Map entropy chose a depth camera's graph solution 7x farther from the truth than
-the loop-closed poses: sharper in the mean, bent where the camera saw one corner.)
+result that cuts a step kept. Map entropy does not judge the start where the planes can: a map sharper in the mean
+can be bent where the camera sees one corner (docs/decisions/0002-start-judged-by-planes.md).
 """
 
 from __future__ import annotations
@@ -109,7 +109,7 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None,
     them, when its map is sharper by map entropy; without a map sampler, or when the graph cannot be solved, see
     ``why``); "auto": graph for 3D data, prepared for planar data (2D laser logs: the loop-closed poses of
     ``loops`` are already a pose-graph solution in all three degrees of freedom, and the map losses refine them
-    further than the graph over the pairwise registrations: ACES 0.0363 m against 0.0421 from the graph)."""
+    further than the graph over the pairwise registrations; docs/decisions/0002-start-judged-by-planes.md)."""
     prepared = prep.initial
     if cfg.start == "prepared":
         return Start(prepared, StartKind.PREPARED, "optimiser.start: prepared")
@@ -155,7 +155,8 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None,
 
 def range_noise(prep: Prepared) -> float | None:
     """Planar scans' range noise across their lines (m): the median point-to-line rms of the valid registrations,
-    over sqrt(2) (two scans' noise in each residual); None without (3D: the voxel rule was measured without it)."""
+    over sqrt(2) (two scans' noise in each residual); None without (3D: the voxel rule does without it,
+    docs/decisions/0008-dense-voxel-and-planar-information.md)."""
     if not prep.frames.planar:
         return None
     rms = [e.plane_rmse for e in valid_pairs(prep.topology, prep.pairwise, prep.frames).values()
@@ -180,8 +181,7 @@ class DenseCells:
         noise = range_noise(prep)
         voxel = dense_voxel(cfg, prep.frames.scale, noise)
         t = time.perf_counter()
-        # 3D scans' cells lie along the beams; planar scans keep the cubic grid (along the beams the corridor
-        # ring's dense stage from its truth ended 23 mm away, against 15)
+        # 3D scans' cells lie along the beams; planar scans keep the cubic grid (docs/decisions/0003-beam-cells.md)
         cells = cells_from_scans(scans, voxel / 4.0, cfg.dense_cells_per_frame, cfg.dense_max_cells, seed, progress,
                                  keep_scatter=cfg.dense_cell_scatter)
         if prep.frames.planar:
