@@ -16,6 +16,7 @@ class OptimConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
 
+    #: first-order epochs (passes over every anchor group), when they run (``first_order``)
     epochs: int = Field(12, ge=1)
     #: cap on optimisation steps: long sequences run fewer epochs (floor(max_steps / steps per epoch), at least
     #: one): more passes of noisy steps make a long sequence worse, while a short one keeps every epoch
@@ -65,7 +66,9 @@ class OptimConfig(BaseModel):
     beta: float = 1.0
     #: None: on, except when polishing a locally accurate 3D start (see :func:`loss_regime`)
     use_bce: bool | None = None
+    #: the Chamfer term between each anchor and its neighbours
     use_chamfer: bool = True
+    #: the consistency term against the pairwise registrations; None: on, off from the pose-graph start
     use_consistency: bool | None = None
     #: robust kernel on each (anchor, neighbour) consistency distance d: "cauchy" uses c*log(1 + d/c) with c = unit,
     #: so a wrong pairwise registration pulls with a bounded force; "none" is the paper's plain mean
@@ -107,6 +110,7 @@ class OptimConfig(BaseModel):
     #: as large, then keeps a random subset; fewer cells a frame leave the dense stage further from its floor
     #: (docs/decisions/0005-dense-stage-on-by-default.md)
     dense_cells_per_frame: int = Field(2048, ge=1)
+    #: ... and in all (the frames' share shrinks to fit it)
     dense_max_cells: int = Field(1_500_000, ge=1)
     #: which cells keep their scatter in the dense term (BALM2's exact point-to-plane cost of a point cluster):
     #: "thin" those thinner than a quarter of their width; "all"; "none" (each cell's points at its mean). A thick
@@ -124,12 +128,16 @@ class OptimConfig(BaseModel):
     #: epochs at the start in which the poses hold still while the occupancy field learns the map (an
     #: untrained field pulls them anywhere); None: 1 when polishing a locally accurate 3D start, else 0
     pose_warmup: float | None = None
-    lr_field: float = 1e-2
-    lr_network: float = 1e-3
+    #: Adam learning rate of the occupancy grid's features
+    lr_field: float = Field(1e-2, gt=0)
+    #: Adam learning rate of the occupancy network's weights
+    lr_network: float = Field(1e-3, gt=0)
     #: final learning rate as a fraction of the initial one (cosine schedule)
     lr_final: float = 0.05
-    grid_levels: int = 8
-    grid_features: int = 2
+    #: resolution levels of the multi-resolution occupancy grid (M-Net's encoding)
+    grid_levels: int = Field(8, ge=1)
+    #: features per level of that grid
+    grid_features: int = Field(2, ge=1)
     #: cells of the finest occupancy grid level (memory bound): about 1024^2 in 2D, 128^3 in 3D
     grid_max_cells: int = 2**21
     # derived from the data when None:

@@ -269,6 +269,8 @@ def test_unknown_plugin(seq, tmp_path, option, group):
     ("optimiser: {epochs: 2.5}\n", "optimiser.epochs: Input should be a valid integer"),
     ("optimiser: {use_bce: 1}\n", "optimiser.use_bce: Input should be a valid boolean"),
     ("optimiser: {epochs: 0}\n", "optimiser.epochs: Input should be greater than or equal to 1"),
+    ("optimiser: {grid_levels: 0}\n", "optimiser.grid_levels: Input should be greater than or equal to 1"),
+    ("optimiser: {lr_field: 0.0}\n", "optimiser.lr_field: Input should be greater than 0"),
     ("optimiser: {lr_pose: fast}\n", "optimiser.lr_pose: Input should be a valid number"),
     ("seed: abc\n", "seed: Input should be a valid integer"),
     ("device: gpu\n", "device: auto, cpu, cuda or cuda:N"),

@@ -1,7 +1,7 @@
 """The DeepMapping2 paper's ATE ("paper ATE"), as the official code computes it.
 
 Official code: ai4ce/DeepMapping2, ``utils/geometry_utils.py``, function ``compute_ate(output, target,
-rotation_representation)`` (commit bc13e4a9826a3c8a5180c4b957b97d80e9a6a4a7), called once per epoch by
+rotation_representation)``, called once per epoch by
 ``script/train_KITTI_amp.py`` with the estimated and ground-truth poses of every frame. It:
 
 1. rigidly aligns the estimated positions onto the ground-truth ones (Kabsch/Umeyama without scale,
