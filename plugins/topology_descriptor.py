@@ -39,18 +39,23 @@ class DescriptorTopology:
 
     name: ClassVar[str] = "descriptor"
 
+    #: neighbours per frame: the size of each frame's group (at least 1), loop partners first, then radius neighbours
     k: int = 8
     #: radius neighbours on the warm-start poses (m); default half the median range
     radius: float | None = None
     #: at most this many loop partners per anchor (default k // 2), placed first in the group
     max_loops: int | None = None
+    #: Scan Context grid: rings (equal range bins out to ``max_range``)
     rings: int = 20
+    #: Scan Context grid: sectors (equal bearing bins over 360 degrees; a candidate's yaw comes in these steps)
     sectors: int = 60
     #: descriptor range (m); default the 90th percentile of the ranges
     max_range: float | None = None
     #: ring-key nearest candidates per query, and how many of the best (by Scan Context distance) to verify
     candidates: int = 10
     verify: int = 2
+    #: a candidate is verified only when its Scan Context distance (1 - mean cosine of the columns both scans
+    #: occupy, at the best rotation; 0 to 1) is at most this
     max_descriptor_distance: float = 0.4
     #: candidates must lie this far along the warm-start path (m; default 4 radii)
     min_path_gap: float | None = None
@@ -60,15 +65,23 @@ class DescriptorTopology:
     #: default median range), translation constraint (smallest eigenvalue of mean n n^T; rejects
     #: corridor-like sliding matches)
     min_fitness: float = 0.7
+    #: rmse gate: largest inlier rmse of the verifying ICP (m); default 1.5 point spacings
     max_rmse: float | None = None
+    #: offset gate: largest translation between the two scans the verifying ICP finds (m); default the median
+    #: range; the coarse ICP pass reaches at least a quarter of it
     max_offset: float | None = None
+    #: constraint gate: least smallest eigenvalue of the mean n n^T over the matched normals (0 in a corridor,
+    #: at most 1/2 for planar scans, 1/3 in 3D)
     min_constraint: float = 0.12
     #: and the fraction of points either scan puts more than ``free_space_margin`` (m) in front of the
     #: other's returns; defaults (measured on real laser logs and simulated rooms): planar 0.1 with a
     #: margin of 4 fine correspondence distances, 3D 0.04 with a margin of one
     max_free_space: float | None = None
     free_space_margin: float | None = None
+    #: fill each group up to ``k`` with temporal neighbours i-1, i+1, i-2, ...; frame i+1 is always in frame i's
+    #: group (every step is registered)
     temporal_fill: bool = True
+    #: report the stage's progress: a bar on a terminal, else one INFO log line when it ends; false: silent
     progress: bool = True
 
     def run(self, frames: Frames, poses: np.ndarray) -> Topology:

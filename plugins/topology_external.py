@@ -28,6 +28,7 @@ class ExternalTopology:
     k: int | None = None
     #: drop neighbours farther than this on the warm-start poses (m); None keeps all
     radius: float | None = None
+    #: fill each group up to k with temporal neighbours i-1, i+1, i-2, ... after the given neighbours
     temporal_fill: bool = True
 
     def run(self, frames: Frames, poses: np.ndarray) -> Topology:

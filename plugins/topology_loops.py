@@ -63,6 +63,7 @@ class LoopsTopology:
 
     name: ClassVar[str] = "loops"
 
+    #: neighbours per frame: the size of each frame's group (at least 1), loop partners first, then radius neighbours
     k: int = 8
     #: radius neighbours on the corrected poses (m); default half the median range
     radius: float | None = None
@@ -70,6 +71,7 @@ class LoopsTopology:
     max_loops: int | None = None
     #: keyframe spacing (m; default half the median range) and turn (degrees)
     keyframe_distance: float | None = None
+    #: a new keyframe also after this turn in yaw since the last keyframe (degrees); see ``keyframe_distance``
     keyframe_angle: float = 30.0
     #: path length on either side of a keyframe that its submap covers (m; default the 90th-percentile range)
     submap_half_length: float | None = None
@@ -92,8 +94,11 @@ class LoopsTopology:
     #: ``yaw_drift`` degrees per metre travelled since the last accepted closure, capped
     window: float | None = None
     drift: float = 0.1
+    #: yaw search window at a fresh closure (degrees either side of the estimate); see ``window``
     yaw_window: float = 10.0
+    #: growth of the yaw window (degrees per metre travelled since the last accepted closure), capped at 180 degrees
     yaw_drift: float = 0.5
+    #: cap of the translation window (m); default 4 times the 90th-percentile range
     max_window: float | None = None
     #: candidates verified per keyframe (the nearest keyframe of each earlier visit)
     candidates: int = 3
@@ -102,13 +107,22 @@ class LoopsTopology:
     #: acceptance: correlation score, ambiguity (runner-up / best), overlap, translation constraint,
     #: free space (planar keyframe scans)
     min_score: float = 0.5
+    #: ambiguity gate: a match is rejected when a clearly different alignment scores more than this share of the
+    #: best (runner-up / best, in (0, 1]), unless it is a closure across a corridor (``across_corridors``)
     max_ambiguity: float = 0.9
+    #: overlap gate: the smaller, over both directions, of the share of one submap's points within a grid cell of
+    #: the other's (see ``weak_fitness``; docs/decisions/0011-loop-closure-overlap-and-support.md); also the
+    #: least ICP fitness of the short measurement (``short_half_length``)
     min_fitness: float = 0.5
     #: a closure whose overlap lies in [weak_fitness, min_fitness) and that passes every other test is weak:
     #: trusted only when two other closures (or one that is not weak) agree with it around a cycle
     #: (docs/decisions/0011-loop-closure-overlap-and-support.md)
     weak_fitness: float = 0.4
+    #: constraint gate: least smallest eigenvalue of the mean n n^T over the matched normals (0 in a corridor, at
+    #: most 1/2; not applied to a closure across a corridor); on the short submaps a direction below it is held
     min_constraint: float = 0.1
+    #: free-space gate (planar scans): largest fraction of either keyframe scan's points lying more than 4 fine
+    #: correspondence distances in front of the other's returns
     max_free_space: float = 0.1
     #: overlap gate over the points in sight of the other visit (within ``reach`` of one of its scan positions)
     #: instead of over whole submaps; off by default: it restores recall that the weak closures also restore, with
@@ -119,13 +133,19 @@ class LoopsTopology:
     across_corridors: bool = True
     #: cycle check between two closures: translation (m; default 4 cells) + this fraction of their span
     cycle_tolerance: float | None = None
+    #: the cycle check's translation tolerance grows by this much per metre of the two closures' span (m per m; the
+    #: span: the path between their first keyframes plus the path between their second ones)
     cycle_drift: float = 0.05
     #: closures within this many keyframes of each other are checked against each other
     consistency_window: int = 20
     #: final batch solve: closures with a whitened residual above this are dropped
     gate: float = 10.0
+    #: fill each group up to ``k`` with temporal neighbours i-1, i+1, i-2, ...; frame i+1 is always in frame i's
+    #: group (every step is registered)
     temporal_fill: bool = True
+    #: seed of the random subset of submap points the correlative search matches (the same seed, the same closures)
     seed: int = 0
+    #: report the stage's progress: a bar on a terminal, else one INFO log line when it ends; false: silent
     progress: bool = True
 
     def run(self, frames: Frames, poses: np.ndarray) -> Topology:

@@ -62,6 +62,7 @@ class Loops3dTopology:
 
     name: ClassVar[str] = "loops3d"
 
+    #: neighbours per frame: the size of each frame's group (at least 1), loop partners first, then radius neighbours
     k: int = 8
     #: radius neighbours on the corrected poses (m); default half the median range
     radius: float | None = None
@@ -69,6 +70,7 @@ class Loops3dTopology:
     max_loops: int | None = None
     #: keyframe spacing (m; default a tenth of the median range) and turn (degrees)
     keyframe_distance: float | None = None
+    #: a new keyframe also after this rotation about any axis since the last keyframe (degrees)
     keyframe_angle: float = 15.0
     #: a candidate must lie this far back along the path (m; default 4 keyframe spacings)
     min_path_gap: float | None = None
@@ -76,14 +78,20 @@ class Loops3dTopology:
     #: travelled since the last accepted closure, capped at ``max_window`` (default half the median range)
     window: float | None = None
     drift: float = 0.05
+    #: cap of the search window (m); default half the median range
     max_window: float | None = None
     #: candidates verified per keyframe (the best predicted overlaps) and the least predicted overlap
     candidates: int = 3
+    #: least predicted overlap of a candidate: the share of a sample of the keyframe's submap points, placed with
+    #: the current estimate, within the window plus one fine distance of the earlier keyframe's submap
     min_predicted: float = 0.3
     #: gates: overlap (the smaller of both directions), inlier rmse (m; default 1.5 point spacings),
     #: translation constraint (smallest eigenvalue of the matched normals' scatter, at most 1/3)
     min_overlap: float = 0.4
+    #: rmse gate: largest inlier rmse of the submaps' GICP (m); default 1.5 point spacings
     max_rmse: float | None = None
+    #: constraint gate: least smallest eigenvalue of the mean n n^T over the matched normals (0 where the surfaces
+    #: let the match slide, at most 1/3)
     min_constraint: float = 0.05
     #: final solve: closures with a whitened residual above this are dropped
     gate: float = 10.0
@@ -92,7 +100,10 @@ class Loops3dTopology:
     repair_distance: float | None = None
     #: search rounds (each from the poses the previous round corrected)
     rounds: int = 2
+    #: fill each group up to ``k`` with temporal neighbours i-1, i+1, i-2, ...; frame i+1 is always in frame i's
+    #: group (every step is registered)
     temporal_fill: bool = True
+    #: report the stage's progress: a bar on a terminal, else one INFO log line when it ends; false: silent
     progress: bool = True
 
     def run(self, frames: Frames, poses: np.ndarray) -> Topology:

@@ -24,8 +24,12 @@ class PosesTopology:
 
     path: str | None = None
     format: str | None = None
+    #: radius neighbours on the reference trajectory's positions (m); default half the median range
     radius: float | None = None
+    #: neighbours per frame: the size of each frame's group (at least 1), nearest first
     k: int = 8
+    #: fill each group up to ``k`` with temporal neighbours i-1, i+1, i-2, ...; frame i+1 is always in frame i's
+    #: group (every step is registered)
     temporal_fill: bool = True
     #: frames may lie this far (s) outside the reference's time span
     max_time_diff: float = 0.1

@@ -20,6 +20,7 @@ class RadiusTopology:
     name: ClassVar[str] = "radius"
 
     radius: float | None = None
+    #: neighbours per frame: the size of each frame's group (at least 1), nearest first
     k: int = 8
     #: fill groups up to k with temporal neighbours i-1, i+1, i-2, ...
     temporal_fill: bool = True

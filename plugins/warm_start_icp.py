@@ -85,6 +85,7 @@ class IcpWarmStart:
     window: int = 10
     #: a new keyframe after this translation (m; default range_median / 10) or rotation (degrees)
     keyframe_distance: float | None = None
+    #: a new keyframe also after this rotation since the last keyframe (degrees); see ``keyframe_distance``
     keyframe_angle: float = 10.0
     #: map voxel (m); default the frames' voxel or point spacing
     map_voxel: float | None = None
@@ -94,6 +95,7 @@ class IcpWarmStart:
     min_fitness: float = 0.3
     #: (velocity prior) below this fitness ICP is also tried from the previous pose
     retry_fitness: float = 0.6
+    #: at most this many ICP iterations per correspondence-distance pass (the coarse pass, then the fine one)
     iterations: int = 30
     #: (planar) weight of the prediction against the scan, per correspondence: keeps the motion along
     #: directions the scan does not constrain (corridors)
@@ -113,6 +115,7 @@ class IcpWarmStart:
     #: (fuse) check the steps against the odometry over windows of path and fall back to the odometry's
     #: increments where scan matching drifted ("auto"; "off": per-step tests only)
     windows: str = "auto"
+    #: report the stage's progress: a bar on a terminal, else one INFO log line when it ends; false: silent
     progress: bool = True
 
     def run(self, frames: Frames, given: Trajectory | None) -> np.ndarray:

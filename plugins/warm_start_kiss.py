@@ -27,6 +27,7 @@ class KissWarmStart:
     max_range: float | None = None
     #: KISS-ICP map voxel (m); default KISS-ICP's own max_range / 100
     voxel_size: float | None = None
+    #: report the stage's progress: a bar on a terminal, else one INFO log line when it ends; false: silent
     progress: bool = True
 
     def run(self, frames: Frames, given: Trajectory | None) -> np.ndarray:

@@ -64,6 +64,9 @@ def test_config_page_lists_every_field(generated):
     assert len(fields) > len(RunConfig.model_fields)
     missing = [f for f in fields if f"| `{f}` |" not in page]
     assert not missing, f"config fields missing from reference/config.md: {missing}"
+    # every field and plugin option has a description (a pydantic description, or a `#:` comment above it)
+    undocumented = [line for line in page.splitlines() if "| – |" in line]
+    assert not undocumented, "undocumented rows in reference/config.md:\n" + "\n".join(undocumented)
     for section, group in PLUGIN_GROUPS.items():
         for name in discover(group):
             assert f"#### {section}: {name}\n" in page, f"plugin {section}: {name} missing"

@@ -60,9 +60,16 @@ class PairwiseRegistration:
     #: ``free_space_margin`` (m) in front of what the other measured along the same bearing; defaults:
     #: planar 0.15 with 4 fine correspondence distances, 3D 0.1 with one)
     min_fitness: float = 0.5
+    #: rmse gate: largest inlier rmse of a registration (m); default 1.5 point spacings
     max_rmse: float | None = None
+    #: free-space gate: largest fraction of either scan's points in space the other saw through; default 0.15
+    #: for planar scans, 0.1 in 3D
     max_free_space: float | None = None
+    #: a point counts as in free space this far in front of the other scan's return or more (m); default 4 fine
+    #: correspondence distances for planar scans, one in 3D
     free_space_margin: float | None = None
+    #: at most this many ICP iterations per correspondence-distance pass (open3d and the planar ICP; small-gicp
+    #: keeps its own limit)
     iterations: int = 30
     #: planar point-to-line: Cauchy reweighting of the residuals with this threshold in robust standard
     #: deviations (0: plain least squares; see ``icp.icp_2d``): plain least squares leaves an along-track bias
@@ -90,6 +97,7 @@ class PairwiseRegistration:
     use_loops: bool = True
     #: threads over pairs; default: the CPU count for planar scans, 1 for 3D (open3d is multi-threaded)
     workers: int | None = None
+    #: report the stage's progress: a bar on a terminal, else one INFO log line when it ends; false: silent
     progress: bool = True
 
     def run(self, frames: Frames, poses: np.ndarray, topology: Topology) -> Pairwise:
