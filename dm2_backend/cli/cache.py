@@ -10,7 +10,9 @@ import click
 
 from dm2_backend.atomic import clean_stale, is_temporary
 from dm2_backend.cli.suggest import SuggestingGroup
+from dm2_backend.errors import InputError
 from dm2_backend.prepare.steps import default_cache_dir
+from dm2_backend.prepare.store import CACHE_MARKER, is_cache, is_entry
 
 path_type = click.Path(path_type=Path)
 cache_dir_option = click.option("--cache-dir", type=path_type, default=None,
@@ -18,9 +20,9 @@ cache_dir_option = click.option("--cache-dir", type=path_type, default=None,
 
 
 def entries(root: Path) -> list[tuple[Path, int, float]]:
-    """(folder, bytes, age in seconds) of each cache entry, oldest first."""
+    """(folder, bytes, age in seconds) of each cache entry (a folder as dm2 writes one), oldest first."""
     out, now = [], time.time()
-    for folder in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
+    for folder in sorted(p for p in root.iterdir() if not p.name.startswith(".") and is_entry(p)):
         files = [f for f in folder.rglob("*") if f.is_file()]
         size = sum(f.stat().st_size for f in files)
         newest = max((f.stat().st_mtime for f in files), default=folder.stat().st_mtime)
@@ -80,6 +82,9 @@ def clear(cache_dir: Path | None, older_than: str | None) -> None:
     root = cache_dir or default_cache_dir()
     limit = _parse_age(older_than) if older_than else -1.0
     removed = freed = 0
+    if root.is_dir() and not is_cache(root):
+        raise InputError(root, f"is not a dm2 cache (no {CACHE_MARKER} file, which dm2 writes into its cache): "
+                               "nothing removed")
     if root.is_dir():  # partial entries of killed runs, whatever their age
         for path in clean_stale(root):
             click.echo(f"removed a partial entry left by a killed run: {path.name}")

@@ -25,7 +25,7 @@ from dm2_backend.formats import detect_trajectory_format
 from dm2_backend.formats.kitti import find_calib, looks_camera_frame
 from dm2_backend.input_files import check_kind
 from dm2_backend.pipeline.inputs import load_inputs
-from dm2_backend.pipeline.run_folder import digest, fingerprint, run_folder
+from dm2_backend.pipeline.run_folder import digest, fingerprint, refuse_overlap, run_folder
 from dm2_backend.prepare.steps import default_cache_dir
 
 path_type = click.Path(path_type=Path)
@@ -87,6 +87,10 @@ def prepare_run(kw: dict, overrides: dict):
     for name in ("scans", "poses", "gt", "relations", "times", "calib", "config_path"):
         if kw.get(name) is not None:
             check_kind(kw[name])  # a FIFO or a device is refused before anything opens it
+    cache = None if kw["no_cache"] else (kw["cache_dir"] or default_cache_dir())
+    refuse_overlap(kw["out"], {f"--{name.removesuffix('_path')}": kw.get(name) for name in
+                               ("scans", "poses", "gt", "relations", "times", "calib", "config_path")}
+                   | {"--cache-dir": cache})
     calib = kw["calib"] or kitti_calibration(kw)
     options = read_options(kw["topic"], kw["times"], calib, kw["intrinsics"], kw["depth_scale"],
                            kw["duplicate_times"])
@@ -108,7 +112,6 @@ def prepare_run(kw: dict, overrides: dict):
                                  "(or --warm-start icp to compute one from the scans)")
     if default_to_icp(cfg, inputs, asked):  # a validated plugin section (icp takes no options here)
         cfg = cfg.model_copy(update={"warm_start": PluginSection(name="icp")})
-    cache = None if kw["no_cache"] else (kw["cache_dir"] or default_cache_dir())
     return inputs, cfg, cache
 
 

@@ -25,6 +25,7 @@ import hashlib
 import json
 import os
 import shutil
+import stat
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -124,6 +125,24 @@ class RunFolder:
             (self.path / LOCK).unlink(missing_ok=True)
             self._lock.close()
             self._lock = None
+
+
+def refuse_overlap(out: Path, inputs: dict[str, Path | None]) -> None:
+    """``--out`` may not be ``/`` or the home folder, be an input, hold one (``--force`` would remove it) or lie
+    inside an input folder (or the cache); resolved through links. ``inputs``: option name -> path (None: not
+    given)."""
+    where = Path(os.path.realpath(out))
+    if where == Path("/") or where == Path(os.path.realpath(Path.home())):
+        raise InputError(out, "is the root or home folder: give a folder of its own for the run")
+    for name, path in inputs.items():
+        if path is None:
+            continue
+        given = Path(os.path.realpath(path))
+        if given == where or where in given.parents:
+            raise InputError(out, f"holds the input {name} {path}: write the run elsewhere (--force would remove "
+                                  "what dm2 wrote there)")
+        if given.is_dir() and given in where.parents:
+            raise InputError(out, f"lies inside the input {name} folder {path}: write the run elsewhere")
 
 
 def fingerprint(cfg: RunConfig, **inputs) -> dict:
@@ -287,10 +306,19 @@ def _short_repr(value, limit: int = 80) -> str:
 
 
 def _take_lock(out: Path):
+    """The folder's lock, held until release: a plain file opened without following a link (a link or a FIFO
+    named like the lock is refused, nothing written through it)."""
+    flags = os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0)
     try:
-        fh = open(out / LOCK, "a+")  # noqa: SIM115 (held until release)
+        fd = os.open(out / LOCK, flags, 0o644)
     except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise InputError(out / LOCK, "is a link, not a lock dm2 made: remove it or write elsewhere") from None
         raise InputError(out, f"cannot write in this folder: {exc.strerror}") from exc
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise InputError(out / LOCK, "is not a plain file, not a lock dm2 made: remove it or write elsewhere")
+    fh = os.fdopen(fd, "r+")
     try:
         fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError as exc:

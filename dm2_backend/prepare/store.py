@@ -26,11 +26,45 @@ log = logging.getLogger(__name__)
 MAPPED = {"points": "r", "samples": "c", "relative": "c"}
 
 
+#: the file that makes a folder a dm2 cache: ``dm2 cache clear`` removes entries only where it is
+CACHE_MARKER = ".dm2-cache"
+
+
+def is_cache(root: Path) -> bool:
+    """Whether ``root`` is a folder dm2 made its cache (it holds :data:`CACHE_MARKER`, a plain file)."""
+    marker = root / CACHE_MARKER
+    return marker.is_file() and not marker.is_symlink()
+
+
+def is_entry(folder: Path) -> bool:
+    """Whether ``folder`` is a cache entry as :func:`put` writes it: a real folder with its ``meta.json``
+    listing its arrays."""
+    meta = folder / "meta.json"
+    if folder.is_symlink() or not folder.is_dir() or meta.is_symlink() or not meta.is_file():
+        return False
+    try:
+        return meta.stat().st_size < 1 << 20 and "arrays" in json.loads(meta.read_text())
+    except (OSError, ValueError, TypeError):
+        return False
+
+
+def _mark(root: Path) -> None:
+    root.mkdir(parents=True, exist_ok=True)
+    if not (root / CACHE_MARKER).exists():
+        try:
+            with open(root / CACHE_MARKER, "x") as fh:
+                fh.write("dm2 preparation cache: `dm2 cache clear` removes the entries dm2 wrote here\n")
+        except FileExistsError:
+            pass
+
+
 def put(root: Path, name: str, arrays: dict[str, np.ndarray | list[np.ndarray]], meta: dict | None = None) -> None:
     """Write the entry ``root/name`` (a folder); it appears complete or not at all. A list of arrays is
-    written concatenated along the first axis, one piece at a time (no concatenated copy in memory)."""
+    written concatenated along the first axis, one piece at a time (no concatenated copy in memory). The
+    folder is marked as a dm2 cache (:data:`CACHE_MARKER`)."""
     if (root / name).is_dir():  # another process (a rank of the same run) wrote it meanwhile
         return
+    _mark(root)
     try:
         with atomic_path(root / name) as tmp:
             tmp.mkdir()
