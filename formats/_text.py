@@ -206,3 +206,13 @@ def sniff_rows(path: Path, columns: int, max_lines: int = 20, comment: str = "#"
                 return None
             rows.append([float(f) for f in fields])
     return np.asarray(rows) if rows else None
+
+
+def sniff_poses(path: Path, columns: int, quaternion_from: int) -> bool:
+    """Whether the file's first rows are ``columns`` numbers whose four from ``quaternion_from`` are unit
+    quaternions (a pose a line)."""
+    rows = sniff_rows(path, columns)
+    if rows is None:
+        return False
+    norms = np.linalg.norm(rows[:, quaternion_from:quaternion_from + 4], axis=1)
+    return bool(np.all(np.abs(norms - 1) < QUAT_NORM_TOL))

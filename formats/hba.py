@@ -21,8 +21,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from dm2_backend.atomic import atomic_write
 from dm2_backend.errors import InputError
 from dm2_backend.formats import _text, scan_folder
@@ -56,10 +54,7 @@ def write_hba(traj: Trajectory, path: str | Path, options: ReadOptions | None = 
 
 def sniff(path: Path) -> bool:
     """7 numeric columns whose last four are unit quaternions."""
-    rows = _text.sniff_rows(path, 7)
-    if rows is None:
-        return False
-    return bool(np.all(np.abs(np.linalg.norm(rows[:, 3:], axis=1) - 1) < _text.QUAT_NORM_TOL))
+    return _text.sniff_poses(path, 7, 3)
 
 
 FORMAT = trajectory_format(

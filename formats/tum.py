@@ -43,10 +43,7 @@ def write_tum(traj: Trajectory, path: str | Path, options: ReadOptions | None = 
 
 def sniff(path: Path) -> bool:
     """8 numeric columns whose last four are unit quaternions."""
-    rows = _text.sniff_rows(path, 8)
-    if rows is None:
-        return False
-    return bool(np.all(np.abs(np.linalg.norm(rows[:, 4:], axis=1) - 1) < _text.QUAT_NORM_TOL))
+    return _text.sniff_poses(path, 8, 4)
 
 
 FORMAT = trajectory_format(

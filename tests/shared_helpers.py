@@ -20,9 +20,38 @@ def need(path: Path) -> Path:
     return path
 
 
-def run(*args: str):
-    """Invoke ``dm2`` in-process."""
-    return CliRunner().invoke(cli, list(args), obj={})
+def run(*args):
+    """Invoke ``dm2`` in-process (each argument as its text)."""
+    return CliRunner().invoke(cli, [str(a) for a in args], obj={})
+
+
+def one_line_error(result, *needles: str) -> None:
+    """Exit code 2, one line of output without a traceback, holding every one of ``needles``."""
+    assert result.exit_code == 2, result.output
+    lines = [line for line in result.output.strip().splitlines() if line]
+    assert len(lines) == 1 and "Traceback" not in result.output, result.output
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+
+
+def gtsam_direct(path: Path, is3d: bool, options):
+    """gtsam.readG2o + a prior on node 0 (``options``' sigma) + Levenberg-Marquardt, nothing from dm2: the
+    final error and the values."""
+    import gtsam
+    import numpy as np
+
+    graph, initial = gtsam.readG2o(str(path), is3d)
+    if is3d:
+        noise = gtsam.noiseModel.Diagonal.Sigmas(np.full(6, options.prior_sigma))
+        graph.add(gtsam.PriorFactorPose3(0, initial.atPose3(0), noise))
+    else:
+        noise = gtsam.noiseModel.Diagonal.Sigmas(np.full(3, options.prior_sigma))
+        graph.add(gtsam.PriorFactorPose2(0, initial.atPose2(0), noise))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(options.max_iterations)
+    params.setRelativeErrorTol(options.relative_error_tol)
+    result = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+    return graph.error(result), result
 
 
 def assert_one_line_error(result, name: str) -> None:

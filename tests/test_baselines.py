@@ -11,6 +11,7 @@ import gtsam
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from shared_helpers import gtsam_direct
 
 from dm2_backend.baselines import gtsam_backend
 from dm2_backend.baselines.graph import InformationModel, build_graph, registration_information
@@ -33,22 +34,6 @@ def graph_file(name: str) -> Path:
     if not path.exists():
         pytest.skip(f"{path} absent")
     return path
-
-
-def gtsam_direct(path: Path, is3d: bool, options: SolverOptions) -> tuple[float, gtsam.Values]:
-    """gtsam.readG2o + the same prior on node 0 + Levenberg-Marquardt, nothing from dm2."""
-    graph, initial = gtsam.readG2o(str(path), is3d)
-    if is3d:
-        noise = gtsam.noiseModel.Diagonal.Sigmas(np.full(6, options.prior_sigma))
-        graph.add(gtsam.PriorFactorPose3(0, initial.atPose3(0), noise))
-    else:
-        noise = gtsam.noiseModel.Diagonal.Sigmas(np.full(3, options.prior_sigma))
-        graph.add(gtsam.PriorFactorPose2(0, initial.atPose2(0), noise))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(options.max_iterations)
-    params.setRelativeErrorTol(options.relative_error_tol)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
-    return graph.error(result), result
 
 
 @pytest.mark.parametrize("name,is3d", SMALL)

@@ -12,10 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from click.testing import CliRunner
 from optim_cases import one_thread, planar_case
+from shared_helpers import one_line_error, run
 
-from dm2_backend.cli.main import cli
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation.map_quality import poses_of_scans
 from dm2_backend.formats import ReadOptions, open_scans, read_trajectory, write_trajectory
@@ -32,18 +31,6 @@ GAPPED = 5  # the scan with no pose nearby
 @pytest.fixture(autouse=True, scope="module")
 def _single_thread():
     yield from one_thread()
-
-
-def run(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], obj={})
-
-
-def one_line_error(r, *needles: str) -> None:
-    assert r.exit_code == 2, r.output
-    lines = [line for line in r.output.strip().splitlines() if line]
-    assert len(lines) == 1 and "Traceback" not in r.output, r.output
-    for needle in needles:
-        assert needle in lines[0], lines[0]
 
 
 @pytest.fixture(scope="module")

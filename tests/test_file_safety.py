@@ -7,7 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from shared_helpers import run
+from shared_helpers import one_line_error, run
 
 from dm2_backend.prepare.store import CACHE_MARKER
 
@@ -25,14 +25,6 @@ def refine(seq: Path, *extra: str):
                str(seq / "times.txt"), "-q", *extra)
 
 
-def one_line(result, *needles: str) -> None:
-    assert result.exit_code == 2, result.output
-    lines = [ln for ln in result.output.strip().splitlines() if ln]
-    assert len(lines) == 1 and "Traceback" not in result.output, result.output
-    for needle in needles:
-        assert needle in lines[0], lines[0]
-
-
 @pytest.mark.parametrize("empty", [False, True])
 def test_a_lock_that_is_a_link_is_refused_and_nothing_written_through_it(seq, tmp_path, empty):
     victim = tmp_path / "victim.txt"
@@ -42,7 +34,7 @@ def test_a_lock_that_is_a_link_is_refused_and_nothing_written_through_it(seq, tm
     if not empty:
         (out / "x").write_text("mine")
     (out / ".dm2-lock").symlink_to(victim)
-    one_line(refine(seq, "--out", str(out)), ".dm2-lock", "link")
+    one_line_error(refine(seq, "--out", str(out)), ".dm2-lock", "link")
     assert victim.read_text() == "keep" and (out / ".dm2-lock").is_symlink()
 
 
@@ -50,7 +42,7 @@ def test_cache_clear_refuses_a_folder_that_is_not_a_dm2_cache(tmp_path):
     home = tmp_path / "H"
     (home / "Documents").mkdir(parents=True)
     (home / "Documents" / "a.txt").write_text("mine")
-    one_line(run("cache", "clear", "--cache-dir", str(home)), str(home), "not a dm2 cache")
+    one_line_error(run("cache", "clear", "--cache-dir", str(home)), str(home), "not a dm2 cache")
     assert (home / "Documents" / "a.txt").read_text() == "mine"
 
 
@@ -71,5 +63,5 @@ def test_the_output_never_holds_or_lies_inside_the_inputs(seq, where):
     before = {p: p.read_bytes() for p in seq.rglob("*") if p.is_file()}
     out = {"the sequence": seq, "inside the scans": seq / "velodyne" / "run", "the root": Path("/")}[where]
     result = refine(seq, "--out", str(out), "--force")
-    one_line(result, str(out))
+    one_line_error(result, str(out))
     assert {p: p.read_bytes() for p in seq.rglob("*") if p.is_file()} == before

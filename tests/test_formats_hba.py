@@ -122,10 +122,11 @@ def test_bad_line_is_one_line_naming_file_and_line(tmp_path, text, line, problem
     (tmp_path / "pcd").mkdir()
     for i in range(text.count("\n")):
         write_pcd(tmp_path / "pcd" / f"{i}.pcd", np.random.default_rng(i).normal(size=(50, 3)))
-    result = run("refine", "--scans", str(tmp_path), "--out", str(tmp_path / "run"), "-q", "--no-cache")
+    out = tmp_path.parent / f"{tmp_path.name}-run"
+    result = run("refine", "--scans", str(tmp_path), "--out", str(out), "-q", "--no-cache")
     assert_one_line_error(result, f"{path}:{line}: ")
     assert problem.split(":")[0] in result.stderr
-    assert not (tmp_path / "run").exists()
+    assert not out.exists()
     assert_one_line_error(run("info", str(path), "--format", "hba"), f"pose.json:{line}")
 
 

@@ -10,37 +10,14 @@ from pathlib import Path
 import gtsam
 import numpy as np
 import pytest
-from click.testing import CliRunner
+from shared_helpers import gtsam_direct, run
 
 from dm2_backend.baselines.options import SolverOptions
-from dm2_backend.cli.main import cli
 from dm2_backend.formats.g2o import indefinite, read_g2o, write_g2o
 from dm2_backend.geometry import se3
 from dm2_backend.pose_graph import PoseGraph
 
 GRAPHS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "posegraphs"
-
-
-def run(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], obj={})
-
-
-def gtsam_direct(path: Path, is3d: bool) -> tuple[float, gtsam.Values]:
-    """gtsam.readG2o + a prior on node 0 (dm2's anchor and sigma) + Levenberg-Marquardt with dm2's default
-    settings: nothing from dm2."""
-    options = SolverOptions()
-    graph, initial = gtsam.readG2o(str(path), is3d)
-    if is3d:
-        noise = gtsam.noiseModel.Diagonal.Sigmas(np.full(6, options.prior_sigma))
-        graph.add(gtsam.PriorFactorPose3(0, initial.atPose3(0), noise))
-    else:
-        noise = gtsam.noiseModel.Diagonal.Sigmas(np.full(3, options.prior_sigma))
-        graph.add(gtsam.PriorFactorPose2(0, initial.atPose2(0), noise))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(options.max_iterations)
-    params.setRelativeErrorTol(options.relative_error_tol)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
-    return graph.error(result), result
 
 
 def direct_poses(values: gtsam.Values, ids: np.ndarray, is3d: bool) -> np.ndarray:
@@ -95,7 +72,7 @@ def assert_gtsams_answer(path: Path, out: Path, is3d: bool, indefinite_count: in
     assert len(warnings) == 1, result.stderr  # one line, not the reader's and GTSAM's
     assert f"{indefinite_count} of " in warnings[0] and "GTSAM weighs the file as given" in warnings[0]
     report = json.loads((out / "report.json").read_text())
-    expected, values = gtsam_direct(path, is3d)
+    expected, values = gtsam_direct(path, is3d, SolverOptions())
     assert report["final_error"] == pytest.approx(expected, rel=1e-6)
     graph = read_g2o(path)
     # LM's rounding differs in the last digits of the poses (as in test_baselines' comparison)

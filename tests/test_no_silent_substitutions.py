@@ -8,25 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
+from shared_helpers import one_line_error, run
 
-from dm2_backend.cli.main import cli
 from dm2_backend.formats import read_trajectory
 from dm2_backend.formats.g2o import write_g2o
 from dm2_backend.geometry import se3
 from dm2_backend.pose_graph import PoseGraph
-
-
-def run(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args], obj={})
-
-
-def one_line_error(r, *needles: str) -> None:
-    assert r.exit_code == 2, r.output
-    lines = [line for line in r.output.strip().splitlines() if line]
-    assert len(lines) == 1 and "Traceback" not in r.output, r.output
-    for needle in needles:
-        assert needle in lines[0], lines[0]
 
 
 def loop(n: int = 30) -> np.ndarray:
