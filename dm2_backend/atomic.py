@@ -75,8 +75,10 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def clean_stale(folder: str | Path) -> list[Path]:
-    """Remove ``.tmp-PID-*`` entries of ``folder`` left by processes that no longer run; returns them."""
+def clean_stale(folder: str | Path, names: tuple[str, ...] | None = None) -> list[Path]:
+    """Remove ``.tmp-PID-*`` entries of ``folder`` left by processes that no longer run; returns them.
+    ``names``: only the temporaries of these outputs (``.tmp-PID-<name>`` and the ``tempfile`` folders named
+    from it), what a writer of them leaves; None: every one (a folder only dm2 writes into, the cache)."""
     removed = []
     try:
         entries = list(os.scandir(folder))
@@ -85,6 +87,8 @@ def clean_stale(folder: str | Path) -> list[Path]:
     for entry in entries:
         m = _TEMP.match(entry.name)
         if m is None or _alive(int(m.group(1))):
+            continue
+        if names is not None and not any(entry.name[m.end():].startswith(n) for n in names):
             continue
         with contextlib.suppress(OSError):
             if entry.is_dir(follow_symlinks=False):
@@ -116,7 +120,7 @@ def _prepare(path: Path, folder: bool, replaceable: Callable[[Path], bool] | Non
         if (error := no_space_error(exc, path)) is not None:
             raise error from None
         raise
-    clean_stale(path.parent)
+    clean_stale(path.parent, (path.name,))
 
 
 def _remove(tmp: Path) -> None:

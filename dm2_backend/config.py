@@ -29,14 +29,25 @@ def merge(base: dict, override: dict) -> dict:
 
 
 class _NoAliasLoader(yaml.SafeLoader):
-    """Safe YAML without aliases: a few nested ``*anchor`` references expand to billions of values (a "YAML
-    bomb") that validation would walk and its error message print; a config has no need of them."""
+    """Safe YAML without aliases (a few nested ``*anchor`` references expand to billions of values, a "YAML
+    bomb", that validation would walk and its error message print; a config has no need of them) and without a
+    key given twice in one mapping (plain YAML keeps the last one silently)."""
 
     def compose_node(self, parent, index):
         if self.check_event(yaml.AliasEvent):
             raise yaml.composer.ComposerError(None, None, "aliases (*name) are not accepted in a dm2 config: "
                                                           "write the values out", self.peek_event().start_mark)
         return super().compose_node(parent, index)
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if isinstance(key, str | int | float | bool) and key in seen:
+                raise yaml.constructor.ConstructorError(None, None, f"the key {key!r} is given twice (YAML would keep "
+                                                        "the last one silently)", key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep)
 
 
 def read_yaml(path: Path) -> object:

@@ -33,9 +33,9 @@ class OptimConfig(BaseModel):
     converge_tol: float = Field(0.0, ge=0)
     #: torch CPU threads; the steps are many small ops, where one thread beats two (more so while the other core
     #: is busy; docs/decisions/0014-first-order-optimiser-defaults.md), 0 keeps torch's default
-    threads: int = 1
+    threads: int = Field(1, ge=0)
     #: anchors (groups) per optimisation step
-    batch_groups: int = 16
+    batch_groups: int = Field(16, ge=1)
     #: "topology" (the paper), "temporal" (DeepMapping) or "random": which frames share a group
     batching: Literal["topology", "temporal", "random"] = "topology"
     #: "direct" per-frame corrections or "lnet" (PointNet, the paper's L-Net)
@@ -49,10 +49,10 @@ class OptimConfig(BaseModel):
     #: points per frame the losses see (None: 256 on planar data and from the prepared start; 512 of the
     #: down-sampled frame's points for 3D data, whose polished starts have errors below the spacing of a
     #: 256-point sample; docs/decisions/0014-first-order-optimiser-defaults.md)
-    points_per_frame: int | None = None
+    points_per_frame: int | None = Field(None, ge=1)
     #: points per frame (a subset of the above) and free-space samples per ray for the occupancy BCE
-    bce_points_per_frame: int = 64
-    samples_per_ray: int = 2
+    bce_points_per_frame: int = Field(64, ge=1)
+    samples_per_ray: int = Field(2, ge=1, le=256)
     #: drop free-space samples within ``free_margin`` of any observed point of the step (rays grazing the
     #: ground or a wall). Off by default, as the paper samples along the rays only: it helps some sequences and
     #: not others (docs/decisions/0014-first-order-optimiser-defaults.md)

@@ -307,7 +307,7 @@ def write(traj: Trajectory, path: Path, options: ReadOptions) -> None:
                 _write_messages(traj, writer, get_typestore(Stores.ROS1_NOETIC), topic, ros1=True)
             return
         plugin = StoragePlugin.MCAP if suffix == ".mcap" else StoragePlugin.SQLITE3
-        with tempfile.TemporaryDirectory(dir=path.parent, prefix=temp_prefix() + "bag-") as work:
+        with tempfile.TemporaryDirectory(dir=path.parent, prefix=f"{temp_prefix()}{path.name}-work-") as work:
             # rosbags names the storage file after the folder: write it as PATH's name, then move it
             folder = Path(work) / (path.stem if bare else path.name)
             with Writer2(folder, version=8, storage_plugin=plugin) as writer:

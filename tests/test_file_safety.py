@@ -65,3 +65,19 @@ def test_the_output_never_holds_or_lies_inside_the_inputs(seq, where):
     result = refine(seq, "--out", str(out), "--force")
     one_line_error(result, str(out))
     assert {p: p.read_bytes() for p in seq.rglob("*") if p.is_file()} == before
+
+
+@pytest.mark.parametrize("kind", ["a file of the user's inside", "a file as the folder"])
+def test_eval_profile_never_replaces_a_file(seq, tmp_path, kind):
+    folder = tmp_path / "profile"
+    if kind == "a file as the folder":
+        folder.write_text("mine")
+        victim = folder
+    else:
+        folder.mkdir()
+        victim = folder / "consistency.json"
+        victim.write_text("mine")
+    result = run("eval", "--scans", seq / "velodyne", "--scans-times", seq / "times.txt", "--est",
+                 seq / "warm_start.txt", "--est-times", seq / "times.txt", "--profile", folder)
+    one_line_error(result, str(victim))
+    assert victim.read_text() == "mine"

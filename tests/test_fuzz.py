@@ -415,16 +415,22 @@ def test_output_parent_is_a_file(tmp_path):
 
 
 def test_stale_temporaries_of_dead_processes_are_cleaned(tmp_path):
+    """A writer removes the temporaries a dead writer of the same output left (its file, a bag's work folder),
+    never another name's: a folder of the user's named like a temporary (``.tmp-999999-photos``) stays."""
     dead = 2**22 + 12345  # above the default pid_max: no such process
-    (tmp_path / f".tmp-{dead}-poses.txt").write_text("half")
-    (tmp_path / f".tmp-{dead}-bag-x").mkdir()
+    (tmp_path / f".tmp-{dead}-out.txt").write_text("half")
+    (tmp_path / f".tmp-{dead}-out.txt-work-x").mkdir()
+    (tmp_path / f".tmp-{dead}-photos").mkdir()
+    (tmp_path / f".tmp-{dead}-photos" / "a.jpg").write_text("mine")
     mine = tmp_path / f".tmp-{os.getpid()}-busy.txt"
     mine.write_text("being written")
     (tmp_path / "user.tmp-1-file").write_text("not ours")
     with atomic_write(tmp_path / "out.txt") as fh:
         fh.write("ok")
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([mine.name, "user.tmp-1-file", "out.txt"])
-    assert clean_stale(tmp_path) == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([mine.name, "user.tmp-1-file", "out.txt",
+                                                                f".tmp-{dead}-photos"])
+    assert (tmp_path / f".tmp-{dead}-photos" / "a.jpg").read_text() == "mine"
+    assert clean_stale(tmp_path, ("out.txt",)) == []
 
 
 def test_failed_writer_leaves_no_temporary(tmp_path):

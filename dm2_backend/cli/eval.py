@@ -12,7 +12,12 @@ from dm2_backend.cli.suggest import Choice
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation import drawn_alignment, plots
 from dm2_backend.evaluation.ape_rpe import ALIGN_MODES, DELTA_UNITS
-from dm2_backend.evaluation.consistency_profile import consistency_profiles, flag_text, write_profiles
+from dm2_backend.evaluation.consistency_profile import (
+    PROFILE_FILES,
+    consistency_profiles,
+    flag_text,
+    write_profiles,
+)
 from dm2_backend.evaluation.evaluate import EvalOptions, evaluate
 from dm2_backend.evaluation.map_quality import MapSampler, poses_of_scans
 from dm2_backend.evaluation.relations import MAX_DT, load_relations
@@ -87,6 +92,17 @@ def _plots(
         else:
             written.append(out)
     return written
+
+
+def _free_profile_folder(folder: Path) -> None:
+    """``--profile`` is a folder (made when missing) that holds none of the files it gets: nothing of the user's
+    is replaced."""
+    if folder.exists() and not folder.is_dir():
+        raise InputError(folder, "--profile names a folder, and this is a file: give a folder")
+    taken = [name for name in PROFILE_FILES if (folder / name).exists() or (folder / name).is_symlink()]
+    if taken:
+        raise InputError(folder / taken[0], "exists: --profile does not replace files; remove them or give another "
+                                            "folder")
 
 
 def _profiles(folder: Path, scans, at_scans: dict[str, np.ndarray]) -> list[Path]:
@@ -200,6 +216,8 @@ def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topi
         raise click.BadParameter("must not be negative", param_hint="--relations-max-dt")
     if profile_dir is not None and scans_path is None:
         raise click.UsageError("--profile scores the scans at each estimate: give --scans too")
+    if profile_dir is not None:
+        _free_profile_folder(profile_dir)
     if run_report is not None and plot_dir is None:
         raise click.UsageError("--run-report is used for the error-vs-epoch plot: give --plot DIR too")
     topics = _topics(est_topics, len(est_paths))

@@ -369,6 +369,10 @@ def _profile(views: dict[str, np.ndarray], noise: float, stamps: np.ndarray | No
                               stamps, noise)
 
 
+#: what :func:`write_profiles` writes (stem "consistency")
+PROFILE_FILES = ("consistency.json", "consistency.csv", "consistency.png")
+
+
 def write_profiles(folder: Path, profiles: dict[str, ConsistencyProfile],
                    positions: np.ndarray | dict[str, np.ndarray],
                    stem: str = "consistency", steps: dict[str, list[int]] | None = None) -> list[str]:
