@@ -81,3 +81,72 @@ def test_eval_profile_never_replaces_a_file(seq, tmp_path, kind):
                  seq / "warm_start.txt", "--est-times", seq / "times.txt", "--profile", folder)
     one_line_error(result, str(victim))
     assert victim.read_text() == "mine"
+
+
+def _dense_checkpoint(path: Path, members: dict[str, bytes], compress: bool = True) -> None:
+    import zipfile
+
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED) as archive:
+        for name, data in members.items():
+            archive.writestr(name, data)
+
+
+def _npy(array) -> bytes:
+    import io
+
+    import numpy as np
+
+    buf = io.BytesIO()
+    np.save(buf, np.asarray(array), allow_pickle=False)
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("craft", ["a member that inflates", "a header claiming 10^11 frames", "another member"])
+def test_a_crafted_dense_checkpoint_is_refused_before_it_is_decoded(tmp_path, craft):
+    """A few kilobytes that would decompress to gigabytes, or an array header claiming any size: one line naming
+    the file, memory untouched."""
+    import numpy as np
+
+    from dm2_backend.errors import InputError
+    from dm2_backend.optim import dense_checkpoint
+
+    start = np.tile(np.eye(4), (5, 1, 1))
+    good = {"poses.npy": _npy(start), "start.npy": _npy(start), "meta.npy": _npy(np.array("{}"))}
+    if craft == "a member that inflates":
+        good["poses.npy"] = _npy(start)[:128] + b"\0" * (64 << 20)  # 64 MiB of zeros deflate to about 64 KiB
+    elif craft == "a header claiming 10^11 frames":
+        header = _npy(np.zeros((1, 4, 4)))
+        good["poses.npy"] = header.replace(b"(1, 4, 4)", b"(100000000000, 4, 4)")
+    else:
+        good["extra.npy"] = _npy(start)
+    path = tmp_path / dense_checkpoint.DENSE_CHECKPOINT
+    _dense_checkpoint(path, good)
+    assert path.stat().st_size < 1 << 20
+    with pytest.raises(InputError) as info:
+        dense_checkpoint.load(path, start, rounds=30)
+    assert info.value.source == str(path) and "not a dm2 dense-stage checkpoint" in info.value.message
+
+
+@pytest.mark.parametrize("craft", ["rotations scaled by 1000", "NaN poses", "a negative epoch", "other frames"])
+def test_a_crafted_optimiser_checkpoint_is_refused(tmp_path, craft):
+    import numpy as np
+    import torch
+
+    from dm2_backend.errors import InputError
+    from dm2_backend.optim.checkpoint import load_checkpoint, plain_state
+
+    poses = np.tile(np.eye(4), (6, 1, 1))
+    epoch = 0
+    if craft == "rotations scaled by 1000":
+        poses[:, :3, :3] *= 1000
+    elif craft == "NaN poses":
+        poses[2, 0, 3] = np.nan
+    elif craft == "a negative epoch":
+        epoch = -1
+    else:
+        poses = poses[:4]
+    path = tmp_path / "checkpoint.pt"
+    torch.save(plain_state({"best": {"poses": poses}, "history": [], "epoch": epoch}), path)
+    with pytest.raises(InputError, match="not a checkpoint of this run") as info:
+        load_checkpoint(path, "cpu", frames=6)
+    assert info.value.source == str(path)

@@ -459,7 +459,8 @@ def test_checkpoint_loads_without_running_code(tmp_path, monkeypatch):
         load_checkpoint(evil, "cpu")
     assert not (tmp_path / "PWNED_BY_CHECKPOINT").exists()
     good = tmp_path / "good.pt"
-    state = plain_state({"best": {"poses": np.eye(4)[None], "loss": np.float64(0.5)}, "history": [{"a": (1, 2)}]})
+    state = plain_state({"best": {"poses": np.eye(4)[None], "loss": np.float64(0.5)}, "history": [{"a": (1, 2)}],
+                         "epoch": 0})
     torch.save(state, good)
     back = load_checkpoint(good, "cpu")
     assert isinstance(back["best"]["poses"], np.ndarray) and back["best"]["loss"] == 0.5

@@ -34,10 +34,10 @@ def plain_state(value):
     return value
 
 
-def load_checkpoint(path: Path, device) -> dict:
+def load_checkpoint(path: Path, device, frames: int | None = None) -> dict:
     """A checkpoint written by :func:`save_checkpoint`, loaded with ``weights_only=True`` (a file handed to
-    ``--resume`` cannot run code); ``best["poses"]`` back as a numpy array. An unreadable or foreign file is an
-    :class:`InputError` naming it."""
+    ``--resume`` cannot run code); ``best["poses"]`` back as a numpy array, checked: ``frames`` finite rigid
+    motions, a plausible epoch. An unreadable, foreign or damaged file is an :class:`InputError` naming it."""
     try:
         state = torch.load(path, map_location=device, weights_only=True)
     except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError, AttributeError) as exc:
@@ -46,7 +46,33 @@ def load_checkpoint(path: Path, device) -> dict:
         raise InputError(path, "not a dm2 checkpoint (no best poses)")
     poses = state["best"]["poses"]
     state["best"]["poses"] = poses.cpu().numpy() if isinstance(poses, torch.Tensor) else np.asarray(poses)
+    problem = _problem(state, frames)
+    if problem:
+        raise InputError(path, f"--resume: not a checkpoint of this run ({problem}); run without --resume")
     return state
+
+
+#: more epochs than any run makes: a checkpoint claiming more is not one of dm2's
+MAX_EPOCH = 10**6
+
+
+def _problem(state: dict, frames: int | None) -> str:
+    """What makes ``state`` unfit to continue from, or ""."""
+    poses = state["best"]["poses"]
+    if poses.dtype.kind != "f" or poses.ndim != 3 or poses.shape[1:] != (4, 4) or \
+            (frames is not None and len(poses) != frames):
+        return f"best poses of shape {poses.shape}, not ({frames}, 4, 4)"
+    if not np.isfinite(poses).all():
+        return "its best poses are not finite"
+    R = poses[:, :3, :3].astype(np.float64)
+    if not np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-4) or not np.allclose(poses[:, 3], [0, 0, 0, 1]):
+        return "its best poses are not rigid motions"
+    epoch = state.get("epoch")
+    if not isinstance(epoch, int) or isinstance(epoch, bool) or not 0 <= epoch < MAX_EPOCH:
+        return f"epoch {epoch!r}, not 0 to {MAX_EPOCH - 1}"
+    if not isinstance(state.get("history"), list):
+        return "no epoch history"
+    return ""
 
 
 def save_checkpoint(path: Path, state: dict) -> None:

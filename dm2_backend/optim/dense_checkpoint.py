@@ -67,16 +67,42 @@ def load(path: Path, start: np.ndarray, rounds: int) -> DenseState:
         size = path.stat().st_size
         if size > limit:
             raise ValueError(f"{size} bytes, more than a checkpoint of {frames} frames can be ({limit})")
-        with np.load(path, allow_pickle=False) as data:
-            poses = np.array(data["poses"], dtype=np.float64)
-            made_from = np.array(data["start"], dtype=np.float64)
-            meta = json.loads(str(data["meta"]))
+        arrays = _members(path, limit, {"poses": (frames, 4, 4), "start": (frames, 4, 4), "meta": ()})
+        poses = np.array(arrays["poses"], dtype=np.float64)
+        made_from = np.array(arrays["start"], dtype=np.float64)
+        meta = json.loads(str(arrays["meta"]))
     except (OSError, ValueError, KeyError, EOFError, RecursionError, zipfile.BadZipFile) as exc:
         raise InputError(path, f"not a dm2 dense-stage checkpoint, or a damaged one ({str(exc)[:160]})") from None
     try:
         return _checked(poses, made_from, meta, start, rounds)
     except (TypeError, ValueError, KeyError, OverflowError) as exc:
         raise InputError(path, f"--resume: this dense-stage checkpoint does not fit this run: {exc}") from None
+
+
+def _members(path: Path, limit: int, shapes: dict[str, tuple[int, ...]]) -> dict[str, np.ndarray]:
+    """The ``.npz`` members ``shapes`` names, each bounded before it is decoded: only those members, each at most
+    ``limit`` bytes uncompressed (as its zip entry declares; a reader stops there) and of the named shape (its
+    ``.npy`` header read first: a header may claim any size)."""
+    out = {}
+    with zipfile.ZipFile(path) as archive:
+        infos = {info.filename: info for info in archive.infolist()}
+        if set(infos) != {f"{name}.npy" for name in shapes}:
+            raise ValueError(f"members {sorted(infos)[:5]}, not {sorted(shapes)}")
+        for name, shape in shapes.items():
+            info = infos[f"{name}.npy"]
+            if info.file_size > limit:
+                raise ValueError(f"{name} holds {info.file_size} bytes uncompressed, more than {limit}")
+            with archive.open(info) as fh:
+                data = io.BytesIO(fh.read(limit + 1))
+            version = np.lib.format.read_magic(data)
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                np.lib.format.read_array_header_2_0
+            declared, _, _ = read_header(data)
+            if declared != shape:
+                raise ValueError(f"{name} of shape {declared}, not {shape}")
+            data.seek(0)
+            out[name] = np.load(data, allow_pickle=False)
+    return out
 
 
 def _checked(poses: np.ndarray, made_from: np.ndarray, meta: dict, start: np.ndarray, rounds: int) -> DenseState:

@@ -315,7 +315,7 @@ class Optimiser:
         ckpt = checkpoint_dir / CHECKPOINT if checkpoint_dir else None
         state = None
         if resume and lead and ckpt is not None and ckpt.exists():
-            state = load_checkpoint(ckpt, "cpu" if dist.enabled else self.device)
+            state = load_checkpoint(ckpt, "cpu" if dist.enabled else self.device, len(first))
         if resume and dist.enabled:
             state = distributed.broadcast(state)
         if state is not None:
