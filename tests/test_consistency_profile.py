@@ -83,14 +83,18 @@ def test_a_broken_stretch_of_the_street_is_flagged_and_nothing_far_from_it(break
     assert hit and false == 0, (p.segments, false)
 
 
+@pytest.mark.parametrize("one_pass", [True, False])
 @pytest.mark.parametrize("poses_of", ["truth", "jump"])
-def test_a_sequence_longer_than_the_cell_budget_is_judged_a_stretch_at_a_time(monkeypatch, poses_of):
-    """A budget of 8 frames' cells for 80 frames (as 1.5 million cells for 1,000 frames): the frames are judged a
-    stretch at a time, each at full density, so the truth scores as in one piece (no flag, each view's median
-    within 15 %) and a jump is still found, nothing far from it."""
+def test_a_sequence_longer_than_the_cell_budget_is_judged_a_stretch_at_a_time(monkeypatch, poses_of, one_pass):
+    """A budget of 8 frames' cells a stretch for 80 frames (as 1.5 million cells for 1,000 frames): the frames are
+    judged a stretch at a time, each at full density, whether all cells fit in memory at once (a slice of them a
+    stretch) or not (the far frames' cells sparse, each stretch's scans read again: as 20,000 frames), so the truth
+    scores as in one piece (no flag, each view's median within 15 %) and a jump is still found, nothing far from
+    it."""
     _, seq, gt = street()
     full = profile(seq, gt)
     monkeypatch.setattr(cp, "MAX_CELLS", 8 * cp.CELLS_PER_FRAME)
+    monkeypatch.setattr(cp, "ONE_PASS_CELLS", cp.ONE_PASS_CELLS if one_pass else 40 * cp.CELLS_PER_FRAME)
     poses = gt if poses_of == "truth" else jump_from(gt, 40)
     p = profile(seq, poses)
     assert np.isfinite(p.score_m).all()

@@ -63,8 +63,11 @@ TRIM = 0.2
 JUDGED_CELLS = 1024
 #: flagged frames this close (frames) are one segment
 GAP = 2
-#: the cells kept per frame (as the dense stage keeps them) and in all
+#: the cells kept per frame (as the dense stage keeps them) and in one stretch of frames
 CELLS_PER_FRAME, MAX_CELLS = 2048, 1_500_000
+#: a sequence whose cells at full density fit this many is summed into cells once (about 45 bytes a cell and 24
+#: more a profiled trajectory); a longer one keeps ``MAX_CELLS`` for the far frames and reads each stretch again
+ONE_PASS_CELLS = 6_000_000
 
 
 
@@ -274,15 +277,17 @@ def threshold_of(score: np.ndarray, noise: float = 0.0) -> tuple[float, float]:
 def consistency_profiles(scans: ScanSequence, candidates: dict[str, np.ndarray], stamps: np.ndarray | None = None,
                          planar: bool = False, voxel: float | None = None, seed: int = 0,
                          progress: bool = False) -> dict[str, ConsistencyProfile]:
-    """The profile of each set of poses (one per scan), the scans summed into cells once. A sequence longer than
-    ``MAX_CELLS`` cells is judged a stretch at a time (bounded memory; every frame as in a short sequence).
-    ``planar``: 2D scans, their lines seen as vertical walls."""
+    """The profile of each set of poses (one per scan). The scans are summed into cells once, at full density
+    while ``ONE_PASS_CELLS`` hold them; a longer sequence keeps ``MAX_CELLS`` for the far frames and reads its
+    scans again a stretch at a time (:func:`_stretched_views`). ``planar``: 2D scans, their lines seen as
+    vertical walls."""
     scale = derive_scale(scans)
     voxel = voxel or profile_voxel(scans, scale)
     release_freed_memory()
     candidates = {name: np.asarray(poses, dtype=np.float64) for name, poses in candidates.items()}
-    cells = _cells(scans, voxel, seed, planar, progress)
-    views = _stretched_views(cells, len(scans), candidates, voxel, progress)
+    full = len(scans) * CELLS_PER_FRAME <= ONE_PASS_CELLS
+    cells = _cells(scans, voxel, len(scans) * CELLS_PER_FRAME if full else MAX_CELLS, seed, planar, progress)
+    views = _stretched_views(scans, cells, full, candidates, voxel, seed, planar, progress)
     # the sensor's: as measured at the poses that make the sharpest planes, at least the scans' resolution
     noise = max(min(measured for _, measured in views.values()), RESOLUTION * scale.spacing_raw)
     return {name: _profile(views[name][0], noise, stamps, voxel, window_frames(poses, voxel))
@@ -295,25 +300,31 @@ def consistency_profile(scans: ScanSequence, poses: np.ndarray, stamps: np.ndarr
     return consistency_profiles(scans, {"poses": poses}, stamps, planar, voxel, seed)["poses"]
 
 
-def _cells(scans: ScanSequence, voxel: float, seed: int, planar: bool, progress: bool) -> Cells:
-    """The profiles' cells: a quarter voxel, ``CELLS_PER_FRAME`` a frame, every cell's scatter (a judge of the
-    poses, not the dense stage's objective: its settings stay those its thresholds were measured with)."""
+def _cells(scans: ScanSequence, voxel: float, budget: int, seed: int, planar: bool, progress: bool) -> Cells:
+    """The profiles' cells: a quarter voxel, ``CELLS_PER_FRAME`` a frame within ``budget``, every cell's scatter
+    (a judge of the poses, not the dense stage's objective: its settings stay those its thresholds were measured
+    with)."""
     # the cubes of a sensor-frame grid: along the beams a jump stands out less against the last frames' scores
-    cells = cells_from_scans(scans, voxel / 4.0, CELLS_PER_FRAME, len(scans) * CELLS_PER_FRAME, seed, progress,
-                             keep_scatter="all", along_beams=False)
+    cells = cells_from_scans(scans, voxel / 4.0, CELLS_PER_FRAME, budget, seed, progress, keep_scatter="all",
+                             along_beams=False)
     return cells.extruded(voxel) if planar else cells
 
 
-def _stretched_views(cells: Cells, n: int, candidates: dict[str, np.ndarray], voxel: float, progress: bool
+def _stretched_views(scans: ScanSequence, cells: Cells, full: bool, candidates: dict[str, np.ndarray],
+                     voxel: float, seed: int, planar: bool, progress: bool
                      ) -> dict[str, tuple[dict[str, np.ndarray], float]]:
     """The views of every frame, and the noise the planes measure (m), a stretch of frames at a time: each frame
-    is judged against the neighbouring blocks (past, future) and against the map of the stretch's cells and
-    every other frame's cells in the voxels the stretch reaches (all)."""
+    is judged by its own cells at full density against the neighbouring blocks (past, future) and against the map
+    of the stretch's cells and the other frames' ``cells`` in the voxels the stretch reaches (all). ``full``:
+    ``cells`` hold every frame at full density (a stretch is a slice of them); else they are sparse, for the far
+    frames only, and each stretch's scans are read again (fewer cells a frame make a true frame's score noise)."""
+    n = len(scans)
     margin = 2 * max(window_frames(poses, voxel) for poses in candidates.values())
-    length = max(MAX_CELLS // CELLS_PER_FRAME - 2 * margin, 2 * margin)
+    stretch_cells = MAX_CELLS if full else MAX_CELLS // 2  # with the sparse cells: one budget
+    length = max(stretch_cells // CELLS_PER_FRAME - 2 * margin, 2 * margin)
+    whole = length >= n
     views = {name: {view: np.full(n, np.nan) for view in ("all", "past", "future")} for name in candidates}
     noise: dict[str, list[float]] = {name: [] for name in candidates}
-    whole = length >= n
     keys = {} if whole else {name: _voxel_keys(cells, poses, voxel) for name, poses in candidates.items()}
     bounds = np.searchsorted(cells.frame, np.arange(n + 1))  # cells are in frame order
     for s in progress_of(range(0, n, length), "profile stretches", total=-(-n // length), unit="stretch",
@@ -321,29 +332,34 @@ def _stretched_views(cells: Cells, n: int, candidates: dict[str, np.ndarray], vo
         release_freed_memory()  # the last stretch's blocks
         e = min(n, s + length)
         a, b = max(0, s - margin), min(n, e + margin)
-        part = slice(bounds[a], bounds[b])
-        local = Cells(cells.frame[part] - np.int32(a), cells.count[part], cells.mean[part], cells.scatter[part],
-                      cells.size)
+        if full:
+            part = slice(bounds[a], bounds[b])
+            dense = Cells(cells.frame[part] - np.int32(a), cells.count[part], cells.mean[part], cells.scatter[part],
+                          cells.size)
+        else:
+            dense = _cells(scans.subset(np.arange(a, b)), voxel, (b - a) * CELLS_PER_FRAME, seed + s, planar, False)
         judged = slice(s - a, e - a)
         for name, poses in candidates.items():
-            past, future = _neighbour_views(local, poses[a:b], voxel, window_frames(poses, voxel), a)
+            past, future = _neighbour_views(dense, poses[a:b], voxel, window_frames(poses, voxel), a)
             views[name]["past"][s:e], views[name]["future"][s:e] = past[judged], future[judged]
-            mixed = cells if whole else _with_reach(cells, part, keys[name])
+            mixed = cells if whole else _with_reach(dense, a, b, cells, keys[name], poses, voxel)
             assigned = assign(mixed, poses, voxel)
             views[name]["all"][s:e] = _rms(disagreement(assigned, poses, CAP, bounded=True))[s:e]
             noise[name].append(assigned.sigma)
     return {name: (views[name], float(np.median(noise[name]))) for name in candidates}
 
 
-def _with_reach(cells: Cells, part: slice, keys: np.ndarray) -> Cells:
-    """The cells of one stretch (``part``) and those of the other frames that fall in a voxel (``keys``:
-    :func:`_voxel_keys`) one of the stretch's cells occupies: the others cannot share a plane with them."""
-    inside = np.zeros(len(cells), bool)
-    inside[part] = True
-    inv, _ = group_rows(np.concatenate([keys[inside], keys[~inside]]))
-    near = np.flatnonzero(~inside)[np.isin(inv[int(inside.sum()):], inv[:int(inside.sum())])]
-    keep = np.sort(np.concatenate([np.flatnonzero(inside), near]))
-    return Cells(cells.frame[keep], cells.count[keep], cells.mean[keep], cells.scatter[keep], cells.size)
+def _with_reach(dense: Cells, a: int, b: int, others: Cells, other_keys: np.ndarray, poses: np.ndarray,
+                voxel: float) -> Cells:
+    """The cells of frames ``a..b-1`` (``dense``, numbered from ``a``) and the cells of the other frames
+    (``others``, with their voxel keys: :func:`_voxel_keys`) that fall in a voxel one of them occupies at
+    ``poses``: the others cannot share a plane with them."""
+    dense = Cells(dense.frame + np.int32(a), dense.count, dense.mean, dense.scatter, dense.size)
+    other = (others.frame < a) | (others.frame >= b)
+    inv, _ = group_rows(np.concatenate([_voxel_keys(dense, poses, voxel), other_keys[other]]))
+    near = np.flatnonzero(other)[np.isin(inv[len(dense):], inv[:len(dense)])]
+    return Cells(*(np.concatenate([getattr(dense, f), getattr(others, f)[near]])
+                   for f in ("frame", "count", "mean", "scatter")), dense.size)
 
 
 def _voxel_keys(cells: Cells, poses: np.ndarray, voxel: float) -> np.ndarray:
