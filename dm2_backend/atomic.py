@@ -77,8 +77,9 @@ def _alive(pid: int) -> bool:
 
 def clean_stale(folder: str | Path, names: tuple[str, ...] | None = None) -> list[Path]:
     """Remove ``.tmp-PID-*`` entries of ``folder`` left by processes that no longer run; returns them.
-    ``names``: only the temporaries of these outputs (``.tmp-PID-<name>`` and the ``tempfile`` folders named
-    from it), what a writer of them leaves; None: every one (a folder only dm2 writes into, the cache)."""
+    ``names``: only the temporaries of these outputs (``.tmp-PID-<name>``, the set-aside ``.tmp-PID-old-<name>``
+    and the work folders ``.tmp-PID-<name>-work-*``), what a writer of them leaves; None: every one (a folder only
+    dm2 writes into, the cache)."""
     removed = []
     try:
         entries = list(os.scandir(folder))
@@ -88,7 +89,8 @@ def clean_stale(folder: str | Path, names: tuple[str, ...] | None = None) -> lis
         m = _TEMP.match(entry.name)
         if m is None or _alive(int(m.group(1))):
             continue
-        if names is not None and not any(entry.name[m.end():].startswith(n) for n in names):
+        rest = entry.name[m.end():]
+        if names is not None and not any(rest in (n, f"old-{n}") or rest.startswith(f"{n}-work-") for n in names):
             continue
         with contextlib.suppress(OSError):
             if entry.is_dir(follow_symlinks=False):

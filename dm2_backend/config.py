@@ -46,7 +46,8 @@ class _NoAliasLoader(yaml.SafeLoader):
             if isinstance(key, str | int | float | bool) and key in seen:
                 raise yaml.constructor.ConstructorError(None, None, f"the key {key!r} is given twice (YAML would keep "
                                                         "the last one silently)", key_node.start_mark)
-            seen.add(key)
+            if isinstance(key, str | int | float | bool):
+                seen.add(key)
         return super().construct_mapping(node, deep)
 
 

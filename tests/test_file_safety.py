@@ -150,3 +150,65 @@ def test_a_crafted_optimiser_checkpoint_is_refused(tmp_path, craft):
     with pytest.raises(InputError, match="not a checkpoint of this run") as info:
         load_checkpoint(path, "cpu", frames=6)
     assert info.value.source == str(path)
+
+
+def test_a_writer_cleans_its_own_leftovers_only(tmp_path):
+    """The temporaries a killed writer of ``out`` left (its file, the old output it set aside, a work folder) go;
+    ``.tmp-<pid>-outdoor/`` of the user's stays."""
+    from dm2_backend.atomic import atomic_write
+
+    dead = 2**22 + 4321
+    for name in ("out", "old-out", "out-work-x1"):
+        (tmp_path / f".tmp-{dead}-{name}").write_text("left")
+    (tmp_path / f".tmp-{dead}-outdoor").mkdir()
+    with atomic_write(tmp_path / "out") as fh:
+        fh.write("ok")
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f".tmp-{dead}-outdoor", "out"]
+
+
+def test_a_yaml_key_that_is_a_list_is_one_line(tmp_path):
+    from dm2_backend import config
+    from dm2_backend.errors import InputError
+
+    path = tmp_path / "c.yaml"
+    path.write_text("? [a, b]\n: 1\n")
+    with pytest.raises(InputError) as info:
+        config.read_yaml(path)
+    assert info.value.source == str(path)
+
+
+def test_a_dense_checkpoint_with_a_corrupt_member_or_a_reflection_is_one_line(tmp_path):
+    import numpy as np
+
+    from dm2_backend.errors import InputError
+    from dm2_backend.optim import dense_checkpoint
+
+    start = np.tile(np.eye(4), (5, 1, 1))
+    mirrored = start.copy()
+    mirrored[:, 0, 0] = -1.0  # orthonormal, determinant -1
+    for members in ({"poses.npy": _npy(mirrored), "start.npy": _npy(start), "meta.npy": _npy(np.array("{}"))},):
+        path = tmp_path / "mirror.npz"
+        _dense_checkpoint(path, members)
+        with pytest.raises(InputError):
+            dense_checkpoint.load(path, start, rounds=30)
+    good = tmp_path / "good.npz"
+    _dense_checkpoint(good, {"poses.npy": _npy(start), "start.npy": _npy(start), "meta.npy": _npy(np.array("{}"))})
+    data = bytearray(good.read_bytes())
+    data[60:90] = b"\xff" * 30  # inside the first member's deflated bytes
+    bad = tmp_path / dense_checkpoint.DENSE_CHECKPOINT
+    bad.write_bytes(bytes(data))
+    with pytest.raises(InputError) as info:
+        dense_checkpoint.load(bad, start, rounds=30)
+    assert info.value.source == str(bad)
+
+
+def test_baseline_graph_never_writes_over_its_graph_or_the_root(tmp_path):
+    from shared_helpers import DATA, need
+
+    graph = need(DATA / "posegraphs" / "intel.g2o")
+    copy = tmp_path / "g" / "intel.g2o"
+    copy.parent.mkdir()
+    copy.write_bytes(graph.read_bytes())
+    one_line_error(run("baseline", "gtsam", "--graph", copy, "--out", copy.parent, "--force"), str(copy.parent))
+    one_line_error(run("baseline", "gtsam", "--graph", copy, "--out", "/"), "root or home")
+    assert copy.read_bytes() == graph.read_bytes()

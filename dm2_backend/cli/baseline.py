@@ -11,7 +11,7 @@ from dm2_backend.cli.run_setup import command_started, output_folder, prepare_ru
 from dm2_backend.cli.suggest import Choice
 from dm2_backend.cli.summary import print_summary
 from dm2_backend.formats.g2o import INFORMATION_MODES
-from dm2_backend.pipeline.run_folder import run_folder
+from dm2_backend.pipeline.run_folder import refuse_overlap, run_folder
 
 path_type = click.Path(path_type=Path)
 _HELP = "\n".join(f"  {name:<9} {text}" for name, text in METHODS.items())
@@ -77,6 +77,7 @@ def command(method, graph_path, information, robust, robust_k, max_iterations, r
         if kw["scans"] is not None:
             raise click.UsageError("give either --graph or --scans")
         check_graph_options(kw)
+        refuse_overlap(kw["out"], {"--graph": graph_path, "--gt": kw["gt"], "--config": kw.get("config_path")})
         gt = read_graph_gt(kw)
         with run_folder(kw["out"], "baseline", force=kw["force"]):
             report = optimise_file(method, graph_path, kw["out"], options, gt=gt, started=command_started(),

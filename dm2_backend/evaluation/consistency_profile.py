@@ -12,9 +12,10 @@ frame's score (m) is the largest of three views of "the others":
   wrong loop closure, a drift that shows where the path comes back).
 
 A frame needs its cells at full density (``CELLS_PER_FRAME``) for its score to mean anything (fewer cells a
-frame make a true frame's score noise): the scans are summed into cells once, and a sequence longer than
-``MAX_CELLS`` cells is judged a stretch of frames at a time (:func:`_stretched_views`), so memory stays bounded
-and every frame is judged as in a short sequence.
+frame make a true frame's score noise): the scans are summed into cells once while ``ONE_PASS_CELLS`` hold them
+(a longer sequence keeps sparse cells for the far frames and is read again a stretch at a time), and a sequence
+longer than ``MAX_CELLS`` cells is judged a stretch of frames at a time (:func:`_stretched_views`), so memory stays
+bounded and every frame is judged as in a short sequence.
 
 Segments scoring above the flag threshold are flagged with their frame and time ranges: ``RATIO`` times the
 level of the sequence's agreeing frames (its lower quartile), and at least ``FLOOR`` times the noise the planes

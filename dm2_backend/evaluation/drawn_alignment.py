@@ -1,4 +1,4 @@
-"""The alignment the evaluation pictures draw an estimate with, by the console's rule (issue 53, item 3).
+"""The alignment the evaluation pictures draw an estimate with, by the console's rule.
 
 The pictures: a run's ``trajectory.png`` / ``errors.png`` and ``dm2 eval --plot``'s ``trajectories.png`` /
 ``errors_<label>.png``. They draw each estimate after the evaluation's alignment (SE(3) by default), except

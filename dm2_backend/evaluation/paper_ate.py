@@ -19,9 +19,9 @@ The same associated pose pairs as APE/RPE are used. The alignment is this metric
 
 Where the yaw is no heading the rotation figure is kept (it is the paper's definition) and
 :attr:`PaperATE.caution` says why it is not comparable: adding Euler angles composes rotations only about one
-shared axis, so the figure means a heading error only where the poses' z axes are vertical. With EuRoC's body
-frame (IMU x up, z horizontal) and an estimate in a world frame turned about the vertical (any VIO's), it
-reads 50-90 deg where the whole rotation error after the same alignment is 2 deg.
+shared axis, so the figure means a heading error only where the poses' z axes are vertical (not in EuRoC's
+body frame, IMU x up and z horizontal, nor in a camera frame), and it may then exceed the whole rotation error
+after the same alignment.
 """
 
 from __future__ import annotations

@@ -45,7 +45,10 @@ def load_checkpoint(path: Path, device, frames: int | None = None) -> dict:
     if not isinstance(state, dict) or not isinstance(state.get("best"), dict) or "poses" not in state["best"]:
         raise InputError(path, "not a dm2 checkpoint (no best poses)")
     poses = state["best"]["poses"]
-    state["best"]["poses"] = poses.cpu().numpy() if isinstance(poses, torch.Tensor) else np.asarray(poses)
+    try:
+        state["best"]["poses"] = poses.cpu().numpy() if isinstance(poses, torch.Tensor) else np.asarray(poses)
+    except (TypeError, ValueError) as exc:
+        raise InputError(path, f"--resume: its best poses are not an array ({one_line(str(exc))[:120]})") from None
     problem = _problem(state, frames)
     if problem:
         raise InputError(path, f"--resume: not a checkpoint of this run ({problem}); run without --resume")
@@ -65,7 +68,8 @@ def _problem(state: dict, frames: int | None) -> str:
     if not np.isfinite(poses).all():
         return "its best poses are not finite"
     R = poses[:, :3, :3].astype(np.float64)
-    if not np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-4) or not np.allclose(poses[:, 3], [0, 0, 0, 1]):
+    if not np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-4) or not np.allclose(poses[:, 3], [0, 0, 0, 1]) \
+            or not np.all(np.linalg.det(R) > 0):
         return "its best poses are not rigid motions"
     epoch = state.get("epoch")
     if not isinstance(epoch, int) or isinstance(epoch, bool) or not 0 <= epoch < MAX_EPOCH:

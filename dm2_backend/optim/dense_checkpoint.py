@@ -13,6 +13,7 @@ from __future__ import annotations
 import io
 import json
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -71,7 +72,8 @@ def load(path: Path, start: np.ndarray, rounds: int) -> DenseState:
         poses = np.array(arrays["poses"], dtype=np.float64)
         made_from = np.array(arrays["start"], dtype=np.float64)
         meta = json.loads(str(arrays["meta"]))
-    except (OSError, ValueError, KeyError, EOFError, RecursionError, zipfile.BadZipFile) as exc:
+    except (OSError, ValueError, KeyError, EOFError, RecursionError, zipfile.BadZipFile, zlib.error,
+            NotImplementedError, RuntimeError) as exc:
         raise InputError(path, f"not a dm2 dense-stage checkpoint, or a damaged one ({str(exc)[:160]})") from None
     try:
         return _checked(poses, made_from, meta, start, rounds)
@@ -116,7 +118,7 @@ def _checked(poses: np.ndarray, made_from: np.ndarray, meta: dict, start: np.nda
         raise ValueError(f"it was made from other start poses (differing by up to {differ:.3g})")
     R = poses[:, :3, :3]
     if not np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-6) or not np.allclose(
-            poses[:, 3], [0, 0, 0, 1]):
+            poses[:, 3], [0, 0, 0, 1]) or not np.all(np.linalg.det(R) > 0):
         raise ValueError("its poses are not rigid motions")
     done, damping, history, stopped = meta["rounds_done"], meta["damping"], meta["history"], meta["stopped"]
     if not isinstance(done, int) or not 0 <= done <= rounds:

@@ -127,8 +127,8 @@ def _beam_cells(unit: np.ndarray, distance: np.ndarray, size: float, reference: 
     (docs/decisions/0003-beam-cells.md). Along the beam only an empty bin parts two cells (two
     surfaces, not one surface's noise, while that noise is under a bin). Runs are not capped: a surface seen at a
     grazing angle can make a cell longer than a voxel. Far out the cells are wider (a LiDAR's at three times the
-    median range, three times ``size``): binned finer there, a frame passes its share of cells and keeps fewer
-    points."""
+    median range, three times ``size``): the directions are not binned finer there, where a frame would pass its
+    share of cells and keep fewer points."""
     if len(distance) == 0:
         return np.zeros(0, np.int64), 0
     direction = np.floor(unit * (reference / size)).astype(np.int64)

@@ -53,13 +53,24 @@ def run_evaluation(traj: Trajectory, inputs: RunInputs
     KITTI devkit evaluates."""
     try:
         # the run's ground truth is already one pose per scan (or per listed scan): paired by index
-        calib = inputs.gt.meta.get("calib") if inputs.gt is not None else None
         est = evaluate(traj, gt=inputs.gt, relations=inputs.relations, gt_frames=inputs.gt_frames,
-                       options=EvalOptions(by_index=True), kitti_frame=read_calib_tr(calib) if calib else None)
+                       options=EvalOptions(by_index=True), kitti_frame=_camera_frame(inputs.gt))
     except InputError as exc:
         log.warning("evaluation failed: %s", exc.message)
         return {"error": exc.message}, [], None
     return run_metrics(est), estimate_cautions(est), est.kitti
+
+
+def _camera_frame(gt: Trajectory | None) -> np.ndarray | None:
+    """KITTI's ``Tr`` (LiDAR to camera) where the ground truth was read with a KITTI odometry ``calib.txt``; None
+    otherwise (a KITTI raw drive's calibration holds no camera: its poses stay in the LiDAR frame)."""
+    calib = gt.meta.get("calib") if gt is not None else None
+    if not calib:
+        return None
+    try:
+        return read_calib_tr(calib)
+    except InputError:
+        return None
 
 
 def output_timestamps(inputs: RunInputs) -> np.ndarray:

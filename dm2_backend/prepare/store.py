@@ -9,6 +9,7 @@ private). The small per-frame arrays are read into memory.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import shutil
@@ -62,9 +63,9 @@ def put(root: Path, name: str, arrays: dict[str, np.ndarray | list[np.ndarray]],
     """Write the entry ``root/name`` (a folder); it appears complete or not at all. A list of arrays is
     written concatenated along the first axis, one piece at a time (no concatenated copy in memory). The
     folder is marked as a dm2 cache (:data:`CACHE_MARKER`)."""
+    _mark(root)
     if (root / name).is_dir():  # another process (a rank of the same run) wrote it meanwhile
         return
-    _mark(root)
     try:
         with atomic_path(root / name) as tmp:
             tmp.mkdir()
@@ -109,6 +110,8 @@ def get(root: Path | None, name: str) -> tuple[dict[str, np.ndarray], dict] | No
     folder = root / name if root is not None else None
     if folder is None or not (folder / "meta.json").is_file():
         return None
+    with contextlib.suppress(OSError):  # a cache of an earlier dm2, read only: marked as it is used
+        _mark(root)
     try:
         meta = json.loads((folder / "meta.json").read_text())
         arrays = {p.stem: _load(p) for p in folder.glob("*.npy")}
