@@ -9,6 +9,11 @@ from click.testing import CliRunner
 
 from dm2_backend.cli.main import cli
 
+#: the smallest settings a refine in a test runs with (few points, a small occupancy grid; the dense stage on)
+SMALL_RUN = {"frames": {"max_points": 256},
+             "optimiser": {"points_per_frame": 64, "bce_points_per_frame": 32, "batch_groups": 16,
+                           "grid_max_cells": 2**14}}
+
 #: ../shared/data relative to the repository root
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 

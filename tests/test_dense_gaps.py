@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import yaml
 from optim_cases import one_thread, planar_case
-from shared_helpers import one_line_error, run
+from shared_helpers import SMALL_RUN, one_line_error, run
 
 from dm2_backend.errors import InputError
 from dm2_backend.evaluation.map_quality import poses_of_scans
@@ -145,10 +145,7 @@ def test_refine_records_the_interpolated_poses(tmp_path):
     fine = fine[np.abs(fine - stamps[3]) > 0.015]  # a dropout of 3 samples at scan 3
     dense = Trajectory(se3.interpolate(stamps, case.warm, fine), fine, planar=True)
     write_trajectory(dense, tmp_path / "mocap.txt", "tum")
-    (tmp_path / "small.yaml").write_text(yaml.safe_dump({
-        "frames": {"max_points": 256},
-        "optimiser": {"points_per_frame": 64, "bce_points_per_frame": 32, "batch_groups": 16,
-                      "grid_max_cells": 2**14}}))
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump(SMALL_RUN))
     out = tmp_path / "run"
     r = run("refine", "--scans", seq / "velodyne", "--poses", tmp_path / "mocap.txt", "--out", out, "-c",
             tmp_path / "small.yaml", "--epochs", "1", "--no-cache")

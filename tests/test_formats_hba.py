@@ -14,7 +14,7 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from optim_cases import one_thread
-from shared_helpers import assert_one_line_error, run
+from shared_helpers import SMALL_RUN, assert_one_line_error, run
 
 from dm2_backend.errors import InputError
 from dm2_backend.formats import ReadOptions, detect_scan_source, detect_trajectory_format, open_scans, read_trajectory
@@ -238,10 +238,8 @@ def _single_thread():
     yield from one_thread()
 
 
-#: test_refine_cli's small settings, with the dense stage (the default) on
-SMALL = {"seed": 3, "frames": {"max_points": 256},
-         "optimiser": {"points_per_frame": 64, "bce_points_per_frame": 32, "batch_groups": 16,
-                       "grid_max_cells": 2**14}}
+#: the small settings of a test refine, with the dense stage (the default) on
+SMALL = {"seed": 3, **SMALL_RUN}
 
 
 def test_refine_hba_folder_round_trip(tmp_path):

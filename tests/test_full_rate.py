@@ -11,6 +11,7 @@ import pytest
 import yaml
 from click.testing import CliRunner
 from optim_cases import one_thread, planar_case
+from shared_helpers import SMALL_RUN
 
 from dm2_backend.cli.main import cli
 from dm2_backend.formats import ReadOptions, read_trajectory, write_trajectory
@@ -85,10 +86,7 @@ def test_refine_writes_the_input_at_its_own_rate(tmp_path):
     fine = np.arange(0.0, stamps[-1] + 0.05, 0.01)  # 100 Hz, half a scan period past the last scan
     dense = Trajectory(se3.interpolate(stamps, case.warm, fine), fine, planar=True)
     write_trajectory(dense, tmp_path / "lio_100hz.txt", "tum")
-    (tmp_path / "small.yaml").write_text(yaml.safe_dump({
-        "frames": {"max_points": 256},
-        "optimiser": {"points_per_frame": 64, "bce_points_per_frame": 32, "batch_groups": 16,
-                      "grid_max_cells": 2**14}}))
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump(SMALL_RUN))
     out = tmp_path / "run"
     result = CliRunner().invoke(cli, ["refine", "--scans", str(seq / "velodyne"), "--poses",
                                       str(tmp_path / "lio_100hz.txt"), "--out", str(out), "-c",
