@@ -18,8 +18,14 @@ it replaces the odometry (:meth:`IcpWarmStart._fused_step`):
   odometry (the ICP is re-run with that direction held at the prediction) and the others from the scan;
 - agreement: a match that departs from the odometry increment by more than the gate (``gate`` robust
   standard deviations of the recent scan-vs-odometry differences, at least one fine distance / its angle
-  at the median range) is kept only when it fits the map clearly better than the prediction (an odometry
-  glitch); otherwise the odometry increment is used (a scan-matching failure).
+  at the median range) is kept only when it lays the scan onto the previous scan clearly better than the
+  prediction (the local map holds the last steps, which a sliding match bends) and does not carry the robot
+  farther than the odometry moved by more than the odometry's noise allows (an odometry glitch: a wheel slips,
+  a gyro jumps); otherwise the odometry increment is used (a scan-matching failure).
+
+With ``weigh: cycles`` the scan matches are weighed against the odometry per axis by their own match cycles
+(:mod:`dm2_backend.algorithms.match_noise`), for logs whose odometry is more precise than their scans
+(docs/decisions/0015-scan-weights-from-match-cycles.md).
 
 Then the steps are checked where drift shows (``windows``, :mod:`dm2_backend.algorithms.drift_windows`): over
 windows one median scan range long, the warm start's relative pose is compared with the odometry's; a
@@ -53,6 +59,7 @@ from dm2_backend.algorithms.common import (
 )
 from dm2_backend.algorithms.drift_windows import OdometryNoise, WindowVerdict, apply_verdicts, check_windows
 from dm2_backend.algorithms.icp import information_2d, register, slide_loss
+from dm2_backend.algorithms.match_noise import AXES, MIN_TRIPLES, MatchWeights, match_weights
 from dm2_backend.errors import InputError
 from dm2_backend.geometry import se3
 from dm2_backend.progress import progress
@@ -68,6 +75,7 @@ class StepReason(enum.Enum):
     DIVERGED = "ICP diverged"
     DISAGREES = "disagrees with the odometry"
     GLITCH = "odometry glitch"
+    FARTHER = "farther than the odometry moved"
     TRANSLATION = "translation degenerate"
     YAW = "yaw degenerate"
 
@@ -115,6 +123,11 @@ class IcpWarmStart:
     #: (fuse) check the steps against the odometry over windows of path and fall back to the odometry's
     #: increments where scan matching drifted ("auto"; "off": per-step tests only)
     windows: str = "auto"
+    #: (fuse) "whole": scan matches are taken whole; "cycles": each is weighed against the odometry per axis by how
+    #: much of its disagreement with the odometry the scan matching's own inconsistency explains (measured on match
+    #: cycles, :mod:`dm2_backend.algorithms.match_noise`), the window check's odometry noise is that share and an
+    #: undecidable window takes the more precise source (docs/decisions/0015-scan-weights-from-match-cycles.md)
+    weigh: str = "whole"
     #: report the stage's progress: a bar on a terminal, else one INFO log line when it ends; false: silent
     progress: bool = True
 
@@ -142,6 +155,8 @@ class IcpWarmStart:
         fuse = self._fusing(frames, increments, method)
         if fuse:
             self._start_fusion(n, fine, scale.range_median)
+            self._weights = self._match_weights(frames, given, fine)
+        self._previous_scan = Cloud(frames.points[0], frames.planar, 2.0 * fine)
         for i in progress(range(1, n), "icp warm start", unit="frame", enabled=self.progress):
             delta = increments[i - 1] if increments is not None else velocity
             predicted = poses[i - 1] @ delta
@@ -151,6 +166,7 @@ class IcpWarmStart:
             else:
                 poses[i] = self._plain_step(i, source, target, poses[i - 1], predicted, distances, method,
                                             frames.planar, increments is None)
+            self._previous_scan = source
             velocity = se3.relative(poses[i - 1], poses[i])
             moved = se3.relative(last_key, poses[i])
             if np.linalg.norm(moved[:3, 3]) > kf_dist or rotation_angle(moved[:3, :3]) > kf_angle:
@@ -162,6 +178,14 @@ class IcpWarmStart:
         self.report = self._fusion_report(poses) if fuse else {"fused": False, "rejected": len(self.rejected)}
         return poses
 
+    def _match_weights(self, frames: Frames, given: Trajectory, fine: float) -> MatchWeights:
+        if self.weigh not in ("cycles", "whole"):
+            raise InputError(None, f"icp warm start: unknown weigh {self.weigh!r} (whole, cycles)")
+        if self.weigh == "whole":
+            return MatchWeights.whole()
+        odometry = np.array([project_planar(T) for T in given.poses])
+        return match_weights(frames.points, odometry, fine, self.iterations)
+
     def _check_windows(self, frames: Frames, poses: np.ndarray, odometry: np.ndarray, fine: float) -> np.ndarray:
         """:func:`check_windows` over windows one median scan range long, the odometry's per-step noise from the
         per-step differences of the scan matches; the poses with the odometry's increments where it won."""
@@ -169,10 +193,13 @@ class IcpWarmStart:
         ok = np.isfinite(dt)
         if ok.sum() < 20:
             return poses
-        noise = OdometryNoise(max(1.4826 * float(np.median(dt[ok])), 1e-3 * fine),
-                              max(1.4826 * float(np.median(dr[ok])), 1e-3 * fine / self._reach))
+        # the differences hold the scan matches' noise too: the odometry's share of it is the match weight
+        w = np.sqrt(self._weights.weights)
+        noise = OdometryNoise(max(1.4826 * float(np.median(dt[ok])) * float(max(w[0], w[1])), 1e-3 * fine),
+                              max(1.4826 * float(np.median(dr[ok])) * float(w[2]), 1e-3 * fine / self._reach))
         odometry = np.array([project_planar(T) for T in odometry])
-        self.verdicts = check_windows(frames.points, poses, odometry, noise, self._reach, fine)
+        self.verdicts = check_windows(frames.points, poses, odometry, noise, self._reach, fine,
+                                      unjudged=self._weights.more_precise)
         return apply_verdicts(poses, odometry, self.verdicts)
 
     def _plain_step(self, i, source, target, previous, predicted, distances, method, planar, velocity) -> np.ndarray:
@@ -218,20 +245,26 @@ class IcpWarmStart:
         sr = 1.4826 * float(np.median(self._recent_r))
         return max(floor_t, self.gate * st), max(floor_r, self.gate * sr)
 
-    def _odometry_weights(self, rmse: float) -> tuple[float, float]:
-        """The odometry's information on one translation direction and on yaw, in the units of the point-to-line
-        cost (residual variance / odometry variance): the odometry's per-step sigmas are the robust spread of
-        the recent differences between accepted scan matches and the odometry (at least a tenth of a fine
-        distance, and its angle at the median range); the residual sigma is the match's rmse (at least a
-        tenth of a fine distance)."""
+    def _odometry_sigmas(self) -> tuple[float, float]:
+        """The odometry's own per-step noise (translation m, yaw rad): the robust spread of the recent differences
+        between accepted scan matches and the odometry, times the square root of the match weights (the share of
+        those differences that is the odometry's; :mod:`dm2_backend.algorithms.match_noise`), at least a tenth of a
+        fine distance (and its angle at the median range)."""
         floor = 0.1 * self._fine
         if len(self._recent_t) >= 20:
             st = 1.4826 * float(np.median(self._recent_t))
             sr = 1.4826 * float(np.median(self._recent_r))
         else:
             st, sr = self._fine, self._fine / self._reach
-        st, sr = max(st, floor), max(sr, floor / self._reach)
-        var = max(rmse, floor) ** 2 if np.isfinite(rmse) else self._fine**2
+        w = np.sqrt(self._weights.weights)
+        return max(st * float(max(w[0], w[1])), floor), max(sr * float(w[2]), floor / self._reach)
+
+    def _odometry_weights(self, rmse: float) -> tuple[float, float]:
+        """The odometry's information on one translation direction and on yaw, in the units of the point-to-line
+        cost (residual variance / odometry variance, :meth:`_odometry_sigmas`); the residual sigma is the match's
+        rmse (at least a tenth of a fine distance)."""
+        st, sr = self._odometry_sigmas()
+        var = max(rmse, 0.1 * self._fine) ** 2 if np.isfinite(rmse) else self._fine**2
         return var / st**2, var / sr**2
 
     def _fused_step(self, i: int, source: Cloud, target: Cloud, previous: np.ndarray, predicted: np.ndarray,
@@ -288,15 +321,28 @@ class IcpWarmStart:
         cols["dt"][i], cols["dyaw"][i] = dt, dr
         gate_t, gate_r = self._gates()
         if dt > gate_t or dr > gate_r:
-            at_odometry = information_2d(xy, target, predicted, fine)["fitness"]
-            if info["fitness"] < at_odometry + self.better_fitness:
+            # judged on the previous scan alone: the local map holds the last steps, which may have bent it
+            before = self._previous_scan
+            at_odometry = information_2d(xy, before, se3.relative(previous, predicted), fine)["fitness"]
+            at_match = information_2d(xy, before, se3.relative(previous, T), fine)["fitness"]
+            if at_match < at_odometry + self.better_fitness:
                 return self._use_odometry(
                     i, predicted, StepReason.DISAGREES,
                     f"disagrees with the odometry ({dt:.3f} m, {np.degrees(dr):.2f} deg; gate {gate_t:.3f} m, "
-                    f"{np.degrees(gate_r):.2f} deg) without fitting clearly better (overlap "
-                    f"{info['fitness']:.2f} vs {at_odometry:.2f})")
+                    f"{np.degrees(gate_r):.2f} deg) without fitting the previous scan clearly better (overlap "
+                    f"{at_match:.2f} vs {at_odometry:.2f})")
+            # a wheel slips or a gyro jumps: the odometry can report motion the robot did not make, but not carry it
+            # farther than its wheels turned (that is a scan match sliding along a hall)
+            travel = float(np.linalg.norm(se3.relative(previous, T)[:2, 3]))
+            wheels = float(np.linalg.norm(se3.relative(previous, predicted)[:2, 3]))
+            allowance = self.gate * self._odometry_sigmas()[0]
+            if travel > wheels + allowance:
+                return self._use_odometry(
+                    i, predicted, StepReason.FARTHER,
+                    f"the scan match moves {travel:.3f} m where the odometry moved {wheels:.3f} m (allowance "
+                    f"{allowance:.3f} m): a match sliding, not a wheel slipping")
             self._reason[i] = (StepReason.GLITCH, f"odometry glitch: {dt:.3f} m, {np.degrees(dr):.2f} deg off, the "
-                               f"scan fits better (overlap {info['fitness']:.2f} vs {at_odometry:.2f})")
+                               f"scan fits the previous one better (overlap {at_match:.2f} vs {at_odometry:.2f})")
         else:
             self._recent_t.append(dt)
             self._recent_r.append(dr)
@@ -309,7 +355,8 @@ class IcpWarmStart:
             self._reason.setdefault(i, (StepReason.YAW, f"yaw degenerate (turn cost {cols['yaw_constraint'][i]:.3f}"
                                                          f" < {self.min_constraint}): yaw from the odometry"))
         self._source[i] = source_kind
-        return T
+        glitch = i in self._reason and self._reason[i][0] is StepReason.GLITCH
+        return T if glitch else self._weights.blend(predicted, T)
 
     def _use_odometry(self, i: int, predicted: np.ndarray, code: StepReason, message: str) -> np.ndarray:
         self._source[i] = 3
@@ -328,6 +375,10 @@ class IcpWarmStart:
         summary = (f"icp warm start: {counts['scan']} of {len(src)} steps from the scan match, "
                    + ", ".join(f"{v} {k}" for k, v in list(counts.items())[1:]) + "; "
                    + (", ".join(f"{k}: {v}" for k, v in reasons.items()) or "no fallback"))
+        w = self._weights
+        if w.triples >= MIN_TRIPLES:
+            summary += ("; scan matches weighed " + ", ".join(f"{x:.2f} {a}" for x, a in zip(w.weights, AXES))
+                        + f" against the odometry ({w.triples} match cycles)")
         fallback = [v for v in self.verdicts if v.source == "odometry"]
         if self.verdicts:
             summary += (f"; windows of {self._reach:.1f} m: {len(fallback)} of {len(self.verdicts)} from the odometry"
@@ -340,8 +391,10 @@ class IcpWarmStart:
             "sources": counts,
             "reasons": reasons,
             "windows": [asdict(v) for v in self.verdicts],
+            "match_weights": self._weights.as_dict(),
             "settings": {"min_fitness": self.min_fitness, "min_constraint": self.min_constraint,
                          "gate": self.gate, "better_fitness": self.better_fitness, "windows": self.windows,
+                         "weigh": self.weigh, "unjudged_windows": self._weights.more_precise,
                          "fine_distance_m": round(self._fine, 4), "range_median_m": round(self._reach, 4)},
             "per_step": {
                 "source": [self.SOURCES[k] for k in self._source.tolist()],

@@ -8,9 +8,10 @@ end scans are the judge, where both ends see: the candidate (scan-matched or odo
 last scans of the window onto its first ones clearly better wins; where they cannot tell the two apart (a hall
 seen along its axis), the odometry does (the scans hold nothing there that the matches could have used), unless
 they lean towards the scan match (no evidence that scan matching drifted: the odometry can be the one that turned);
-where they see nothing in common (a turn on the spot), the scans stay. The odometry's increments replace the
-window's where it wins. Every window gets a :class:`WindowVerdict`
-(docs/decisions/0010-fused-warm-start-windows.md)."""
+where they see nothing in common (a turn on the spot), the source the match cycles found the more precise
+(:mod:`dm2_backend.algorithms.match_noise`). The odometry's increments replace the window's where it wins. Every
+window gets a :class:`WindowVerdict` (docs/decisions/0010-fused-warm-start-windows.md,
+docs/decisions/0015-scan-weights-from-match-cycles.md)."""
 
 from __future__ import annotations
 
@@ -94,14 +95,16 @@ def _end_cloud(points: list[np.ndarray], poses: np.ndarray, idx: range, ref: int
 
 
 def check_windows(points: list[np.ndarray], warm: np.ndarray, odometry: np.ndarray, noise: OdometryNoise,
-                  reach: float, fine: float, end_scans: int = 3) -> list[WindowVerdict]:
+                  reach: float, fine: float, end_scans: int = 3, unjudged: str = "scan") -> list[WindowVerdict]:
     """A :class:`WindowVerdict` per window of ``reach`` metres (the median scan range; at least ``end_scans`` x 3
     steps): the warm start ``warm`` against the ``odometry`` (both (N, 4, 4) planar). A disagreement within
     ``SYSTEMATIC`` standard deviations of the odometry's random walk (``noise`` per step; along, across and in yaw)
     keeps the scans. Beyond it, the window's last ``end_scans`` scans are laid onto its first ones (and back) at
     either candidate, points within ``2 reach`` of their sensor and where the other end sees only; the per-point
     cost (distance in ``fine`` units, squared, at most 1) decides when the paired difference exceeds ``CLEAR``
-    standard errors, else the odometry, unless the scan match lays the end scans closer (then the scans)."""
+    standard errors, else the odometry, unless the scan match lays the end scans closer (then the scans). Where the
+    end scans see nothing in common, ``unjudged`` decides: the source the match cycles found the more precise
+    (:mod:`dm2_backend.algorithms.match_noise`)."""
     verdicts = []
     for a, b in window_bounds(odometry, reach, 3 * end_scans):
         n = b - a
@@ -134,8 +137,8 @@ def check_windows(points: list[np.ndarray], warm: np.ndarray, odometry: np.ndarr
         costs = [np.concatenate(c) for c in zip(*[_compared(m, f, A, B, fine) for m, f, A, B in pairs], strict=True)]
         if len(costs[0]) < 10:
             verdicts.append(WindowVerdict(**common, overlap_scan=None, overlap_odometry=None, margin=None,
-                                          source="scan", reason=f"not judged: {what}, but the end scans see nothing "
-                                          "in common (e.g. a turn on the spot)"))
+                                          source=unjudged, reason=f"not judged: {what}, but the end scans see nothing "
+                                          f"in common (e.g. a turn on the spot): the more precise source, {unjudged}"))
             continue
         fits = [float(np.mean(c < 1.0)) for c in costs]
         # paired over the points: how much closer to the other end's scans each point lies at the odometry's pose
