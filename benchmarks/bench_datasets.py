@@ -28,6 +28,7 @@ GRAPH_MAPPING, CARTOGRAPHER = "Graph mapping (Kümmerle et al. 2009)", "Cartogra
 PUBLISHED = {
     "aces": [(GRAPH_MAPPING, 0.044, 0.4), (CARTOGRAPHER, 0.0375, 0.373)],
     "intel": [(GRAPH_MAPPING, 0.031, 1.3), (CARTOGRAPHER, 0.0229, 0.453)],
+    "fr-clinic": [(GRAPH_MAPPING, 0.143, None), (CARTOGRAPHER, 0.108, None)],
 }
 
 
@@ -69,11 +70,11 @@ def _need(*paths: Path) -> None:
             raise Skip(f"{p} absent")
 
 
-def carmen(name: str) -> Callable[[Env], Inputs]:
+def carmen(name: str, log_name: str | None = None) -> Callable[[Env], Inputs]:
     def load(env: Env) -> Inputs:
-        log, rel = DATA / "carmen" / f"{name}.clf.bz2", DATA / "carmen" / f"{name}.relations"
+        log, rel = DATA / "carmen" / (log_name or f"{name}.clf.bz2"), DATA / "carmen" / f"{name}.relations"
         _need(log, rel)
-        frames = {"aces": 7374, "intel": 13631}[name]
+        frames = {"aces": 7374, "intel": 13631, "fr-clinic": 6917}[name]
         return Inputs(["-s", str(log), "--warm-start", "icp", "--relations", str(rel)], frames,
                       {"scans": str(log), "relations": str(rel), "warm_start": "icp"})
     return load
@@ -362,6 +363,9 @@ DATASETS: dict[str, Dataset] = {d.name: d for d in [
             carmen("aces")),
     Dataset("intel", "Intel Research Lab, CARMEN log (real 2D laser), icp warm start", "relations",
             carmen("intel")),
+    Dataset("fr-clinic", "Freiburg University Hospital, CARMEN log of ROBOTLASER1 messages (real 2D laser, a scan "
+            "every 0.2 m of travel), icp warm start; its local relations", "relations",
+            carmen("fr-clinic", "fr-clinic_robotlaser.clf.bz2")),
     Dataset("redkitchen", "7-Scenes RedKitchen frames 0-499 (real depth camera), icp warm start", "ape",
             seven_scenes("redkitchen_000-499")),
     Dataset("redkitchen-500", "7-Scenes RedKitchen frames 500-999 (real depth camera), icp warm start", "ape",

@@ -128,7 +128,7 @@ def markdown(results: dict) -> str:
                 f"{_num(wall, '{:.0f}')} | {_num(rss, '{:.0f}')} | {status} |")
         for method, trans, rot in ds.get("published", []):
             lines.append(f"| {label} | {method}, published | – | {METRIC_LABEL[metric]} | {trans:.4f} | "
-                         f"{rot:.3f} |{' – |' * 7} published |")
+                         f"{'–' if rot is None else f'{rot:.3f}'} |{' – |' * 7} published |")
     notes = [f"{name}: {ds['note']}" for name, ds in results["datasets"].items() if ds.get("note")]
     lines += [
         *(["", *[f"Note — {n}" for n in notes]] if notes else []),

@@ -55,7 +55,8 @@ SETS: dict[str, dict] = {
         "timeout": 600,
     },
     "freiburg": {
-        "cases": {"aces": ["dm2 refine", *BASELINES], "intel": ["dm2 refine", *BASELINES]},
+        "cases": {"aces": ["dm2 refine", *BASELINES], "intel": ["dm2 refine", *BASELINES],
+                  "fr-clinic": ["dm2 refine", "gtsam"]},
         "epochs": None,
         "timeout": 3600,
     },
