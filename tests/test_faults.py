@@ -80,6 +80,11 @@ def child(args: list[str], *, pattern: str = "-", signame: str = "SIGTERM", nth:
           timeout: float = 300) -> subprocess.CompletedProcess:
     """``dm2 args`` in a real process (see :data:`CHILD`), optionally under resource ``limits``."""
     def preexec():
+        # a child as a shell starts it: the signals it is sent neither blocked nor ignored, whatever state the test
+        # process was left in (a mask or disposition is inherited across exec)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_DFL)
         for which, value in (limits or {}).items():
             resource.setrlimit(which, (value, value))
 
