@@ -156,7 +156,8 @@ class IcpWarmStart:
         if fuse:
             self._start_fusion(n, fine, scale.range_median)
             self._weights = self._match_weights(frames, given, fine)
-        self._previous_scan = Cloud(frames.points[0], frames.planar, 2.0 * fine)
+        #: (fused) the last scan, against which a large departure from the odometry is judged
+        self._previous_scan = Cloud(frames.points[0], frames.planar, 2.0 * fine) if fuse else None
         for i in progress(range(1, n), "icp warm start", unit="frame", enabled=self.progress):
             delta = increments[i - 1] if increments is not None else velocity
             predicted = poses[i - 1] @ delta
@@ -166,7 +167,8 @@ class IcpWarmStart:
             else:
                 poses[i] = self._plain_step(i, source, target, poses[i - 1], predicted, distances, method,
                                             frames.planar, increments is None)
-            self._previous_scan = source
+            if fuse:
+                self._previous_scan = source
             velocity = se3.relative(poses[i - 1], poses[i])
             moved = se3.relative(last_key, poses[i])
             if np.linalg.norm(moved[:3, 3]) > kf_dist or rotation_angle(moved[:3, :3]) > kf_angle:
@@ -193,10 +195,9 @@ class IcpWarmStart:
         ok = np.isfinite(dt)
         if ok.sum() < 20:
             return poses
-        # the differences hold the scan matches' noise too: the odometry's share of it is the match weight
-        w = np.sqrt(self._weights.weights)
-        noise = OdometryNoise(max(1.4826 * float(np.median(dt[ok])) * float(max(w[0], w[1])), 1e-3 * fine),
-                              max(1.4826 * float(np.median(dr[ok])) * float(w[2]), 1e-3 * fine / self._reach))
+        share_t, share_r = self._odometry_share()
+        noise = OdometryNoise(max(1.4826 * float(np.median(dt[ok])) * share_t, 1e-3 * fine),
+                              max(1.4826 * float(np.median(dr[ok])) * share_r, 1e-3 * fine / self._reach))
         odometry = np.array([project_planar(T) for T in odometry])
         self.verdicts = check_windows(frames.points, poses, odometry, noise, self._reach, fine,
                                       unjudged=self._weights.more_precise)
@@ -256,8 +257,14 @@ class IcpWarmStart:
             sr = 1.4826 * float(np.median(self._recent_r))
         else:
             st, sr = self._fine, self._fine / self._reach
+        share_t, share_r = self._odometry_share()
+        return max(st * share_t, floor), max(sr * share_r, floor / self._reach)
+
+    def _odometry_share(self) -> tuple[float, float]:
+        """The odometry's share of the spread of scan-vs-odometry differences (which hold the matches' noise too),
+        on translation (the larger of along and across) and on yaw: the square roots of the match weights."""
         w = np.sqrt(self._weights.weights)
-        return max(st * float(max(w[0], w[1])), floor), max(sr * float(w[2]), floor / self._reach)
+        return float(max(w[0], w[1])), float(w[2])
 
     def _odometry_weights(self, rmse: float) -> tuple[float, float]:
         """The odometry's information on one translation direction and on yaw, in the units of the point-to-line

@@ -8,10 +8,10 @@ end scans are the judge, where both ends see: the candidate (scan-matched or odo
 last scans of the window onto its first ones clearly better wins; where they cannot tell the two apart (a hall
 seen along its axis), the odometry does (the scans hold nothing there that the matches could have used), unless
 they lean towards the scan match (no evidence that scan matching drifted: the odometry can be the one that turned);
-where they see nothing in common (a turn on the spot), the source the match cycles found the more precise
-(:mod:`dm2_backend.algorithms.match_noise`). The odometry's increments replace the window's where it wins. Every
-window gets a :class:`WindowVerdict` (docs/decisions/0010-fused-warm-start-windows.md,
-docs/decisions/0015-scan-weights-from-match-cycles.md)."""
+where they see nothing in common (a turn on the spot), the source named ``unjudged`` (the scans by default; the
+fused warm start passes the one its match cycles found the more precise: :mod:`dm2_backend.algorithms.match_noise`).
+The odometry's increments replace the window's where it wins. Every window gets a :class:`WindowVerdict`
+(docs/decisions/0010-fused-warm-start-windows.md, docs/decisions/0015-scan-weights-from-match-cycles.md)."""
 
 from __future__ import annotations
 
