@@ -450,7 +450,7 @@ def test_only_the_voxels_with_cells_on_both_sides_are_grouped_again():
     ref = np.ones(len(cells))
     size = 0.8
     first = planes._voxel_planes(cells, todo, mean, frame_of, ref, poses, size)
-    back = planes._behind(todo, mean, frame_of, poses, first.candidate, first.vec[:, :, 0], first.inv, first.n)
+    back = planes._behind(todo, mean, frame_of, poses, first.candidate, first.normal, first.inv, first.n)
     assert 0 < back.sum() < len(back)  # the panel's two faces: some voxels hold both sides
     split = planes._split_sides(cells, todo, mean, frame_of, ref, poses, size, first, back)
     every = planes._voxel_planes(cells, todo, mean, frame_of, ref, poses, size, back)
@@ -459,7 +459,7 @@ def test_only_the_voxels_with_cells_on_both_sides_are_grouped_again():
 
     def planes_of(v):  # each candidate voxel as (its cells, normal up to sign, eigenvalues), in candidate order
         members = [tuple(np.flatnonzero(v.inv == c)) for c in v.candidate]
-        return members, np.abs(v.vec[:, :, 0]), v.lam
+        return members, np.abs(v.normal), v.lam
 
     got, want = planes_of(split), planes_of(every)
     order = sorted(range(len(want[0])), key=lambda k: want[0][k])

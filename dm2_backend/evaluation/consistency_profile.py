@@ -40,7 +40,17 @@ from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.report_writers import safe_name
 from dm2_backend.geometry.voxels import group_rows
 from dm2_backend.memory import release_freed_memory
-from dm2_backend.optim.planes import Assignment, Cells, Planes, assign, cells_from_scans, chunks, disagreement, fit
+from dm2_backend.optim.planes import (
+    Assignment,
+    Cells,
+    Planes,
+    assign,
+    cells_from_scans,
+    chunks,
+    disagreement,
+    fit,
+    placed_means,
+)
 from dm2_backend.progress import progress as progress_of
 from dm2_backend.scan_scale import derive_scale
 from dm2_backend.scans import ScanSequence
@@ -185,16 +195,24 @@ def _against(judged: Cells, placed: np.ndarray, a: Assignment, planes: Planes, t
     ``has_reference``. A point a jump moved out of its plane's voxel still finds that plane."""
     f = judged.frame.astype(np.int64)
     best = np.empty(len(judged))
-    for c in chunks(len(judged)):  # bounded temporaries: (chunk, NEAREST_PLANES, 3)
-        world = _placed(judged, placed, c) + shift[f[c]]
+    centre, normal = np.ascontiguousarray(a.centre.T), np.ascontiguousarray(planes.normal.T)
+    for c in chunks(len(judged)):  # bounded temporaries: a few (chunk,) arrays per neighbour
+        world = placed_means(judged, placed, c) + shift[f[c]]
         _, idx = tree.query(world, k=min(NEAREST_PLANES, a.voxels), distance_upper_bound=a.size.max())
         idx = idx.reshape(len(world), -1)
-        safe = np.where(idx < a.voxels, idx, 0)
-        # a plane reaches half its voxel's edge beyond the voxel (a shifted point still finds it, a patch
-        # elsewhere does not stand in for it)
-        found = (idx < a.voxels) & (np.abs(world[:, None, :] - a.centre[safe]).max(2) <= a.size[safe])
-        dist = np.abs((planes.normal[safe] * world[:, None, :]).sum(2) - planes.offset[safe])
-        best[c] = np.where(found, dist, np.inf).min(1)
+        x = np.ascontiguousarray(world.T)
+        nearest = np.full(len(world), np.inf)
+        for k in range(idx.shape[1]):
+            found = idx[:, k] < a.voxels
+            i = np.where(found, idx[:, k], 0)
+            size = a.size[i]
+            # a plane reaches half its voxel's edge beyond the voxel (a shifted point still finds it, a patch
+            # elsewhere does not stand in for it)
+            for axis in range(3):
+                found &= np.abs(x[axis] - centre[axis][i]) <= size
+            dist = np.abs(normal[0][i] * x[0] + normal[1][i] * x[1] + normal[2][i] * x[2] - planes.offset[i])
+            np.minimum(nearest, np.where(found, dist, np.inf), out=nearest)
+        best[c] = nearest
     on = np.isfinite(best)
     return _trimmed_rms(f[on], np.minimum(best[on], cap), judged.count.astype(np.float64)[on],
                         has_reference)
@@ -227,11 +245,11 @@ def _trimmed_rms(frame: np.ndarray, dist: np.ndarray, weight: np.ndarray, judged
     return out
 
 
-def _neighbour_views(cells: Cells, poses: np.ndarray, voxel: float, window: int, first: int = 0
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Each frame against the planes of the block of ``window`` frames before it (past) and after it (future),
-    all blocks' planes from one assignment; ``first``: the sequence's number of frame 0 here (blocks are counted
-    from the sequence's start)."""
+def _neighbour_views(cells: Cells, poses: np.ndarray, voxel: float, window: int, first: int = 0,
+                     scored: slice | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Each frame (of ``scored``, default all; NaN for the others) against the planes of the block of ``window``
+    frames before it (past) and after it (future), all blocks' planes from one assignment; ``first``: the
+    sequence's number of frame 0 here (blocks are counted from the sequence's start)."""
     n = len(poses)
     block = (np.arange(n) + first) // window
     reach = float(np.linalg.norm(cells.mean, axis=1).max()) if len(cells) else 0.0
@@ -243,6 +261,10 @@ def _neighbour_views(cells: Cells, poses: np.ndarray, voxel: float, window: int,
     planes = fit(a, placed)
     tree = cKDTree(a.centre)
     judged = _spread_subset(cells, JUDGED_CELLS)
+    if scored is not None:
+        keep = np.zeros(n, bool)
+        keep[scored] = True
+        judged = judged.of_frames(keep)
     own = _offset(block, far)
     cap = CAP * a.sigma
     past = _against(judged, placed, a, planes, tree, _offset(block - 1, far) - own, np.isin(block - 1, block), cap)
@@ -341,11 +363,13 @@ def _stretched_views(scans: ScanSequence, cells: Cells, full: bool, candidates: 
             dense = _cells(scans.subset(np.arange(a, b)), voxel, (b - a) * CELLS_PER_FRAME, seed + s, planar, False)
         judged = slice(s - a, e - a)
         for name, poses in candidates.items():
-            past, future = _neighbour_views(dense, poses[a:b], voxel, window_frames(poses, voxel), a)
+            past, future = _neighbour_views(dense, poses[a:b], voxel, window_frames(poses, voxel), a, judged)
             views[name]["past"][s:e], views[name]["future"][s:e] = past[judged], future[judged]
             mixed = cells if whole else _with_reach(dense, a, b, cells, keys[name], poses, voxel)
             assigned = assign(mixed, poses, voxel)
-            views[name]["all"][s:e] = _rms(disagreement(assigned, poses, CAP, bounded=True))[s:e]
+            scored = np.zeros(n, bool)
+            scored[s:e] = True
+            views[name]["all"][s:e] = _rms(disagreement(assigned, poses, CAP, bounded=True, judged=scored))[s:e]
             noise[name].append(assigned.sigma)
     return {name: (views[name], float(np.median(noise[name]))) for name in candidates}
 
@@ -367,13 +391,8 @@ def _voxel_keys(cells: Cells, poses: np.ndarray, voxel: float) -> np.ndarray:
     """The voxel (edge ``voxel``) of each cell's mean at ``poses``, (K,3) integers."""
     keys = np.empty((len(cells), 3), np.int64)
     for c in chunks(len(cells)):
-        keys[c] = np.floor(_placed(cells, poses, c) / voxel)
+        keys[c] = np.floor(placed_means(cells, poses, c) / voxel)
     return keys
-
-
-def _placed(cells: Cells, poses: np.ndarray, part: slice) -> np.ndarray:
-    f = cells.frame[part].astype(np.int64)
-    return (poses[f, :3, :3] @ cells.mean[part].astype(np.float64)[:, :, None])[:, :, 0] + poses[f, :3, 3]
 
 
 def _profile(views: dict[str, np.ndarray], noise: float, stamps: np.ndarray | None, voxel: float, window: int

@@ -31,6 +31,7 @@ from typing import Literal
 import numpy as np
 from scipy.sparse import bsr_matrix, csr_matrix
 
+from dm2_backend.geometry.symmetric3 import smallest_eigen
 from dm2_backend.geometry.voxels import flat_keys, group_rows
 from dm2_backend.progress import progress as progress_of
 from dm2_backend.scans import ScanSequence
@@ -274,30 +275,34 @@ def chunks(n: int) -> list[slice]:
 def _placed_sum(a: Assignment, poses: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
     """Each voxel's moment in the world (about its centre): the sum of its pairs' (V,4,4), in chunks; ``keep``
     (bool per pair): only those pairs."""
-    M = np.zeros((a.voxels, 4, 4))
+    M = np.zeros((a.voxels, 10))
     for c in chunks(len(a.frame)):
-        placed = _about(poses, a.frame[c], a.centre[a.voxel[c]], _expand(a.moment[c]))
-        M += _sum(a.voxel[c], placed if keep is None else placed * keep[c, None, None], a.voxels)
-    return M
+        placed = _about(poses, a.frame[c], a.centre[a.voxel[c]], a.moment[c])
+        M += _sum(a.voxel[c], placed if keep is None else placed * keep[c, None], a.voxels)
+    return _expand(M)
 
 
 def _moment_sums(cells: Cells, rows: np.ndarray, group: np.ndarray, n: int,
                  weight: np.ndarray | None = None) -> np.ndarray:
     """Sums by ``group`` (into ``n``) of the homogeneous moments [p 1]^T [p 1] (sensor frame) of cells ``rows``
-    (times ``weight``), as their 10 distinct entries (n,10) in the order of ``_UPPER``: one entry at a time, no
-    (K,10) array of every cell's moment."""
+    (times ``weight``), as their 10 distinct entries (n,10) in the order of ``_UPPER``: one entry at a time over
+    contiguous rows, no (K,10) array of every cell's moment."""
     N = cells.count[rows].astype(np.float64)
-    mu = cells.mean[rows].astype(np.float64)
-    scatter = cells.scatter[rows]
+    if weight is not None:
+        N *= weight
+    mu = np.ascontiguousarray(cells.mean[rows].T, dtype=np.float64)
+    scatter = np.ascontiguousarray(cells.scatter[rows].T)
+    weighted_mu = N * mu
     out = np.empty((n, 10))
     for j, (r, c) in enumerate(zip(*_UPPER, strict=True)):
         if r == 3:
             v = N
         elif c == 3:
-            v = N * mu[:, r]
+            v = weighted_mu[r]
         else:  # the scatter about the mean plus N mu_r mu_c
-            v = scatter[:, _SCATTER_AT[r, c]].astype(np.float64) + (N * mu[:, r]) * mu[:, c]
-        out[:, j] = np.bincount(group, v if weight is None else weight * v, minlength=n)
+            v = weighted_mu[r] * mu[c]
+            v += scatter[_SCATTER_AT[r, c]] if weight is None else weight * scatter[_SCATTER_AT[r, c]]
+        out[:, j] = np.bincount(group, v, minlength=n)
     return out
 
 
@@ -311,20 +316,55 @@ def _expand(flat: np.ndarray) -> np.ndarray:
     return np.take(flat, _FULL.ravel(), axis=1).reshape(-1, 4, 4)
 
 
-def _about(poses: np.ndarray, frame: np.ndarray, centre: np.ndarray, Q: np.ndarray) -> np.ndarray:
-    """Moments (P,4,4) of frames ``frame`` in the world, about the points ``centre`` (P,3): T Q T^T with
-    T = [R, t - centre] (no cancellation far from the origin)."""
-    T = poses[frame].copy()
-    T[:, :3, 3] -= centre
-    return T @ Q @ T.transpose(0, 2, 1)
+def _about(poses: np.ndarray, frame: np.ndarray, centre: np.ndarray, moment: np.ndarray) -> np.ndarray:
+    """Moments of frames ``frame`` in the world, about the points ``centre`` (P,3): T Q T^T with
+    T = [R, t - centre] (no cancellation far from the origin), from and to the 10 distinct entries (P,10) of the
+    moments (order of ``_UPPER``), one entry at a time over contiguous rows: with Q = [[S, b], [b^T, N]] and
+    u = t - centre the result is [[R S R^T + (R b) u^T + u (R b)^T + N u u^T, R b + N u], [., N]]."""
+    rows = np.ascontiguousarray(poses[:, :3, :].transpose(1, 2, 0))  # (3,4,frames): each entry's row
+    R = [[rows[i, j][frame] for j in range(3)] for i in range(3)]
+    c = np.ascontiguousarray(centre.T)
+    u = [rows[i, 3][frame] - c[i] for i in range(3)]
+    m = np.ascontiguousarray(moment.T)
+    S = [[m[_FULL[i, j]] for j in range(3)] for i in range(3)]
+    b = [m[_FULL[i, 3]] for i in range(3)]
+    N = m[9]
+    RS = [[R[i][0] * S[0][j] + R[i][1] * S[1][j] + R[i][2] * S[2][j] for j in range(3)] for i in range(3)]
+    Rb = [R[i][0] * b[0] + R[i][1] * b[1] + R[i][2] * b[2] for i in range(3)]
+    out = np.empty((10, len(moment)))
+    for j, (r, k) in enumerate(zip(*_UPPER, strict=True)):
+        if r == 3:
+            out[j] = N
+        elif k == 3:
+            out[j] = Rb[r] + N * u[r]
+        else:
+            out[j] = (RS[r][0] * R[k][0] + RS[r][1] * R[k][1] + RS[r][2] * R[k][2] + Rb[r] * u[k] + u[r] * Rb[k]
+                      + N * u[r] * u[k])
+    return out.T
 
 
 def _plane_of(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Count, mean (about the moments' origin), eigenvalues and eigenvectors of the scatter of moments M."""
+    """Count, mean (about the moments' origin), eigenvalues (ascending) and normal (the smallest eigenvalue's
+    eigenvector) of the scatter of moments M."""
     N = M[:, 3, 3]
     mu = M[:, :3, 3] / N[:, None]
-    lam, vec = np.linalg.eigh(M[:, :3, :3] / N[:, None, None] - mu[:, :, None] * mu[:, None, :])
-    return N, mu, lam, vec
+
+    def entry(i: int, j: int) -> np.ndarray:
+        return M[:, i, j] / N - mu[:, i] * mu[:, j]
+
+    lam, normal = smallest_eigen(entry(0, 0), entry(0, 1), entry(0, 2), entry(1, 1), entry(1, 2), entry(2, 2))
+    return N, mu, lam, normal
+
+
+def placed_means(cells: Cells, poses: np.ndarray, part: slice) -> np.ndarray:
+    """The means of cells ``part`` in the world at ``poses`` (k,3), a coordinate at a time over contiguous rows."""
+    f = cells.frame[part]
+    rows = np.ascontiguousarray(poses[:, :3, :].transpose(1, 2, 0))  # (3,4,frames): each entry's row
+    m = np.ascontiguousarray(cells.mean[part].T, dtype=np.float64)
+    out = np.empty((3, len(f)))
+    for i in range(3):
+        out[i] = rows[i, 0][f] * m[0] + rows[i, 1][f] * m[1] + rows[i, 2][f] * m[2] + rows[i, 3][f]
+    return out.T
 
 
 def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray | None = None,
@@ -338,8 +378,7 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
     levels = 1 + max(0, int(np.floor(np.log2(voxel / cells.size + 1e-9))))
     mean = np.empty((len(cells), 3))
     for c in chunks(len(cells)):
-        f = cells.frame[c]
-        mean[c] = (poses[f, :3, :3] @ cells.mean[c].astype(np.float64)[:, :, None])[:, :, 0] + poses[f, :3, 3]
+        mean[c] = placed_means(cells, poses, c)
     frame_of = cells.frame.astype(np.int64)
     todo = np.arange(len(cells))
     chosen, plane_ids, normals, offsets, centres, sizes = [], [], [], [], [], []
@@ -348,7 +387,8 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
         if len(todo) == 0:
             break
         size = voxel / 2**level
-        on, ids, normal, offset, centre = _flat_voxels(cells, todo, mean[todo], frame_of, ref_cell, poses, size)
+        on, ids, normal, offset, centre, hopeless = _flat_voxels(cells, todo, mean[todo], frame_of, ref_cell, poses,
+                                                                 size)
         chosen.append(todo[on])
         plane_ids.append(voxels + ids)
         normals.append(normal)
@@ -356,7 +396,7 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
         centres.append(centre)
         sizes.append(np.full(len(centre), size))
         voxels += len(centre)
-        todo = todo[~on]
+        todo = todo[~on & ~hopeless]
     cell = np.concatenate(chosen) if chosen else np.zeros(0, int)
     plane = np.concatenate(plane_ids) if plane_ids else np.zeros(0, int)
     normal = (np.concatenate(normals) if normals else np.zeros((0, 3)))[plane]
@@ -380,28 +420,33 @@ def _flat_voxels(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.
                  poses: np.ndarray, size: float) -> tuple[np.ndarray, ...]:
     """The flat voxels of edge ``size`` that cells ``todo`` (placed means ``mean``) fall in: which of the cells
     are on one (bool), the plane of each of those (numbered from 0), and per plane its normal, offset (world)
-    and voxel centre. A surface is seen from one side: the cells whose sensor lies behind their voxel's plane
-    (:func:`_behind`, from a first pass) are grouped apart (:func:`_split_sides`), so the two faces of a thin
-    panel seen from both sides (a chair's back, a door, a garden wall) are two planes, not one between them that
-    pulls the frames of either side towards the other. A function of its own: one level's arrays are released
+    and voxel centre, and which cells can lie on no plane of a smaller voxel (theirs has too few points or
+    frames: its parts have fewer). A surface is seen from one side: the cells whose sensor lies behind their
+    voxel's plane (:func:`_behind`, from a first pass) are grouped apart (:func:`_split_sides`), so the two faces
+    of a thin panel seen from both sides (a chair's back, a door, a garden wall) are two planes, not one between
+    them that pulls the frames of either side towards the other. A function of its own: one level's arrays are released
     before the next level's."""
     first = _voxel_planes(cells, todo, mean, frame_of, ref_cell, poses, size)
-    back = _behind(todo, mean, frame_of, poses, first.candidate, first.vec[:, :, 0], first.inv, first.n)
+    candidate = np.zeros(first.n, bool)
+    candidate[first.candidate] = True
+    hopeless = ~candidate[first.inv]
+    back = _behind(todo, mean, frame_of, poses, first.candidate, first.normal, first.inv, first.n)
     v = _split_sides(cells, todo, mean, frame_of, ref_cell, poses, size, first, back)
-    del first, back
+    del first, back, candidate
     is_flat = (v.lam[:, 0] < FLATNESS * v.lam[:, 1]) & (v.lam[:, 1] >= (MIN_WIDTH * size) ** 2)
     flat = np.zeros(v.n, bool)
     flat[v.candidate[is_flat]] = True
     on = flat[v.inv]
-    normal = v.vec[is_flat, :, 0]
+    normal = v.normal[is_flat]
     centre = v.centre[flat]
-    return on, (np.cumsum(flat) - 1)[v.inv[on]], normal, (normal * (v.mu[is_flat] + centre)).sum(1), centre
+    return (on, (np.cumsum(flat) - 1)[v.inv[on]], normal, (normal * (v.mu[is_flat] + centre)).sum(1), centre,
+            hopeless)
 
 
 @dataclass
 class _VoxelPlanes:
     """The voxels of one level: each cell's voxel ``inv``, their number ``n`` and centres, the candidates for a
-    plane (ascending voxel numbers) and those candidates' mean (about the centre), eigenvalues and eigenvectors."""
+    plane (ascending voxel numbers) and those candidates' mean (about the centre), eigenvalues and normal."""
 
     inv: np.ndarray
     n: int
@@ -409,7 +454,7 @@ class _VoxelPlanes:
     candidate: np.ndarray
     mu: np.ndarray
     lam: np.ndarray
-    vec: np.ndarray
+    normal: np.ndarray
 
 
 def _split_sides(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.ndarray, ref_cell: np.ndarray,
@@ -430,7 +475,7 @@ def _split_sides(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.
     return _VoxelPlanes(inv, kept + second.n, np.concatenate([first.centre[keep], second.centre]),
                         np.concatenate([number[first.candidate[stays]], kept + second.candidate]),
                         *(np.concatenate([a[stays], b]) for a, b in ((first.mu, second.mu), (first.lam, second.lam),
-                                                                     (first.vec, second.vec))))
+                                                                     (first.normal, second.normal))))
 
 
 def _voxel_planes(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.ndarray, ref_cell: np.ndarray,
@@ -452,8 +497,8 @@ def _voxel_planes(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np
     del level_pairs
     several = np.bincount(pair_voxel, ref_cell[todo][first], minlength=n) >= 2  # seen by two frames or more
     candidate = np.flatnonzero((M[:, 3, 3] >= MIN_POINTS) & several)  # (no reference frame's point: N = 0)
-    _, mu, lam, vec = _plane_of(M[candidate])
-    return _VoxelPlanes(inv, n, level_centre, candidate, mu, lam, vec)
+    _, mu, lam, normal = _plane_of(M[candidate])
+    return _VoxelPlanes(inv, n, level_centre, candidate, mu, lam, normal)
 
 
 def _behind(todo: np.ndarray, mean: np.ndarray, frame_of: np.ndarray, poses: np.ndarray, candidate: np.ndarray,
@@ -470,8 +515,7 @@ def _behind(todo: np.ndarray, mean: np.ndarray, frame_of: np.ndarray, poses: np.
 
 def fit(a: Assignment, poses: np.ndarray) -> Planes:
     """The best plane of each voxel at ``poses`` (smallest eigenvector of its points' scatter) and its cost."""
-    N, mu, lam, vec = _plane_of(_placed_sum(a, poses))
-    normal = vec[:, :, 0]
+    N, mu, lam, normal = _plane_of(_placed_sum(a, poses))
     return Planes(normal, (normal * (mu + a.centre)).sum(1), N * np.maximum(lam[:, 0], 0.0))
 
 
@@ -592,28 +636,38 @@ def _across(normal: np.ndarray) -> np.ndarray:
 
 
 def disagreement(a: Assignment, poses: np.ndarray, cap: float = KERNEL,
-                 reference: np.ndarray | None = None, bounded: bool = False) -> np.ndarray:
+                 reference: np.ndarray | None = None, bounded: bool = False,
+                 judged: np.ndarray | None = None) -> np.ndarray:
     """Per frame, the mean squared distance (m^2) of its points on planes to the plane the *other* frames make
     in the same voxel (leave-one-out: a frame is judged by the map the others make, never by its own points),
-    each (frame, voxel) pair capped at ``cap`` noise sigmas; NaN for a frame with no point on a plane.
-    ``reference`` (bool per frame, default all): the planes are made by those frames only. ``bounded``: the
-    robust-weighted squared distances over all the frame's points (each point adds at most the kernel's
-    width squared), instead of the weighted mean (where far points hardly count)."""
+    each (frame, voxel) pair capped at ``cap`` noise sigmas; NaN for a frame with no point on such a plane. The
+    others make a plane where their points spread over ``MIN_WIDTH`` of the voxel across two directions, as a
+    flat voxel's must: a line or a point (one cell of one other frame) has no normal to measure along.
+    ``reference`` (bool per frame, default all):
+    the planes are made by those frames only. ``bounded``: the robust-weighted squared distances over all the
+    frame's points (each point adds at most the kernel's width squared), instead of the weighted mean (where far
+    points hardly count). ``judged`` (bool per frame, default all): only those frames are scored (NaN for the
+    others), all still make the planes."""
     ref_pair = np.ones(len(a.frame), bool) if reference is None else reference[a.frame]
     total = _placed_sum(a, poses, None if reference is None else ref_pair)
     frames = int(poses.shape[0])
     sq_sum, own_sum = np.zeros(frames), np.zeros(frames)
-    for c in chunks(len(a.frame)):
-        M_pair = _about(poses, a.frame[c], a.centre[a.voxel[c]], _expand(a.moment[c]))
-        rest = total[a.voxel[c]] - M_pair * ref_pair[c, None, None]
+    pairs = np.arange(len(a.frame)) if judged is None else np.flatnonzero(judged[a.frame])
+    for c in chunks(len(pairs)):
+        p = pairs[c]
+        frame, voxel = a.frame[p], a.voxel[p]
+        M_pair = _expand(_about(poses, frame, a.centre[voxel], a.moment[p]))
+        rest = total[voxel] - M_pair * ref_pair[p, None, None]
         keep = rest[:, 3, 3] > 0
-        N, mu, _, vec = _plane_of(np.where(keep[:, None, None], rest, np.eye(4)))
-        u = np.concatenate([vec[:, :, 0], -(vec[:, :, 0] * mu).sum(1)[:, None]], 1)  # n . x - n . mu, centred
+        N, mu, lam, normal = _plane_of(np.where(keep[:, None, None], rest, np.eye(4)))
+        if a.size is not None:  # the others' points spread across the voxel: a line or a point has no normal
+            keep &= lam[:, 1] >= (MIN_WIDTH * a.size[voxel]) ** 2
+        u = np.concatenate([normal, -(normal * mu).sum(1)[:, None]], 1)  # n . x - n . mu, centred
         own = M_pair[:, 3, 3]
         sq = np.einsum("pi,pij,pj->p", u, M_pair, u)
         sq = np.minimum(np.maximum(sq, 0.0), own * (cap * a.sigma) ** 2) * keep
-        sq_sum += np.bincount(a.frame[c], sq, minlength=frames)
-        own_sum += np.bincount(a.frame[c], (a.points[c] if bounded else own) * keep, minlength=frames)
+        sq_sum += np.bincount(frame, sq, minlength=frames)
+        own_sum += np.bincount(frame, (a.points[p] if bounded else own) * keep, minlength=frames)
     with np.errstate(invalid="ignore", divide="ignore"):
         return sq_sum / own_sum
 
