@@ -196,22 +196,21 @@ def _against(judged: Cells, placed: np.ndarray, a: Assignment, planes: Planes, t
     f = judged.frame.astype(np.int64)
     best = np.empty(len(judged))
     centre, normal = np.ascontiguousarray(a.centre.T), np.ascontiguousarray(planes.normal.T)
-    for c in chunks(len(judged)):  # bounded temporaries: a few (chunk,) arrays per neighbour
+    for c in chunks(len(judged)):  # bounded temporaries: a few (NEAREST_PLANES, chunk) arrays
         world = placed_means(judged, placed, c) + shift[f[c]]
         _, idx = tree.query(world, k=min(NEAREST_PLANES, a.voxels), distance_upper_bound=a.size.max())
         idx = idx.reshape(len(world), -1)
-        x = np.ascontiguousarray(world.T)
-        nearest = np.full(len(world), np.inf)
-        for k in range(idx.shape[1]):
-            found = idx[:, k] < a.voxels
-            i = np.where(found, idx[:, k], 0)
-            size = a.size[i]
-            # a plane reaches half its voxel's edge beyond the voxel (a shifted point still finds it, a patch
-            # elsewhere does not stand in for it)
-            for axis in range(3):
-                found &= np.abs(x[axis] - centre[axis][i]) <= size
-            dist = np.abs(normal[0][i] * x[0] + normal[1][i] * x[1] + normal[2][i] * x[2] - planes.offset[i])
-            np.minimum(nearest, np.where(found, dist, np.inf), out=nearest)
+        x = np.ascontiguousarray(world.T)[:, None, :]  # (3,1,m) against (k,m) neighbours
+        idx = np.ascontiguousarray(idx.T)
+        found = idx < a.voxels
+        i = np.where(found, idx, 0)
+        size = a.size[i]
+        # a plane reaches half its voxel's edge beyond the voxel (a shifted point still finds it, a patch
+        # elsewhere does not stand in for it)
+        for axis in range(3):
+            found &= np.abs(x[axis] - centre[axis][i]) <= size
+        dist = np.abs(normal[0][i] * x[0] + normal[1][i] * x[1] + normal[2][i] * x[2] - planes.offset[i])
+        nearest = np.where(found, dist, np.inf).min(0)
         best[c] = nearest
     on = np.isfinite(best)
     return _trimmed_rms(f[on], np.minimum(best[on], cap), judged.count.astype(np.float64)[on],
