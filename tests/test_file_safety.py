@@ -212,3 +212,32 @@ def test_baseline_graph_never_writes_over_its_graph_or_the_root(tmp_path):
     one_line_error(run("baseline", "gtsam", "--graph", copy, "--out", copy.parent, "--force"), str(copy.parent))
     one_line_error(run("baseline", "gtsam", "--graph", copy, "--out", "/"), "root or home")
     assert copy.read_bytes() == graph.read_bytes()
+
+
+@pytest.mark.parametrize("craft", ["a pickle", "rotations scaled by 1000", "NaN poses", "a header claiming 10^11 poses",
+                                   "one pose as 3x3"])
+def test_dm2_map_refuses_a_crafted_poses_file_in_one_line(seq, tmp_path, craft):
+    """A run folder someone sent: its ``poses.npy`` is read like any input (bounded, numeric, finite, rigid)."""
+    import numpy as np
+
+    out = tmp_path / "R"
+    assert refine(seq, "--out", str(out), "--no-cache").exit_code == 0
+    poses = np.load(out / "poses.npy")
+    target = out / "poses.npy"
+    if craft == "a pickle":
+        np.save(target, np.array([{"x": 1}], dtype=object), allow_pickle=True)
+    elif craft == "rotations scaled by 1000":
+        poses[:, :3, :3] *= 1000.0
+        np.save(target, poses)
+    elif craft == "NaN poses":
+        poses[3] = np.nan
+        np.save(target, poses)
+    elif craft == "a header claiming 10^11 poses":
+        data = _npy(poses)
+        target.write_bytes(data.replace(f"({len(poses)}, 4, 4)".encode(), b"(100000000000, 4, 4)", 1))
+    else:
+        np.save(target, poses[:, :3, :3])
+    before = {p: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    one_line_error(run("map", str(out), "--scans", str(seq / "velodyne"), "--times", str(seq / "times.txt")),
+                   "poses.npy")
+    assert {p: p.read_bytes() for p in out.iterdir() if p.is_file()} == before

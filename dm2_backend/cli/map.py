@@ -5,7 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
-import numpy as np
 
 from dm2_backend.cli.options import (
     calib_option,
@@ -38,11 +37,12 @@ def scan_options(f):
 def run_trajectory(run: Path):
     """The run's final poses (``poses.npy``) with the timestamps of ``poses_tum.txt`` when it has one."""
     from dm2_backend.formats import read_trajectory
+    from dm2_backend.formats.poses_npy import read_poses_npy
     from dm2_backend.trajectory import Trajectory
 
     if not (run / "poses.npy").exists():
         raise InputError(run, "not a dm2 run folder (no poses.npy)")
-    poses = np.load(run / "poses.npy")
+    poses = read_poses_npy(run / "poses.npy").poses  # input like any other: bounded, rigid, finite
     stamps = None
     if (run / "poses_tum.txt").exists():
         tum = read_trajectory(run / "poses_tum.txt", "tum")

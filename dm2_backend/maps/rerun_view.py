@@ -25,6 +25,7 @@ import numpy as np
 
 from dm2_backend.atomic import atomic_path
 from dm2_backend.errors import InputError
+from dm2_backend.formats.poses_npy import read_poses_npy
 from dm2_backend.maps import occupancy_grid, run_maps
 from dm2_backend.maps.octomap_export import MissingExtra
 from dm2_backend.scans import ScanSequence
@@ -66,8 +67,8 @@ def write_recording(run: Path, rrd: Path, scans: ScanSequence | None = None, gt:
     run = Path(run)
     if not (run / "poses.npy").exists():
         raise InputError(run, "not a dm2 run folder (no poses.npy)")
-    final = np.load(run / "poses.npy")
-    warm = np.load(run / "warm_start.npy") if (run / "warm_start.npy").exists() else None
+    final = read_poses_npy(run / "poses.npy").poses  # input like any other: bounded, rigid, finite
+    warm = read_poses_npy(run / "warm_start.npy").poses if (run / "warm_start.npy").exists() else None
     report = _json(run / "report.json")
     planar = bool(report.get("planar", scans.planar if scans is not None else False))
     errors = None
