@@ -241,3 +241,31 @@ def test_dm2_map_refuses_a_crafted_poses_file_in_one_line(seq, tmp_path, craft):
     one_line_error(run("map", str(out), "--scans", str(seq / "velodyne"), "--times", str(seq / "times.txt")),
                    "poses.npy")
     assert {p: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
+
+
+@pytest.mark.parametrize("which", ["checkpoint.pt", "checkpoint-dense.npz"])
+def test_a_crafted_checkpoint_is_refused_before_the_preparation(seq, tmp_path, monkeypatch, which):
+    """``--resume`` reads the run folder's checkpoints before the long work: a damaged one is one line and the
+    preparation never starts."""
+    import numpy as np
+    import torch
+
+    from dm2_backend.optim.checkpoint import plain_state
+    from dm2_backend.pipeline import parallel
+
+    out = tmp_path / "R"
+    assert refine(seq, "--out", str(out), "--no-cache").exit_code == 0
+    poses = np.tile(np.eye(4), (12, 1, 1))
+    poses[:, :3, :3] *= 1000  # not rigid motions
+    if which == "checkpoint.pt":
+        torch.save(plain_state({"best": {"poses": poses}, "history": [], "epoch": 0}), out / which)
+    else:
+        _dense_checkpoint(out / which, {"poses.npy": _npy(poses), "start.npy": _npy(np.tile(np.eye(4), (12, 1, 1))),
+                                        "meta.npy": _npy(np.array('{"rounds_done": 1, "damping": 1e-4, '
+                                                                  '"history": [], "stopped": ""}'))})
+
+    def never(*args, **kwargs):
+        raise AssertionError("the preparation started")
+
+    monkeypatch.setattr(parallel, "prepare_once", never)
+    one_line_error(refine(seq, "--out", str(out), "--no-cache", "--resume"), which, "rigid")

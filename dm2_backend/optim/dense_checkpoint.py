@@ -62,7 +62,25 @@ def save(path: Path, state: DenseState, start: np.ndarray) -> None:
 def load(path: Path, start: np.ndarray, rounds: int) -> DenseState:
     """The state in ``path`` for a run from ``start`` of at most ``rounds`` rounds; :class:`InputError` (one
     line naming the file) when it is not one."""
-    frames = len(start)
+    poses, made_from, meta = _read(path, len(start))
+    try:
+        return _checked(poses, made_from, meta, start, rounds)
+    except (TypeError, ValueError, KeyError, OverflowError) as exc:
+        raise InputError(path, f"--resume: this dense-stage checkpoint does not fit this run: {exc}") from None
+
+
+def check(path: Path, frames: int, rounds: int) -> None:
+    """``path`` checked as :func:`load` checks it, before the start poses are known (before the preparation):
+    a run of ``frames`` frames and at most ``rounds`` rounds, from whichever start it records."""
+    poses, made_from, meta = _read(path, frames)
+    try:
+        _checked(poses, made_from, meta, made_from, rounds)
+    except (TypeError, ValueError, KeyError, OverflowError) as exc:
+        raise InputError(path, f"--resume: this dense-stage checkpoint does not fit this run: {exc}") from None
+
+
+def _read(path: Path, frames: int) -> tuple[np.ndarray, np.ndarray, object]:
+    """The poses, start poses and record of the checkpoint of ``frames`` frames in ``path``, bounded."""
     limit = FIXED_BYTES + BYTES_PER_FRAME * frames
     try:
         size = path.stat().st_size
@@ -75,10 +93,7 @@ def load(path: Path, start: np.ndarray, rounds: int) -> DenseState:
     except (OSError, ValueError, KeyError, EOFError, RecursionError, zipfile.BadZipFile, zlib.error,
             NotImplementedError, RuntimeError) as exc:
         raise InputError(path, f"not a dm2 dense-stage checkpoint, or a damaged one ({str(exc)[:160]})") from None
-    try:
-        return _checked(poses, made_from, meta, start, rounds)
-    except (TypeError, ValueError, KeyError, OverflowError) as exc:
-        raise InputError(path, f"--resume: this dense-stage checkpoint does not fit this run: {exc}") from None
+    return poses, made_from, meta
 
 
 def _members(path: Path, limit: int, shapes: dict[str, tuple[int, ...]]) -> dict[str, np.ndarray]:

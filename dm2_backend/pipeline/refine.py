@@ -9,7 +9,8 @@ from pathlib import Path
 
 from dm2_backend.config_schema import RunConfig
 from dm2_backend.memory import release_mapped
-from dm2_backend.optim import distributed
+from dm2_backend.optim import dense_checkpoint, distributed
+from dm2_backend.optim.checkpoint import CHECKPOINT, load_checkpoint
 from dm2_backend.pipeline import parallel
 from dm2_backend.pipeline.inputs import RunInputs
 from dm2_backend.pipeline.live import live_metric
@@ -20,6 +21,15 @@ from dm2_backend.pipeline.start import DenseCells, choose_start, dense_start
 log = logging.getLogger(__name__)
 
 
+def check_checkpoints(out: Path, frames: int, rounds: int) -> None:
+    """The run folder's checkpoints read and checked as the stages will read them (bounded before decoding,
+    ``frames`` finite rigid poses, a plausible epoch or round count): :class:`InputError` naming the file."""
+    if (out / dense_checkpoint.DENSE_CHECKPOINT).is_file():
+        dense_checkpoint.check(out / dense_checkpoint.DENSE_CHECKPOINT, frames, rounds)
+    if (out / CHECKPOINT).is_file():
+        load_checkpoint(out / CHECKPOINT, "cpu", frames)
+
+
 def refine(inputs: RunInputs, cfg: RunConfig, out: Path, cache_dir: Path | None, resume: bool = False,
            progress: bool = True, started: float | None = None) -> RunReport | None:
     """Run the whole pipeline; returns the report (also written to ``out/report.json``); ``started``: when the
@@ -28,6 +38,8 @@ def refine(inputs: RunInputs, cfg: RunConfig, out: Path, cache_dir: Path | None,
     process is one rank, and ranks other than 0 return None (they write nothing)."""
     t_start = time.perf_counter()
     stamps = output_timestamps(inputs)
+    if resume:  # a damaged or foreign checkpoint is one line now, not after the preparation
+        check_checkpoints(out, len(inputs.scans), cfg.optimiser.dense_rounds)
     with parallel.session(cfg.nproc, cache_dir, cfg.device) as sess:
         lead = sess.dist.rank == 0
         if lead:
