@@ -107,6 +107,23 @@ def test_a_sequence_longer_than_the_cell_budget_is_judged_a_stretch_at_a_time(mo
         assert hit and false == 0, (p.segments, false)
 
 
+def test_the_sets_of_poses_judged_side_by_side_score_as_one_after_the_other(monkeypatch):
+    """Two sets of poses on two threads, sharing a budget of 16 frames' cells, score exactly as on one thread
+    with 8 frames' cells for one set at a time (the same stretches)."""
+    _, seq, gt = street()
+    candidates = {"truth": gt, "jump": jump_from(gt, 40)}
+    monkeypatch.setattr(cp, "MAX_CELLS", 16 * cp.CELLS_PER_FRAME)
+    monkeypatch.setattr(cp, "WORKERS", 2)
+    side_by_side = cp.consistency_profiles(seq, candidates, seq.timestamps)
+    monkeypatch.setattr(cp, "MAX_CELLS", 8 * cp.CELLS_PER_FRAME)
+    monkeypatch.setattr(cp, "WORKERS", 1)
+    in_turn = cp.consistency_profiles(seq, candidates, seq.timestamps)
+    for name in candidates:
+        for view in ("all", "past", "future"):
+            np.testing.assert_array_equal(side_by_side[name].views_m[view], in_turn[name].views_m[view])
+        assert side_by_side[name].noise_m == in_turn[name].noise_m
+
+
 def test_a_wrong_loop_closure_forced_into_a_pose_graph_is_flagged_where_it_bent_the_path():
     """The street's pose graph from the truth (odometry and every pair within 3 m) plus one closure between
     frames 2 and 53 that claims 1 m and 5 degrees more than the truth: gtsam bends both ends."""

@@ -15,7 +15,8 @@ A frame needs its cells at full density (``CELLS_PER_FRAME``) for its score to m
 frame make a true frame's score noise): the scans are summed into cells once while ``ONE_PASS_CELLS`` hold them
 (a longer sequence keeps sparse cells for the far frames and is read again a stretch at a time), and a sequence
 longer than ``MAX_CELLS`` cells is judged a stretch of frames at a time (:func:`_stretched_views`), so memory stays
-bounded and every frame is judged as in a short sequence.
+bounded and every frame is judged as in a short sequence. The sets of poses (the warm start and the result) are
+judged side by side on ``WORKERS`` threads, which share that budget.
 
 Segments scoring above the flag threshold are flagged with their frame and time ranges: ``RATIO`` times the
 level of the sequence's agreeing frames (its lower quartile), and at least ``FLOOR`` times the noise the planes
@@ -29,7 +30,9 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +58,7 @@ from dm2_backend.progress import progress as progress_of
 from dm2_backend.scan_scale import derive_scale
 from dm2_backend.scans import ScanSequence
 from dm2_backend.stages import ScanScale
+from dm2_backend.threads import ordered_map
 
 #: a frame's points may lie this many noise sigmas from the others' planes before their distance is capped
 #: (a wrong frame scores high, one stray object cannot dominate it)
@@ -74,11 +78,13 @@ TRIM = 0.2
 JUDGED_CELLS = 1024
 #: flagged frames this close (frames) are one segment
 GAP = 2
-#: the cells kept per frame (as the dense stage keeps them) and in one stretch of frames
+#: the cells kept per frame (as the dense stage keeps them), and in the stretches of frames judged at once
 CELLS_PER_FRAME, MAX_CELLS = 2048, 1_500_000
 #: a sequence whose cells at full density fit this many is summed into cells once (about 45 bytes a cell and 24
 #: more a profiled trajectory); a longer one keeps ``MAX_CELLS`` for the far frames and reads each stretch again
 ONE_PASS_CELLS = 6_000_000
+#: sets of poses judged at once, each on a thread of its own
+WORKERS = min(2, os.cpu_count() or 1)
 
 
 
@@ -342,9 +348,11 @@ def _stretched_views(scans: ScanSequence, cells: Cells, full: bool, candidates: 
     frames only, and each stretch's scans are read again (fewer cells a frame make a true frame's score noise)."""
     n = len(scans)
     margin = 2 * max(window_frames(poses, voxel) for poses in candidates.values())
-    stretch_cells = MAX_CELLS if full else MAX_CELLS // 2  # with the sparse cells: one budget
-    length = max(stretch_cells // CELLS_PER_FRAME - 2 * margin, 2 * margin)
-    whole = length >= n
+    budget = MAX_CELLS if full else MAX_CELLS // 2  # with the sparse cells: one budget
+    workers = min(len(candidates), WORKERS)
+    whole = n * CELLS_PER_FRAME <= budget
+    # the sets of poses judged at once share the budget
+    length = n if whole else max(budget // workers // CELLS_PER_FRAME - 2 * margin, 2 * margin)
     views = {name: {view: np.full(n, np.nan) for view in ("all", "past", "future")} for name in candidates}
     noise: dict[str, list[float]] = {name: [] for name in candidates}
     keys = {} if whole else {name: _voxel_keys(cells, poses, voxel) for name, poses in candidates.items()}
@@ -360,17 +368,32 @@ def _stretched_views(scans: ScanSequence, cells: Cells, full: bool, candidates: 
                           cells.size)
         else:
             dense = _cells(scans.subset(np.arange(a, b)), voxel, (b - a) * CELLS_PER_FRAME, seed + s, planar, False)
-        judged = slice(s - a, e - a)
-        for name, poses in candidates.items():
-            past, future = _neighbour_views(dense, poses[a:b], voxel, window_frames(poses, voxel), a, judged)
-            views[name]["past"][s:e], views[name]["future"][s:e] = past[judged], future[judged]
-            mixed = cells if whole else _with_reach(dense, a, b, cells, keys[name], poses, voxel)
-            assigned = assign(mixed, poses, voxel)
-            scored = np.zeros(n, bool)
-            scored[s:e] = True
-            views[name]["all"][s:e] = _rms(disagreement(assigned, poses, CAP, bounded=True, judged=scored))[s:e]
-            noise[name].append(assigned.sigma)
+        judge = partial(_judge_stretch, dense=dense, cells=cells, whole=whole, keys=keys, frames=(a, b),
+                        judged=(s, e), voxel=voxel)
+        # the sets of poses side by side (numpy's sorts, ufuncs and the KD-tree release the GIL)
+        for name, past, future, every, sigma in ordered_map(judge, candidates.items(), workers=workers):
+            views[name]["past"][s:e], views[name]["future"][s:e], views[name]["all"][s:e] = past, future, every
+            noise[name].append(sigma)
     return {name: (views[name], float(np.median(noise[name]))) for name in candidates}
+
+
+def _judge_stretch(candidate: tuple[str, np.ndarray], dense: Cells, cells: Cells, whole: bool,
+                   keys: dict[str, np.ndarray], frames: tuple[int, int], judged: tuple[int, int], voxel: float
+                   ) -> tuple[str, np.ndarray, np.ndarray, np.ndarray, float]:
+    """One set of poses over one stretch (:func:`_stretched_views`): frames ``frames`` (a, b) in ``dense``,
+    those of ``judged`` (s, e) scored against the map of ``cells`` (all of them when the stretch is the
+    ``whole`` sequence, else those within its reach, by their voxel ``keys``). Its name, the past, future and
+    all views of the judged frames, and the noise its planes measure."""
+    name, poses = candidate
+    (a, b), (s, e) = frames, judged
+    local = slice(s - a, e - a)
+    past, future = _neighbour_views(dense, poses[a:b], voxel, window_frames(poses, voxel), a, local)
+    mixed = cells if whole else _with_reach(dense, a, b, cells, keys[name], poses, voxel)
+    assigned = assign(mixed, poses, voxel)
+    scored = np.zeros(len(poses), bool)
+    scored[s:e] = True
+    every = _rms(disagreement(assigned, poses, CAP, bounded=True, judged=scored))
+    return name, past[local], future[local], every[s:e], assigned.sigma
 
 
 def _with_reach(dense: Cells, a: int, b: int, others: Cells, other_keys: np.ndarray, poses: np.ndarray,
