@@ -277,3 +277,30 @@ def test_the_console_line_counts_the_stretches_and_names_the_worst_few():
     assert "6 flagged stretches (18 frames)" in text
     assert "50-52 peak 0.06 m at 51" in text and "0-2" not in text  # the worst first, the mildest left out
     assert text.count(" peak ") == cp.NAMED and "the other 3 in consistency.csv" in text
+
+
+@pytest.mark.parametrize("where", ["near the origin", "at UTM coordinates", "spread over 10,000 km"])
+def test_the_cells_within_a_stretchs_reach_are_those_its_voxels_share(where):
+    """The index of the other frames' cells by voxel gives exactly the cells of the voxels a stretch occupies
+    (as grouping every key with the stretch's), in order, wherever the poses lie."""
+    from dm2_backend.geometry.voxels import group_rows
+    from dm2_backend.optim.planes import Cells
+
+    rng = np.random.default_rng(0)
+    n, k = 40, 5000
+    cells = Cells(np.sort(rng.integers(0, n, k)).astype(np.int32), np.ones(k, np.float32),
+                  (rng.normal(size=(k, 3)) * 5).astype(np.float32), np.zeros((k, 6), np.float32), 0.25)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, :3, 3] = rng.normal(size=(n, 3)) * (1e7 if where.startswith("spread") else 3.0)
+    if where == "at UTM coordinates":
+        poses[:, :3, 3] += [5.4e5, 5.3e6, 300.0]
+    a, b = 10, 20
+    stretch = cells.of_frames((np.arange(n) >= a) & (np.arange(n) < b))
+    local = Cells(stretch.frame - np.int32(a), stretch.count, stretch.mean, stretch.scatter, stretch.size)
+    got = cp._with_reach(local, a, b, cells, cp._Reach.of(cells, poses, 1.0), poses, 1.0)
+    other = (cells.frame < a) | (cells.frame >= b)
+    inv, _ = group_rows(np.concatenate([cp._voxel_keys(stretch, poses, 1.0), cp._voxel_keys(cells, poses, 1.0)[other]]))
+    near = np.flatnonzero(other)[np.isin(inv[len(stretch):], inv[:len(stretch)])]
+    assert np.array_equal(got.frame, np.concatenate([stretch.frame, cells.frame[near]]))
+    assert np.array_equal(got.mean, np.concatenate([stretch.mean, cells.mean[near]]))
+    assert where.startswith("spread") or len(near) > 0

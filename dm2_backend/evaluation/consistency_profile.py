@@ -355,7 +355,7 @@ def _stretched_views(scans: ScanSequence, cells: Cells, full: bool, candidates: 
     length = n if whole else max(budget // workers // CELLS_PER_FRAME - 2 * margin, 2 * margin)
     views = {name: {view: np.full(n, np.nan) for view in ("all", "past", "future")} for name in candidates}
     noise: dict[str, list[float]] = {name: [] for name in candidates}
-    keys = {} if whole else {name: _voxel_keys(cells, poses, voxel) for name, poses in candidates.items()}
+    reach = {} if whole else {name: _Reach.of(cells, poses, voxel) for name, poses in candidates.items()}
     bounds = np.searchsorted(cells.frame, np.arange(n + 1))  # cells are in frame order
     for s in progress_of(range(0, n, length), "profile stretches", total=-(-n // length), unit="stretch",
                          enabled=progress and not whole):
@@ -368,7 +368,7 @@ def _stretched_views(scans: ScanSequence, cells: Cells, full: bool, candidates: 
                           cells.size)
         else:
             dense = _cells(scans.subset(np.arange(a, b)), voxel, (b - a) * CELLS_PER_FRAME, seed + s, planar, False)
-        judge = partial(_judge_stretch, dense=dense, cells=cells, whole=whole, keys=keys, frames=(a, b),
+        judge = partial(_judge_stretch, dense=dense, cells=cells, whole=whole, reach=reach, frames=(a, b),
                         judged=(s, e), voxel=voxel)
         # the sets of poses side by side (numpy's sorts, ufuncs and the KD-tree release the GIL)
         for name, past, future, every, sigma in ordered_map(judge, candidates.items(), workers=workers):
@@ -378,17 +378,17 @@ def _stretched_views(scans: ScanSequence, cells: Cells, full: bool, candidates: 
 
 
 def _judge_stretch(candidate: tuple[str, np.ndarray], dense: Cells, cells: Cells, whole: bool,
-                   keys: dict[str, np.ndarray], frames: tuple[int, int], judged: tuple[int, int], voxel: float
+                   reach: dict[str, _Reach], frames: tuple[int, int], judged: tuple[int, int], voxel: float
                    ) -> tuple[str, np.ndarray, np.ndarray, np.ndarray, float]:
     """One set of poses over one stretch (:func:`_stretched_views`): frames ``frames`` (a, b) in ``dense``,
     those of ``judged`` (s, e) scored against the map of ``cells`` (all of them when the stretch is the
-    ``whole`` sequence, else those within its reach, by their voxel ``keys``). Its name, the past, future and
+    ``whole`` sequence, else those within its ``reach``). Its name, the past, future and
     all views of the judged frames, and the noise its planes measure."""
     name, poses = candidate
     (a, b), (s, e) = frames, judged
     local = slice(s - a, e - a)
     past, future = _neighbour_views(dense, poses[a:b], voxel, window_frames(poses, voxel), a, local)
-    mixed = cells if whole else _with_reach(dense, a, b, cells, keys[name], poses, voxel)
+    mixed = cells if whole else _with_reach(dense, a, b, cells, reach[name], poses, voxel)
     assigned = assign(mixed, poses, voxel)
     scored = np.zeros(len(poses), bool)
     scored[s:e] = True
@@ -396,15 +396,59 @@ def _judge_stretch(candidate: tuple[str, np.ndarray], dense: Cells, cells: Cells
     return name, past[local], future[local], every[s:e], assigned.sigma
 
 
-def _with_reach(dense: Cells, a: int, b: int, others: Cells, other_keys: np.ndarray, poses: np.ndarray,
+@dataclass(frozen=True)
+class _Reach:
+    """Cells sorted by the voxel they fall in at some poses (one int64 key a voxel, ``BITS`` bits an axis from
+    ``low``): the cells of any set of voxels by binary search, without sorting them all again. Cells spread over
+    more voxels than the keys span keep their (K,3) voxels in ``key`` (``order`` None) and are matched by sorting."""
+
+    low: np.ndarray | None
+    key: np.ndarray
+    order: np.ndarray | None
+
+    BITS = 21
+
+    @classmethod
+    def of(cls, cells: Cells, poses: np.ndarray, voxel: float) -> _Reach:
+        keys = _voxel_keys(cells, poses, voxel)
+        if not len(keys):
+            return cls(None, keys, None)
+        margin = 1 << (cls.BITS - 2)  # the judged stretch's own cells may reach a little further
+        low = keys.min(0) - margin
+        if int((keys.max(0) - low).max()) >= (1 << cls.BITS) - margin:
+            return cls(None, keys, None)
+        flat = cls._flat(keys, low)
+        order = np.argsort(flat, kind="stable")
+        return cls(low, flat[order], order)
+
+    @classmethod
+    def _flat(cls, keys: np.ndarray, low: np.ndarray) -> np.ndarray:
+        """One key a row; -1 for a row outside the span (it meets no indexed cell)."""
+        k = keys - low
+        inside = ((k >= 0) & (k < (1 << cls.BITS))).all(1)
+        return np.where(inside, (k[:, 0] << (2 * cls.BITS)) | (k[:, 1] << cls.BITS) | k[:, 2], -1)
+
+    def cells_in(self, keys: np.ndarray) -> np.ndarray:
+        """The indexed cells in the voxels ``keys`` (K,3), ascending."""
+        if self.order is None:
+            inv, _ = group_rows(np.concatenate([keys, self.key]))
+            return np.flatnonzero(np.isin(inv[len(keys):], inv[:len(keys)]))
+        wanted = np.unique(self._flat(keys, self.low))
+        wanted = wanted[wanted >= 0]
+        first = np.searchsorted(self.key, wanted, "left")
+        count = np.searchsorted(self.key, wanted, "right") - first
+        at = np.repeat(first - np.cumsum(count) + count, count) + np.arange(int(count.sum()))
+        return np.sort(self.order[at])
+
+
+def _with_reach(dense: Cells, a: int, b: int, others: Cells, reach: _Reach, poses: np.ndarray,
                 voxel: float) -> Cells:
     """The cells of frames ``a..b-1`` (``dense``, numbered from ``a``) and the cells of the other frames
-    (``others``, with their voxel keys: :func:`_voxel_keys`) that fall in a voxel one of them occupies at
-    ``poses``: the others cannot share a plane with them."""
+    (``others``, indexed by ``reach``) that fall in a voxel one of them occupies at ``poses``: the others cannot
+    share a plane with them."""
     dense = Cells(dense.frame + np.int32(a), dense.count, dense.mean, dense.scatter, dense.size)
-    other = (others.frame < a) | (others.frame >= b)
-    inv, _ = group_rows(np.concatenate([_voxel_keys(dense, poses, voxel), other_keys[other]]))
-    near = np.flatnonzero(other)[np.isin(inv[len(dense):], inv[:len(dense)])]
+    near = reach.cells_in(_voxel_keys(dense, poses, voxel))
+    near = near[(others.frame[near] < a) | (others.frame[near] >= b)]
     return Cells(*(np.concatenate([getattr(dense, f), getattr(others, f)[near]])
                    for f in ("frame", "count", "mean", "scatter")), dense.size)
 
