@@ -4,6 +4,7 @@ leave-one-out planes of :func:`planes.disagreement`, each against a direct compu
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
@@ -95,3 +96,44 @@ def test_a_frame_is_not_judged_by_one_cell_of_another():
     np.testing.assert_allclose(score[1], 0.01**2, rtol=1e-6)
     only = planes.disagreement(a, poses, cap=1e9, judged=np.array([False, True]))
     assert np.isnan(only[0]) and only[1] == score[1]
+
+
+def test_near_ties_and_round_patches_are_eigenpairs_to_eighs_accuracy():
+    """Where the cubic's roots nearly coincide (a round patch: the two largest equal; a near line: the two
+    smallest within 1e-7 to 1e-3 of the largest, where the residual check decides), the eigenvalues match
+    ``eigh``'s and the vector is an eigenvector of the smallest to the same accuracy."""
+    rng = np.random.default_rng(4)
+    n = 20_000
+    width = rng.uniform(0.1, 1, n)
+    round_patch = np.stack([10 ** rng.uniform(-9, -3, n), width, width], 1)
+    near_line = np.stack([np.zeros(n), 10 ** rng.uniform(-7, -3, n), np.ones(n)], 1)
+    near_line[:, 0] = near_line[:, 1] * rng.uniform(0.0, 0.999, n)
+    A = np.concatenate([_scatters(rng, round_patch), _scatters(rng, near_line)])
+    lam, vec = _eigen(A)
+    want = np.linalg.eigvalsh(A)
+    scale = np.abs(want).max(1)
+    assert np.all(np.abs(lam - want) <= 1e-12 * scale[:, None])
+    residual = np.linalg.norm((A @ vec[:, :, None])[:, :, 0] - lam[:, :1] * vec, axis=1)
+    assert np.all(residual <= 1e-12 * scale)
+
+
+def test_cells_too_sparse_for_any_plane_are_not_split_and_the_assignment_is_the_same(monkeypatch):
+    """A voxel without points or frames enough for a plane has no part with more: dropping its cells from the
+    finer levels leaves the assignment as it was (to rounding)."""
+    rng = np.random.default_rng(5)
+    frames, n = 6, 3000
+    mean = np.column_stack([rng.uniform(-2, 2, (frames * n, 2)), rng.normal(0, 0.005, frames * n)])
+    mean[rng.random(frames * n) < 0.02, 2] += rng.uniform(-0.3, 0.3)  # a few strays: sparse voxels
+    cells = planes.Cells(np.repeat(np.arange(frames), n).astype(np.int32), np.full(frames * n, 4, np.float32),
+                         mean.astype(np.float32), np.zeros((frames * n, 6), np.float32), 0.1)
+    poses = np.tile(np.eye(4), (frames, 1, 1))
+    poses[:, :3, 3] = rng.normal(size=(frames, 3)) * 0.02
+    poses[3:, :3, :3] = Rotation.from_euler("x", 90, degrees=True).as_matrix()  # two walls crossing
+    pruned = planes.assign(cells, poses, 0.8)
+    original = planes._flat_voxels
+    monkeypatch.setattr(planes, "_flat_voxels", lambda *a: (*original(*a)[:5], np.zeros(len(a[1]), bool)))
+    every = planes.assign(cells, poses, 0.8)
+    for field in ("frame", "voxel", "centre", "points", "size"):
+        np.testing.assert_array_equal(getattr(pruned, field), getattr(every, field))
+    np.testing.assert_allclose(pruned.moment, every.moment, rtol=1e-12, atol=1e-12)
+    assert pruned.sigma == pytest.approx(every.sigma, rel=1e-12) and pruned.voxels > 10

@@ -16,7 +16,7 @@ frame make a true frame's score noise): the scans are summed into cells once whi
 (a longer sequence keeps sparse cells for the far frames and is read again a stretch at a time), and a sequence
 longer than ``MAX_CELLS`` cells is judged a stretch of frames at a time (:func:`_stretched_views`), so memory stays
 bounded and every frame is judged as in a short sequence. The sets of poses (the warm start and the result) are
-judged side by side on ``WORKERS`` threads, which share that budget.
+judged side by side (``SIDE_BY_SIDE``), on threads where there are processors, sharing that budget.
 
 Segments scoring above the flag threshold are flagged with their frame and time ranges: ``RATIO`` times the
 level of the sequence's agreeing frames (its lower quartile), and at least ``FLOOR`` times the noise the planes
@@ -83,8 +83,11 @@ CELLS_PER_FRAME, MAX_CELLS = 2048, 1_500_000
 #: a sequence whose cells at full density fit this many is summed into cells once (about 45 bytes a cell and 24
 #: more a profiled trajectory); a longer one keeps ``MAX_CELLS`` for the far frames and reads each stretch again
 ONE_PASS_CELLS = 6_000_000
-#: sets of poses judged at once, each on a thread of its own
-WORKERS = min(2, os.cpu_count() or 1)
+#: sets of poses judged at once (the warm start and the result): a stretch holds ``MAX_CELLS / SIDE_BY_SIDE``
+#: cells (a sequence of at most ``MAX_CELLS`` is judged whole, ``SIDE_BY_SIDE`` assignments of it at once) ...
+SIDE_BY_SIDE = 2
+#: ... each on a thread of its own, as many as there are processors
+WORKERS = min(SIDE_BY_SIDE, os.cpu_count() or 1)
 
 
 
@@ -349,10 +352,11 @@ def _stretched_views(scans: ScanSequence, cells: Cells, full: bool, candidates: 
     n = len(scans)
     margin = 2 * max(window_frames(poses, voxel) for poses in candidates.values())
     budget = MAX_CELLS if full else MAX_CELLS // 2  # with the sparse cells: one budget
-    workers = min(len(candidates), WORKERS)
     whole = n * CELLS_PER_FRAME <= budget
-    # the sets of poses judged at once share the budget
-    length = n if whole else max(budget // workers // CELLS_PER_FRAME - 2 * margin, 2 * margin)
+    # the SIDE_BY_SIDE sets of poses judged at once share the budget (on any number of processors: the same
+    # stretches, the same scores)
+    length = n if whole else max(budget // SIDE_BY_SIDE // CELLS_PER_FRAME - 2 * margin, 2 * margin)
+    workers = min(len(candidates), SIDE_BY_SIDE, WORKERS)
     views = {name: {view: np.full(n, np.nan) for view in ("all", "past", "future")} for name in candidates}
     noise: dict[str, list[float]] = {name: [] for name in candidates}
     reach = {} if whole else {name: _Reach.of(cells, poses, voxel) for name, poses in candidates.items()}
@@ -413,9 +417,8 @@ class _Reach:
         keys = _voxel_keys(cells, poses, voxel)
         if not len(keys):
             return cls(None, keys, None)
-        margin = 1 << (cls.BITS - 2)  # the judged stretch's own cells may reach a little further
-        low = keys.min(0) - margin
-        if int((keys.max(0) - low).max()) >= (1 << cls.BITS) - margin:
+        low = keys.min(0)
+        if int((keys.max(0) - low).max()) >= 1 << cls.BITS:
             return cls(None, keys, None)
         flat = cls._flat(keys, low)
         order = np.argsort(flat, kind="stable")
@@ -423,7 +426,7 @@ class _Reach:
 
     @classmethod
     def _flat(cls, keys: np.ndarray, low: np.ndarray) -> np.ndarray:
-        """One key a row; -1 for a row outside the span (it meets no indexed cell)."""
+        """One key a row; -1 for a row outside the indexed cells' span (it meets none of them)."""
         k = keys - low
         inside = ((k >= 0) & (k < (1 << cls.BITS))).all(1)
         return np.where(inside, (k[:, 0] << (2 * cls.BITS)) | (k[:, 1] << cls.BITS) | k[:, 2], -1)
