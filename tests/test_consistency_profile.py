@@ -86,7 +86,7 @@ def test_a_broken_stretch_of_the_street_is_flagged_and_nothing_far_from_it(break
 @pytest.mark.parametrize("one_pass", [True, False])
 @pytest.mark.parametrize("poses_of", ["truth", "jump"])
 def test_a_sequence_longer_than_the_cell_budget_is_judged_a_stretch_at_a_time(monkeypatch, poses_of, one_pass):
-    """A budget of 8 frames' cells a stretch for 80 frames (as 1.5 million cells for 1,000 frames): the frames are
+    """A budget of 8 frames' cells for 80 frames (as 1.5 million cells for 1,000 frames): the frames are
     judged a stretch at a time, each at full density, whether all cells fit in memory at once (a slice of them a
     stretch) or not (the far frames' cells sparse, each stretch's scans read again: as 20,000 frames), so the truth
     scores as in one piece (no flag, each view's median within 15 %) and a jump is still found, nothing far from
