@@ -316,12 +316,17 @@ def _expand(flat: np.ndarray) -> np.ndarray:
     return np.take(flat, _FULL.ravel(), axis=1).reshape(-1, 4, 4)
 
 
+def _pose_rows(poses: np.ndarray) -> np.ndarray:
+    """The top three rows of the poses (N,4,4) entry by entry, (3,4,N) contiguous: a gather a row at a time."""
+    return np.ascontiguousarray(poses[:, :3, :].transpose(1, 2, 0))
+
+
 def _about(poses: np.ndarray, frame: np.ndarray, centre: np.ndarray, moment: np.ndarray) -> np.ndarray:
     """Moments of frames ``frame`` in the world, about the points ``centre`` (P,3): T Q T^T with
     T = [R, t - centre] (no cancellation far from the origin), from and to the 10 distinct entries (P,10) of the
     moments (order of ``_UPPER``), one entry at a time over contiguous rows: with Q = [[S, b], [b^T, N]] and
     u = t - centre the result is [[R S R^T + (R b) u^T + u (R b)^T + N u u^T, R b + N u], [., N]]."""
-    rows = np.ascontiguousarray(poses[:, :3, :].transpose(1, 2, 0))  # (3,4,frames): each entry's row
+    rows = _pose_rows(poses)
     R = [[rows[i, j][frame] for j in range(3)] for i in range(3)]
     c = np.ascontiguousarray(centre.T)
     u = [rows[i, 3][frame] - c[i] for i in range(3)]
@@ -359,7 +364,7 @@ def _plane_of(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
 def placed_means(cells: Cells, poses: np.ndarray, part: slice) -> np.ndarray:
     """The means of cells ``part`` in the world at ``poses`` (k,3), a coordinate at a time over contiguous rows."""
     f = cells.frame[part]
-    rows = np.ascontiguousarray(poses[:, :3, :].transpose(1, 2, 0))  # (3,4,frames): each entry's row
+    rows = _pose_rows(poses)
     m = np.ascontiguousarray(cells.mean[part].T, dtype=np.float64)
     out = np.empty((3, len(f)))
     for i in range(3):
