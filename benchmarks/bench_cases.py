@@ -105,6 +105,8 @@ def run_case(method: Method, input_args: list[str], run_dir: Path, cache_dir: Pa
             return {"status": "not available", "reason": "needs a --gt trajectory file and --poses"}
         input_args = list(input_args)
         input_args[input_args.index("-p") + 1] = input_args[input_args.index("--gt") + 1]
+        if "--gt-format" in input_args:
+            input_args += ["--poses-format", input_args[input_args.index("--gt-format") + 1]]
     cmd = [sys.executable, "-m", "dm2_backend", *method.command, *input_args, "--out", str(run_dir / "run"),
            "--cache-dir", str(cache_dir), "-q", "--force"]
     if method.config:

@@ -16,8 +16,12 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from dm2_backend.trajectory import Trajectory
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -193,35 +197,56 @@ DRIFT_DEG, DRIFT_M = 3.0, 0.05
 SEVEN_SCENES_HZ, HIGH_RATE_HZ = 30.0, 100.0
 
 
-def drifted_reference(folder: str, rate: float | None) -> Callable[[Env], Inputs]:
-    """The 7-Scenes ``folder``'s reference poses with a smooth drift (:data:`DRIFT_DEG` about a fixed tilted axis
-    and :data:`DRIFT_M` along another, both growing linearly over the sequence, applied in the world) as the
-    ``--poses`` input: locally exact, globally off. ``rate``: the input sampled at that rate (Hz, interpolated on
-    SE(3)) instead of at the frames' stamps."""
-    def load(env: Env) -> Inputs:
-        from scipy.spatial.transform import Rotation
+def drifted(reference: Trajectory, rate: float | None, out: Path) -> Path:
+    """``reference`` with a smooth drift (:data:`DRIFT_DEG` about a fixed tilted axis and :data:`DRIFT_M` along
+    another, both growing linearly over the sequence, applied in the world) written to ``out`` (TUM): locally
+    exact, globally off. ``rate``: sampled at that rate (Hz, interpolated on SE(3)) instead of at its stamps."""
+    from scipy.spatial.transform import Rotation
 
+    from dm2_backend.geometry import se3
+
+    stamps = reference.timestamps
+    s = np.linspace(0.0, 1.0, len(reference))
+    axis = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)
+    drift = se3.make_poses(Rotation.from_rotvec(np.outer(s, axis) * np.radians(DRIFT_DEG)).as_matrix(),
+                           np.outer(s, np.array([1.0, -1.0, 0.5]) / 1.5) * DRIFT_M)
+    poses = drift @ reference.poses
+    if rate is not None:
+        query = np.arange(stamps[0], stamps[-1] + 1e-9, 1.0 / rate)
+        poses, stamps = se3.interpolate(stamps, poses, query), query
+    xyz, q = se3.to_xyz_quat(poses, "xyzw")
+    np.savetxt(out, np.column_stack([stamps, xyz, q]), fmt="%.9f")
+    return out
+
+
+def drifted_reference(folder: str, rate: float | None) -> Callable[[Env], Inputs]:
+    """The 7-Scenes ``folder``'s reference poses with a smooth drift (:func:`drifted`) as the ``--poses`` input."""
+    def load(env: Env) -> Inputs:
         from dm2_backend.formats import ReadOptions, read_trajectory
-        from dm2_backend.geometry import se3
 
         src = DATA / "depth3d" / folder
         _need(src)
         ref = read_trajectory(src, "depth", ReadOptions())
-        stamps = ref.timestamps
-        s = np.linspace(0.0, 1.0, len(ref))
-        axis = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)
-        drift = se3.make_poses(Rotation.from_rotvec(np.outer(s, axis) * np.radians(DRIFT_DEG)).as_matrix(),
-                               np.outer(s, np.array([1.0, -1.0, 0.5]) / 1.5) * DRIFT_M)
-        poses = drift @ ref.poses
-        if rate is not None:
-            query = np.arange(stamps[0], stamps[-1] + 1e-9, 1.0 / rate)
-            poses, stamps = se3.interpolate(stamps, poses, query), query
-        out = env.cache / f"{folder}-drift-{int(rate or SEVEN_SCENES_HZ)}hz.tum"
-        xyz, q = se3.to_xyz_quat(poses, "xyzw")
-        np.savetxt(out, np.column_stack([stamps, xyz, q]), fmt="%.9f")
+        out = drifted(ref, rate, env.cache / f"{folder}-drift-{int(rate or SEVEN_SCENES_HZ)}hz.tum")
         return Inputs(["-s", str(src), "-p", str(out), "--gt", str(src), "--gt-format", "depth"], len(ref),
                       {"scans": str(src), "poses": f"its reference poses with a smooth drift ({DRIFT_DEG} deg, "
                        f"{DRIFT_M} m over the sequence) at {rate or SEVEN_SCENES_HZ} Hz", "gt": "its reference poses"})
+    return load
+
+
+def drifted_room(frames: int, path: str) -> Callable[[Env], Inputs]:
+    """``dm2 simulate --scene room -n FRAMES --path PATH`` (a Kinect-like depth camera, its range-squared noise
+    rounded to the millimetre) with its true poses plus a smooth drift (:func:`drifted`) as the input: the
+    locally exact input of the drifted-reference cases, on frames whose truth is exact."""
+    def load(env: Env) -> Inputs:
+        from dm2_backend.formats import ReadOptions, read_trajectory
+
+        folder, info = simulated_scene(env, "room", frames, "--path", path)
+        truth = read_trajectory(folder / "truth.tum", "tum", ReadOptions())
+        out = drifted(truth, None, env.cache / f"{folder.name}-drift.tum")
+        return Inputs(["-s", str(folder), "-p", str(out), "--gt", str(folder / "truth.tum")], frames,
+                      {"simulated": True, "folder": str(folder), "poses": f"the true poses with a smooth drift "
+                       f"({DRIFT_DEG} deg, {DRIFT_M} m over the sequence)", "path_length_m": info["path_length_m"]})
     return load
 
 
@@ -398,6 +423,9 @@ DATASETS: dict[str, Dataset] = {d.name: d for d in [
             "start", "ape", room(300, "rpy"), real=False,
             note="the camera hardly moves: the SE(3) alignment of APE leaves its rotation nearly free, so "
             "the rotation error after alignment means little here"),
+    Dataset("sim-room-walk-drift", "SIMULATED hand-held depth camera walking round the room (as sim-room-walk), its "
+            "true poses plus a smooth drift as the input (locally exact)", "ape", drifted_room(600, "walk"),
+            real=False),
     Dataset("aces-degraded", "ACES with its odometry degraded (yaw bias 0.04 rad/m, 5 % scale error, noise), "
             "default warm start", "relations", carmen_degraded("aces")),
     Dataset("intel-degraded", "Intel with its odometry degraded (as aces-degraded), default warm start",
