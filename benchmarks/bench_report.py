@@ -84,7 +84,7 @@ def _accuracy(case: dict, metric: str, warm: dict | None) -> tuple[str, str, str
         if h is not None and hw is not None and case["method"] != "warm start":
             change = f"{h - hw:+.4f} nats"
         return "–", "–", change
-    if trans is not None and w and case["method"] != "warm start":
+    if trans is not None and w and w > 1e-6 and case["method"] != "warm start":  # (the truth as input: none)
         change = f"{100 * (trans / w - 1):+.0f} %"
     return _num(trans, "{:.4f}"), _num(rot, "{:.3f}"), change
 

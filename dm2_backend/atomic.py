@@ -7,7 +7,8 @@ folder, or a folder target that exists, is an :class:`InputError`), and only our
 :class:`InputError` naming the folder, with the temporary removed.
 
 A run folder watches the writes (:func:`watching_writes`): each target is announced before it is written, so
-the folder can list it in its marker first, or refuse a name that is the user's.
+the folder can list it in its marker first, or refuse a name that is the user's, and reported once it is in place,
+so the folder can record what it holds.
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ from dm2_backend.errors import InputError
 _TEMP = re.compile(r"\.tmp-(\d+)-")
 #: called with each target path before it is written (see :func:`watching_writes`)
 _watchers: list[Callable[[Path], None]] = []
+#: called with each target path once it is in place
+_finished: list[Callable[[Path], None]] = []
 #: errors that mean the device (or the size limit of this process) has no room for the write
 NO_SPACE = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 
@@ -36,13 +39,23 @@ def is_temporary(name: str) -> bool:
 
 
 @contextlib.contextmanager
-def watching_writes(announce: Callable[[Path], None]) -> Iterator[None]:
-    """Call ``announce(path)`` before each write of this process meanwhile; it may refuse (raise)."""
+def watching_writes(announce: Callable[[Path], None], done: Callable[[Path], None] | None = None) -> Iterator[None]:
+    """Call ``announce(path)`` before each write of this process meanwhile (it may refuse: raise), and
+    ``done(path)`` once the written file or folder is in place under its name."""
     _watchers.append(announce)
+    if done is not None:
+        _finished.append(done)
     try:
         yield
     finally:
         _watchers.remove(announce)
+        if done is not None:
+            _finished.remove(done)
+
+
+def _placed(path: Path) -> None:
+    for done in list(_finished):
+        done(path)
 
 
 def no_space_error(exc: BaseException, path: Path) -> InputError | None:
@@ -143,6 +156,7 @@ def atomic_write(path: str | Path, mode: str = "w", **kwargs) -> Iterator[IO]:
         with open(tmp, mode, **kwargs) as fh:
             yield fh
         os.replace(tmp, path)
+        _placed(path)
     except OSError as exc:
         if (error := no_space_error(exc, path)) is not None:
             raise error from None
@@ -173,6 +187,7 @@ def atomic_path(
             os.rename(tmp, path)
         else:
             os.replace(tmp, path)
+        _placed(path)
     except OSError as exc:
         if (error := no_space_error(exc, path)) is not None:
             raise error from None

@@ -117,7 +117,7 @@ def test_force_never_removes_what_a_marker_names_outside_the_folder(seq, tmp_pat
     assert (out / "report.json").exists()  # refused whole: nothing removed, not even what it may list
 
 
-def test_force_removes_a_listed_symlink_not_its_target(seq, tmp_path):
+def test_force_leaves_a_listed_output_replaced_by_a_link_and_its_target(seq, tmp_path):
     target = tmp_path / "target"
     target.mkdir()
     (target / "keep.txt").write_text("mine")
@@ -128,9 +128,10 @@ def test_force_removes_a_listed_symlink_not_its_target(seq, tmp_path):
     shutil.rmtree(out / "prior.bak")
     (out / "prior").symlink_to(target, target_is_directory=True)
     (out / MARKER).write_text(json.dumps(marker))
-    assert dm2(*refine_args(seq, out, "--no-cache", "--force")).exit_code == 0
+    result = dm2(*refine_args(seq, out, "--no-cache", "--force"))
+    assert result.exit_code == 2 and "no longer holds what it wrote" in result.output
     assert (target / "keep.txt").read_text() == "mine"
-    assert (out / "prior").is_dir() and not (out / "prior").is_symlink()
+    assert (out / "prior").is_symlink()  # not what dm2 wrote there: left, and not followed
 
 
 # ------------------------------------------------------------------- 2. the user's files stay theirs

@@ -15,6 +15,7 @@ import yaml
 from click.testing import CliRunner
 from optim_cases import one_thread, planar_case, write_planar_sequence
 
+from dm2_backend.atomic import atomic_write
 from dm2_backend.cli.main import cli
 from dm2_backend.errors import InputError
 from dm2_backend.pipeline.run_folder import CHECKPOINT, LOCK, MARKER, adding_to, open_folder, run_folder
@@ -174,7 +175,8 @@ def test_an_output_under_a_file_is_one_line(seq, tmp_path):
 def test_an_interrupted_run_keeps_its_folder_for_resume(tmp_path):
     out = tmp_path / "run"
     with pytest.raises(KeyboardInterrupt), run_folder(out, "refine"):
-        (out / CHECKPOINT).write_bytes(b"state")
+        with atomic_write(out / CHECKPOINT, "wb") as fh:  # as dm2 writes every output
+            fh.write(b"state")
         raise KeyboardInterrupt
     assert (out / CHECKPOINT).exists()
     assert CHECKPOINT in json.loads((out / MARKER).read_text())["files"]
@@ -184,10 +186,11 @@ def test_an_interrupted_run_keeps_its_folder_for_resume(tmp_path):
 
 def test_files_added_to_a_finished_run_are_listed_and_locked(tmp_path):
     out = tmp_path / "run"
-    with run_folder(out, "refine"):
-        (out / "report.json").write_text("{}")
+    with run_folder(out, "refine"), atomic_write(out / "report.json") as fh:
+        fh.write("{}")
     with adding_to(out):
-        (out / "map.pgm").write_bytes(b"P5")
+        with atomic_write(out / "map.pgm", "wb") as fh:
+            fh.write(b"P5")
         with pytest.raises(InputError, match="another dm2 run"):
             open_folder(out, "refine", force=True)
     assert {"report.json", "map.pgm"} <= set(json.loads((out / MARKER).read_text())["files"])

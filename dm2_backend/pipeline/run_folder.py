@@ -1,18 +1,23 @@
 """The one rule for output folders, shared by ``refine``, ``baseline``, ``simulate`` and ``demo``.
 
 - An existing non-empty folder is refused in one line unless ``--force`` (or ``--resume`` for a refine).
-- ``--force`` removes the files a previous dm2 run listed in its marker (``.dm2-run.json``) and nothing else.
-  The marker is input: it may list only plain names of entries inside the folder (no ``/``, ``..``, absolute
-  paths); one that lists anything else is refused whole, and nothing is removed.
+- ``--force`` removes the files a previous dm2 run listed in its marker (``.dm2-run.json``) and nothing else,
+  and of those only the ones that still hold what that run wrote there (:mod:`~dm2_backend.pipeline.ownership`:
+  size and digest of every file, recorded as each is put in place). The marker is input: it may list only plain
+  names of entries inside the folder (no ``/``, ``..``, absolute paths); one that lists anything else is refused
+  whole, and nothing is removed.
 - The marker lists each output before it is written (through :mod:`dm2_backend.atomic`), so a run killed at
-  any point leaves a marker that names everything it wrote.
-- A file that no dm2 run listed (yours) is never replaced, even with ``--force``: a run that would write one
-  of its names is refused in one line before any work, and at the write itself.
+  any point leaves a marker that names everything it wrote, and records its identity once it is in place. What
+  other programs write into the folder meanwhile is not the run's: never listed, never removed.
+- A file that no dm2 run listed (yours), or that changed since a run wrote it, is never replaced, even with
+  ``--force``: a run that would write one of its names is refused in one line before any work, and at the write
+  itself.
 - A run holds a lock on the folder while it writes; a second run into it gets one line and exit 2.
 - ``--resume`` needs the folder's checkpoint and the same inputs, config and seed; what differs is named.
-- A run that fails removes what it created; an interrupted one (Ctrl-C, SIGTERM, SIGHUP) keeps its checkpoint
-  for ``--resume``, or, without one (interrupted in preparation), removes what it created like a failed run,
-  so that the same command is accepted again (finished preparation steps come from the cache).
+- A run that fails removes what it wrote (and the folder, if it made it and nothing else is in it); an
+  interrupted one (Ctrl-C, SIGTERM, SIGHUP) keeps its checkpoint for ``--resume``, or, without one (interrupted
+  in preparation), removes what it wrote like a failed run, so that the same command is accepted again
+  (finished preparation steps come from the cache).
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ from dm2_backend.atomic import is_temporary, watching_writes
 from dm2_backend.config_schema import RunConfig
 from dm2_backend.errors import InputError
 from dm2_backend.optim.dense_checkpoint import DENSE_CHECKPOINT
+from dm2_backend.pipeline.ownership import Written, still_ours
 
 MARKER = ".dm2-run.json"
 LOCK = ".dm2-lock"
@@ -76,7 +82,11 @@ class RunFolder:
     inherited: tuple[str, ...] = ()
     #: names this run announced before writing them (see :meth:`announce`)
     written: set[str] = field(default_factory=set)
+    #: the identities the marker held for the inherited files
+    inherited_identity: dict[str, str] = field(default_factory=dict)
+    content: Written | None = None
     _lock: object | None = None
+    _remove_folder: bool = False
 
     @property
     def users(self) -> frozenset[str]:
@@ -85,13 +95,23 @@ class RunFolder:
                          if not is_temporary(name))
 
     def record(self, files: list[str] | None = None) -> None:
-        """Write the marker: the command, its fingerprint and every file of this run (what ``--force`` may
-        remove later): those it announced, those now in the folder that were not there before, and those of
-        the run it resumes."""
+        """Write the marker: the command, its fingerprint, every file of this run (what ``--force`` may remove
+        later: those it announced and those of the run it resumes) and the identity of each that is in place."""
         if files is None:
-            new = {name for name in _entries(self.path) - self.before - {LOCK, MARKER} if not is_temporary(name)}
-            files = sorted(new | self.written | set(self.inherited))
-        _write_marker(self.path, {"command": self.command, "fingerprint": self.fingerprint, "files": files})
+            files = sorted(self.written | set(self.inherited))
+        written = self.content.identities() if self.content is not None else {}
+        known = {**{k: v for k, v in self.inherited_identity.items() if k not in self.written}, **written}
+        _write_marker(self.path, {"command": self.command, "fingerprint": self.fingerprint, "files": files,
+                                  "identity": {name: known[name] for name in files if name in known}})
+
+    def placed(self, path: Path) -> None:
+        """Called by :mod:`dm2_backend.atomic` once ``path`` is in place: its identity is recorded (in the marker
+        at once for a top-level entry; a folder written file by file when the run is recorded)."""
+        if self.content is None:
+            return
+        name = self.content.placed(path)
+        if name is not None and name in self.content.whole:
+            self.record()
 
     def announce(self, path: Path) -> None:
         """Called by :mod:`dm2_backend.atomic` before it writes ``path``: a path inside this folder is listed in
@@ -111,20 +131,26 @@ class RunFolder:
             self.record(sorted(self.written | set(self.inherited)))
 
     def discard(self) -> None:
-        """Remove what this run created (the folder itself if it made it)."""
-        if self.created:
-            shutil.rmtree(self.path, ignore_errors=True)
-            return
-        for name in set(_entries(self.path)) - self.before - {LOCK}:
-            _remove(self.path / name)
+        """Remove what this run wrote and still holds what it wrote (and the folder itself, once released, if it
+        made it and nothing else is there): never what other programs put there meanwhile."""
+        known = self.content.identities() if self.content is not None else {}
+        for name in sorted(self.written - self.before):
+            if still_ours(self.path / name, known.get(name)):
+                _remove(self.path / name)
+            elif self.content is not None and name in self.content.parts:
+                _remove_parts(self.path / name, self.content.parts_of(name))
         if MARKER not in self.before:  # the marker this run started
             _remove(self.path / MARKER)
+        self._remove_folder = self.created
 
     def release(self) -> None:
         if self._lock is not None:
             (self.path / LOCK).unlink(missing_ok=True)
             self._lock.close()
             self._lock = None
+        if self._remove_folder:
+            with contextlib.suppress(OSError):  # only while empty
+                self.path.rmdir()
 
 
 def refuse_overlap(out: Path, inputs: dict[str, Path | None]) -> None:
@@ -174,7 +200,7 @@ def open_folder(out: Path, command: str, *, force: bool = False, resume: bool = 
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(out, f"cannot create the folder: {exc.strerror}") from exc
-    folder = RunFolder(out, command, fp or {}, created)
+    folder = RunFolder(out, command, fp or {}, created, content=Written(out))
     try:
         folder._lock = _take_lock(out)
     except InputError:
@@ -185,18 +211,21 @@ def open_folder(out: Path, command: str, *, force: bool = False, resume: bool = 
     try:
         previous = _read_marker(out)
         listed = _listed_names(out, previous)
+        recorded = _recorded(out, previous)
+        kept: list[str] = []
         if resume:
             _check_resume(out, previous, folder.fingerprint)
             folder.inherited = tuple(sorted({*listed, *CHECKPOINTS}))
+            folder.inherited_identity = recorded
         elif _occupied(out, listed):
             if not force:
                 raise InputError(out, "folder is not empty: give --force to replace a previous run's files"
                                       + (", or --resume to continue it" if command == "refine" else ""))
-            if previous is not None:  # a killed run may not have listed its checkpoint
-                for name in [*listed, *CHECKPOINTS, MARKER]:
-                    _remove(out / name)
+            kept = _remove_ours(out, listed, recorded)
+            if previous is not None:
+                _remove(out / MARKER)
         folder.before = frozenset(_entries(out))
-        _check_no_collision(out, folder.users)
+        _check_no_collision(out, folder.users, kept)
         folder.record(files=list(folder.inherited))  # from now on a killed run can be resumed or replaced
     except BaseException:
         folder.release()
@@ -213,7 +242,7 @@ def run_folder(out: Path, command: str, *, force: bool = False, resume: bool = F
     run created is removed; on Ctrl-C the folder is kept (its checkpoint serves ``--resume``)."""
     folder = open_folder(out, command, force=force, resume=resume, fp=fp)
     try:
-        with watching_writes(folder.announce):
+        with watching_writes(folder.announce, folder.placed):
             yield folder
         folder.record()
     except KeyboardInterrupt as exc:
@@ -234,13 +263,16 @@ def run_folder(out: Path, command: str, *, force: bool = False, resume: bool = F
 @contextlib.contextmanager
 def adding_to(out: Path) -> Iterator[None]:
     """Write more files into a finished run folder (``dm2 map``, ``dm2 view``): the folder is locked meanwhile,
-    and the files that appear are added to its marker, so a later ``--force`` replaces them with the rest."""
+    only what a dm2 run wrote there and still holds what it wrote may be replaced, and the files written are added
+    to its marker with their identities, so a later ``--force`` replaces them with the rest."""
     out = Path(out)
     lock = _take_lock(out)
-    before = _entries(out)
+    content = Written(out)
     try:
-        listed = set(_listed_names(out, _read_marker(out)))
-        users = {name for name in before - listed - {LOCK, MARKER} if not is_temporary(name)}
+        marker = _read_marker(out)
+        recorded = _recorded(out, marker)
+        ours = {name for name in _listed_names(out, marker) if still_ours(out / name, recorded.get(name))}
+        users = {name for name in _entries(out) - ours - {LOCK, MARKER} if not is_temporary(name)}
 
         def refuse_users(path: Path) -> None:
             with contextlib.suppress(ValueError):
@@ -248,26 +280,57 @@ def adding_to(out: Path) -> Iterator[None]:
                 if rel.parts and rel.parts[0] in users:
                     raise InputError(out / rel.parts[0], _NOT_OURS.replace("choose another --out", "remove it first"))
 
-        with watching_writes(refuse_users):
+        with watching_writes(refuse_users, content.placed):
             yield
     finally:
         previous = _read_marker(out)
         if previous is not None:
-            new = {name for name in _entries(out) - before - {LOCK, MARKER} if not is_temporary(name)}
-            _write_marker(out, {**previous, "files": sorted(set(_listed_names(out, previous)) | new)})
+            with contextlib.suppress(InputError):
+                names = set(_listed_names(out, previous)) | set(content.whole) | set(content.parts)
+                known = {**_recorded(out, previous), **content.identities()}
+                _write_marker(out, {**previous, "files": sorted(names),
+                                    "identity": {n: known[n] for n in sorted(names) if n in known}})
         (out / LOCK).unlink(missing_ok=True)
         lock.close()
 
 
 _NOT_OURS = ("is not listed in this folder's .dm2-run.json (not a dm2 run's output), and this run writes a file of "
              "that name: dm2 never replaces your files, even with --force; move it or choose another --out")
+_CHANGED = ("was written by a dm2 run but no longer holds what it wrote (or its writing was cut short), and this run "
+            "writes a file of that name: dm2 leaves it as it is, even with --force; move it or choose another --out")
 
 
-def _check_no_collision(out: Path, users: frozenset[str]) -> None:
+def _check_no_collision(out: Path, users: frozenset[str], changed: list[str] = ()) -> None:
     """Before any work: a file of the user's that has the name of a dm2 output is refused, not replaced."""
     clash = sorted(name for name in users if any(fnmatch.fnmatchcase(name, p) for p in OUTPUT_NAMES))
     if clash:
-        raise InputError(out / clash[0], _NOT_OURS)
+        raise InputError(out / clash[0], _CHANGED if clash[0] in changed else _NOT_OURS)
+
+
+def _remove_ours(out: Path, listed: list[str], recorded: dict[str, str]) -> list[str]:
+    """Remove the listed entries that still hold what dm2 recorded; returns those left (changed since, or never
+    recorded whole)."""
+    kept = []
+    for name in listed:
+        path = out / name
+        if still_ours(path, recorded.get(name)):
+            _remove(path)
+        elif path.exists() or path.is_symlink():
+            kept.append(name)
+    return kept
+
+
+def _remove_parts(folder: Path, parts: dict[str, str | None]) -> None:
+    """Remove the files of ``folder`` that still hold what this run wrote, then its folders left empty."""
+    for rel, ident in parts.items():
+        if still_ours(folder / rel, ident):
+            _remove(folder / rel)
+    for root, dirs, _ in sorted(os.walk(folder, topdown=False), key=lambda w: -len(w[0])):
+        for name in dirs:
+            with contextlib.suppress(OSError):
+                os.rmdir(os.path.join(root, name))
+    with contextlib.suppress(OSError):
+        folder.rmdir()
 
 
 def _occupied(out: Path, listed: list[str]) -> bool:
@@ -293,6 +356,19 @@ def _listed_names(out: Path, marker: dict | None) -> list[str]:
                                            "folder: dm2 never writes such a marker; nothing was removed (remove "
                                            "the marker, or the folder, yourself)")
     return list(files)
+
+
+def _recorded(out: Path, marker: dict | None) -> dict[str, str]:
+    """The ``identity`` of a marker (name -> recorded identity); a marker whose identities are not plain names
+    and short strings was not written by dm2 and is refused whole."""
+    if marker is None:
+        return {}
+    ids = marker.get("identity", {})
+    if not isinstance(ids, dict) or not all(_plain_name(k) and isinstance(v, str) and len(v) <= 64
+                                            for k, v in ids.items()):
+        raise InputError(out / MARKER, "not a dm2 run marker ('identity' is not a table of names and digests); "
+                                       "nothing was removed")
+    return dict(ids)
 
 
 def _plain_name(name) -> bool:
