@@ -33,14 +33,16 @@ from dm2_backend.errors import InputError
 from dm2_backend.evaluation import continuity
 from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.memory import release_mapped
+from dm2_backend.optim import depth_noise
 from dm2_backend.optim.config import OptimConfig, dense_voxel
 from dm2_backend.optim.dense import refine_dense
 from dm2_backend.optim.dense_checkpoint import DENSE_CHECKPOINT
+from dm2_backend.optim.depth_noise import RangeNoise
 from dm2_backend.optim.planes import Cells, agreement_score, cells_from_scans
 from dm2_backend.pipeline import step_guard
 from dm2_backend.pose_graph import lift_planar_information
 from dm2_backend.prepare.steps import Prepared
-from dm2_backend.scans import ScanSequence
+from dm2_backend.scans import DEPTH_CAMERA, ScanSequence
 
 log = logging.getLogger(__name__)
 
@@ -174,6 +176,8 @@ class DenseCells:
     voxel: float
     noise: float | None
     seconds: float
+    #: a depth camera's range noise, which weighs its cells (:mod:`dm2_backend.optim.depth_noise`)
+    depth_noise: RangeNoise | None = None
 
     @classmethod
     def of(cls, scans: ScanSequence, prep: Prepared, cfg: OptimConfig, seed: int = 0,
@@ -186,7 +190,13 @@ class DenseCells:
                                  keep_scatter=cfg.dense_cell_scatter)
         if prep.frames.planar:
             cells = cells.extruded(voxel)
-        return cls(cells, voxel, noise, time.perf_counter() - t)
+        measured = None
+        if scans.sensor == DEPTH_CAMERA and cfg.dense_depth_noise:
+            measured = depth_noise.measure(scans, voxel / 4.0, cfg.dense_cells_per_frame)
+            if measured is not None:
+                cells = depth_noise.weighed(cells, measured)
+                log.info("depth camera: %s; the dense stage weighs each cell by it", measured.describe())
+        return cls(cells, voxel, noise, time.perf_counter() - t, measured)
 
     def agreement(self, candidates: dict[str, np.ndarray]) -> dict[str, float]:
         """How far each candidate's frames lie from the planes the other frames make (m^2, lower is better;
@@ -250,6 +260,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
         log.warning("dense stage's result not kept: its frames contradict %s", guarded.check.describe())
         chosen, reason = start.name.value, f"its frames contradict {guarded.check.describe()}"
     summary = {"voxel_m": voxel, "range_noise_m": noise, "hessian_edges": graph.meta["hessian_edges"],
+               "depth_noise": built.depth_noise.summary() if built.depth_noise is not None else None,
                "cell_m": cells.size, "cells": len(cells), "cells_seconds": built.seconds, "seconds": result.seconds,
                "rounds": len(result.history), "stopped": result.stopped,
                "history": result.history, "resumed_after_round": result.resumed_after,
