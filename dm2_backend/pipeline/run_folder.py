@@ -84,9 +84,13 @@ class RunFolder:
     written: set[str] = field(default_factory=set)
     #: the identities the marker held for the inherited files
     inherited_identity: dict[str, str] = field(default_factory=dict)
-    content: Written | None = None
+    #: what this run put in place, by content
+    content: Written = field(init=False)
     _lock: object | None = None
     _remove_folder: bool = False
+
+    def __post_init__(self) -> None:
+        self.content = Written(self.path)
 
     @property
     def users(self) -> frozenset[str]:
@@ -99,16 +103,14 @@ class RunFolder:
         later: those it announced and those of the run it resumes) and the identity of each that is in place."""
         if files is None:
             files = sorted(self.written | set(self.inherited))
-        written = self.content.identities() if self.content is not None else {}
-        known = {**{k: v for k, v in self.inherited_identity.items() if k not in self.written}, **written}
+        known = {**{k: v for k, v in self.inherited_identity.items() if k not in self.written},
+                 **self.content.identities()}
         _write_marker(self.path, {"command": self.command, "fingerprint": self.fingerprint, "files": files,
                                   "identity": {name: known[name] for name in files if name in known}})
 
     def placed(self, path: Path) -> None:
         """Called by :mod:`dm2_backend.atomic` once ``path`` is in place: its identity is recorded (in the marker
         at once for a top-level entry; a folder written file by file when the run is recorded)."""
-        if self.content is None:
-            return
         name = self.content.placed(path)
         if name is not None and name in self.content.whole:
             self.record()
@@ -133,11 +135,11 @@ class RunFolder:
     def discard(self) -> None:
         """Remove what this run wrote and still holds what it wrote (and the folder itself, once released, if it
         made it and nothing else is there): never what other programs put there meanwhile."""
-        known = self.content.identities() if self.content is not None else {}
+        known = self.content.identities()
         for name in sorted(self.written - self.before):
             if still_ours(self.path / name, known.get(name)):
                 _remove(self.path / name)
-            elif self.content is not None and name in self.content.parts:
+            elif name in self.content.parts:
                 _remove_parts(self.path / name, self.content.parts_of(name))
         if MARKER not in self.before:  # the marker this run started
             _remove(self.path / MARKER)
@@ -200,7 +202,7 @@ def open_folder(out: Path, command: str, *, force: bool = False, resume: bool = 
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(out, f"cannot create the folder: {exc.strerror}") from exc
-    folder = RunFolder(out, command, fp or {}, created, content=Written(out))
+    folder = RunFolder(out, command, fp or {}, created)
     try:
         folder._lock = _take_lock(out)
     except InputError:
