@@ -7,8 +7,8 @@ folder, or a folder target that exists, is an :class:`InputError`), and only our
 :class:`InputError` naming the folder, with the temporary removed.
 
 A run folder watches the writes (:func:`watching_writes`): each target is announced before it is written, so
-the folder can list it in its marker first, or refuse a name that is the user's, and reported once it is in place,
-so the folder can record what it holds.
+the folder can list it in its marker first, or refuse a name that is the user's, and reported with its finished
+temporary just before that is renamed into place, so the folder records what the name will hold before it holds it.
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ from dm2_backend.errors import InputError
 _TEMP = re.compile(r"\.tmp-(\d+)-")
 #: called with each target path before it is written (see :func:`watching_writes`)
 _watchers: list[Callable[[Path], None]] = []
-#: called with each target path once it is in place
-_finished: list[Callable[[Path], None]] = []
+#: called with each target path and its finished temporary, just before the rename
+_finished: list[Callable[[Path, Path], None]] = []
 #: errors that mean the device (or the size limit of this process) has no room for the write
 NO_SPACE = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 
@@ -39,9 +39,11 @@ def is_temporary(name: str) -> bool:
 
 
 @contextlib.contextmanager
-def watching_writes(announce: Callable[[Path], None], done: Callable[[Path], None] | None = None) -> Iterator[None]:
+def watching_writes(announce: Callable[[Path], None],
+                    done: Callable[[Path, Path], None] | None = None) -> Iterator[None]:
     """Call ``announce(path)`` before each write of this process meanwhile (it may refuse: raise), and
-    ``done(path)`` once the written file or folder is in place under its name."""
+    ``done(path, temporary)`` once the file or folder is written under its temporary name, just before the rename
+    puts it in place (so whatever ends the process next, what the name holds was recorded first)."""
     _watchers.append(announce)
     if done is not None:
         _finished.append(done)
@@ -53,9 +55,9 @@ def watching_writes(announce: Callable[[Path], None], done: Callable[[Path], Non
             _finished.remove(done)
 
 
-def _placed(path: Path) -> None:
+def _placing(path: Path, temporary: Path) -> None:
     for done in list(_finished):
-        done(path)
+        done(path, temporary)
 
 
 def no_space_error(exc: BaseException, path: Path) -> InputError | None:
@@ -155,8 +157,8 @@ def atomic_write(path: str | Path, mode: str = "w", **kwargs) -> Iterator[IO]:
     try:
         with open(tmp, mode, **kwargs) as fh:
             yield fh
+        _placing(path, tmp)
         os.replace(tmp, path)
-        _placed(path)
     except OSError as exc:
         if (error := no_space_error(exc, path)) is not None:
             raise error from None
@@ -179,6 +181,7 @@ def atomic_path(
     old = path.with_name(f".tmp-{os.getpid()}-old-{path.name}")
     try:
         yield tmp
+        _placing(path, tmp)
         if tmp.is_dir():
             if path.is_dir() and replaceable is not None and replaceable(path):
                 os.rename(path, old)  # set aside, removed once the new one is in place
@@ -187,7 +190,6 @@ def atomic_path(
             os.rename(tmp, path)
         else:
             os.replace(tmp, path)
-        _placed(path)
     except OSError as exc:
         if (error := no_space_error(exc, path)) is not None:
             raise error from None

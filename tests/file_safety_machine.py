@@ -58,6 +58,7 @@ class FileSafety(RuleBasedStateMachine):
         self.graph.write_text(GRAPH)
         self.users: dict[str, tuple | None] = {}
         self.runs = 0
+        self.crafted = False  # a crafted marker or lock: dm2 may refuse the folder from then on
 
     def teardown(self) -> None:
         import shutil
@@ -97,6 +98,7 @@ class FileSafety(RuleBasedStateMachine):
     @rule(kind=st.sampled_from(("marker listing a user's thing", "marker with identities", "lock link")))
     def user_crafts(self, kind: str) -> None:
         self.out.mkdir(exist_ok=True)
+        self.crafted = True
         if kind == "lock link":
             if not (self.out / ".dm2-lock").exists() and not (self.out / ".dm2-lock").is_symlink():
                 (self.out / ".dm2-lock").symlink_to(self.outside)
@@ -110,14 +112,22 @@ class FileSafety(RuleBasedStateMachine):
             marker.write_text(json.dumps(doc))
 
     @rule(command=st.sampled_from(("simulate", "baseline")), force=st.booleans(),
-          event=st.sampled_from((None, "fail", "interrupt", "intruder")), at=st.integers(1, 6))
-    def dm2_runs(self, command: str, force: bool, event: str | None, at: int) -> None:
+          event=st.sampled_from((None, "fail", "interrupt", "intruder")), at=st.integers(1, 6), late=st.booleans(),
+          intruder=st.sampled_from(("intruder.txt", "report.json", "info.json", "poses.txt", "velodyne")))
+    def dm2_runs(self, command: str, force: bool, event: str | None, at: int, late: bool, intruder: str) -> None:
+        """``at``: the write (counted as each is about to be renamed into place) at which ``event`` happens;
+        ``late``: after the run folder has recorded that write (else before); ``intruder``: the name another
+        program writes."""
         self.runs += 1
+        clean = force and event is None and not self.users and not self.crafted
         args = (["simulate", "-n", "3"] if command == "simulate" else ["baseline", "gtsam", "--graph", str(self.graph)])
         args += ["--out", str(self.out), "-q"] + (["--force"] if force else [])
         count = [0]
 
-        def hook(path: Path) -> None:
+        def hook(path: Path, temporary: Path) -> None:
+            if late and atomic._finished[-1] is not hook:  # behind the run folder's own record of the write
+                atomic._finished.remove(hook)
+                atomic._finished.append(hook)
             count[0] += 1
             if count[0] != at:
                 return
@@ -125,10 +135,9 @@ class FileSafety(RuleBasedStateMachine):
                 raise Stop
             if event == "interrupt":
                 raise KeyboardInterrupt
-            if event == "intruder":
-                name = f"intruder-{self.runs}.txt"
-                (self.out / name).write_text("another program")
-                self.users[name] = _state(self.out / name)
+            if event == "intruder" and not (self.out / intruder).exists():
+                (self.out / intruder).write_text("another program")
+                self.users[intruder] = _state(self.out / intruder)
 
         atomic._finished.append(hook)
         try:
@@ -140,6 +149,8 @@ class FileSafety(RuleBasedStateMachine):
         if result is not None and result.exception is not None and not isinstance(
                 result.exception, (SystemExit, Stop, KeyboardInterrupt)):
             raise result.exception
+        if clean:  # only dm2's own, unchanged outputs in the folder: --force replaces them
+            assert result is not None and result.exit_code == 0, result.output
 
     @invariant()
     def nothing_of_the_users_changed(self) -> None:

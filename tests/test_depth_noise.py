@@ -28,6 +28,8 @@ def test_the_noise_grows_with_the_range_as_the_camera_makes_it(across):
     w = noise.weights(np.array([0.5, 1.0, noise.reference_m, 3.0, 8.0]))
     assert np.all(np.diff(w) <= 0) and w[2] == pytest.approx(1.0)
     assert w[-1] == depth_noise.MIN_WEIGHT
+    pure = depth_noise.RangeNoise(0.0, 1e-6, 1.0, 100, 3)  # sigma = 1 mm z^2: twice as far, a sixteenth
+    np.testing.assert_allclose(pure.weights(np.array([0.5, 1.0, 2.0])), [10.0, 1.0, 1.0 / 16.0])
 
 
 def test_weighed_cells_keep_their_shape(across):

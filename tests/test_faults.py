@@ -323,6 +323,7 @@ def test_a_signal_during_the_dense_stage_resumes_it_where_it_stopped(tmp_path):
     assert resumed.exit_code == 0, resumed.output
     dense = json.loads((out / "report.json").read_text())["start"]["dense"]
     assert dense["resumed_after_round"] == 1 and dense["rounds"] > 1  # signalled as round 2 was being kept
+    assert dense["depth_noise"] is None  # a LiDAR's cells are not weighed by range
 
 
 def test_ctrl_c_during_preparation_leaves_a_folder_the_same_command_accepts(seq, tmp_path):

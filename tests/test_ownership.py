@@ -101,9 +101,12 @@ def test_an_output_changed_since_the_run_is_left_and_named(tmp_path):
         _write(out / "poses_tum.txt", b"0 0 0 0 0 0 0 1\n")
         _write(out / "report.json")
     (out / "poses_tum.txt").write_bytes(b"0 0 0 0 0 0 0 1\n# my notes\n")
+    marker = (out / MARKER).read_bytes()
     with pytest.raises(InputError, match="no longer holds what it wrote") as err:
         open_folder(out, "refine", force=True)
     assert "poses_tum.txt" in str(err.value)
+    # refused before anything was removed
+    assert (out / "report.json").exists() and (out / MARKER).read_bytes() == marker
     assert (out / "poses_tum.txt").read_bytes().endswith(b"# my notes\n")
     with pytest.raises(InputError), adding_to(out):  # dm2 map would replace it: refused as well
         _write(out / "poses_tum.txt")
@@ -156,3 +159,47 @@ def test_a_crafted_marker_cannot_name_a_users_file_into_removal(tmp_path):
                                           "identity": {"Documents": "tree:1:0123456789abcdef0123"}}))
     open_folder(out, "refine", force=True).release()
     assert (out / "Documents" / "cv.txt").read_text() == "mine"
+
+
+def test_a_marker_of_an_earlier_version_owns_its_files_by_name(tmp_path):
+    out = tmp_path / "run"
+    with run_folder(out, "refine"):
+        _write(out / "report.json")
+        _write(out / "map.ply", b"old")
+    marker = json.loads((out / MARKER).read_text())
+    del marker["identity"]
+    (out / MARKER).write_text(json.dumps(marker))
+    with adding_to(out):
+        _write(out / "map.ply", b"new")
+    assert "identity" in json.loads((out / MARKER).read_text())
+    open_folder(out, "refine", force=True).release()
+    assert not (out / "report.json").exists() and not (out / "map.ply").exists()
+
+
+def test_resume_never_replaces_an_output_edited_since(tmp_path):
+    out = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt), run_folder(out, "refine", fp={"inputs": {"scans": "s"}}):
+        _write(out / "report.json", b"{}")
+        _write(out / "checkpoint.pt", b"state")
+        raise KeyboardInterrupt
+    folder = open_folder(out, "refine", resume=True, fp={"inputs": {"scans": "s"}})
+    assert {"report.json", "checkpoint.pt"} <= set(folder.inherited)
+    folder.release()
+    (out / "report.json").write_bytes(b'{"mine": 1}')
+    with pytest.raises(InputError, match="no longer holds what it wrote"):
+        open_folder(out, "refine", resume=True, fp={"inputs": {"scans": "s"}})
+    assert (out / "report.json").read_bytes() == b'{"mine": 1}'
+
+
+def test_an_output_another_program_writes_during_the_run_is_not_replaced(tmp_path):
+    out = tmp_path / "run"
+    with pytest.raises(InputError, match="appeared while this run wrote"), run_folder(out, "baseline"):
+        _write(out / "poses_tum.txt")
+        (out / "report.json").write_text("another program's")
+        _write(out / "report.json")
+    assert (out / "report.json").read_text() == "another program's"
+    assert not (out / "poses_tum.txt").exists()  # the failed run removed its own
+    with run_folder(tmp_path / "again", "baseline"):  # a file the run itself wrote is replaced as before
+        _write(tmp_path / "again" / "checkpoint.pt", b"1")
+        _write(tmp_path / "again" / "checkpoint.pt", b"2")
+    assert (tmp_path / "again" / "checkpoint.pt").read_bytes() == b"2"

@@ -92,8 +92,8 @@ def write_map(path: Path, frames: Frames, poses: np.ndarray, voxel: float) -> No
 
 
 def write_prior_files(folder: Path, warm: np.ndarray, topology: Topology, pairwise: Pairwise) -> None:
-    """The official DeepMapping2 ``init_pose.npy``, ``group_matrix.npy``, ``pairwise_pose.npy``."""
-    folder.mkdir(parents=True, exist_ok=True)
+    """The official DeepMapping2 ``init_pose.npy``, ``group_matrix.npy``, ``pairwise_pose.npy`` (each write makes
+    the folder, so a run that fails before leaves none)."""
     write_priors(folder, warm, topology.groups, pairwise.relative, pairwise.valid)
 
 

@@ -81,6 +81,15 @@ def still_ours(path: Path, recorded: str | None) -> bool:
         return False
 
 
+def relative_in(root: Path, path: Path) -> Path | None:
+    """``path`` relative to ``root`` when it lies inside it (not ``root`` itself), else None."""
+    try:
+        rel = Path(os.path.abspath(path)).relative_to(os.path.abspath(root))
+    except ValueError:
+        return None
+    return rel if rel.parts else None
+
+
 @dataclass
 class Written:
     """The identities of the top-level entries of ``root`` written meanwhile: a file or a folder placed whole is
@@ -91,26 +100,34 @@ class Written:
     whole: dict[str, str | None] = field(default_factory=dict)
     parts: dict[str, dict[str, str | None]] = field(default_factory=dict)
 
-    def placed(self, path: Path) -> str | None:
-        """Record ``path`` (in place under its name); returns its top-level name, None if outside ``root``."""
-        try:
-            rel = Path(os.path.abspath(path)).relative_to(os.path.abspath(self.root))
-        except ValueError:
+    def placed(self, path: Path, source: Path | None = None) -> str | None:
+        """Record what ``path`` holds, read from ``source`` (the temporary about to be renamed to it; default the
+        path itself); returns its top-level name, None if outside ``root``."""
+        rel = relative_in(self.root, path)
+        if rel is None:
             return None
-        if not rel.parts:
-            return None
-        name = rel.parts[0]
+        name, source = rel.parts[0], Path(source if source is not None else path)
         if len(rel.parts) == 1:
-            self.whole[name] = identity(self.root / name)
+            try:
+                self.whole[name] = identity(source)
+            except OSError:  # unreadable: nobody's to remove
+                self.whole[name] = None
             self.parts.pop(name, None)
         else:
-            self.parts.setdefault(name, {})[str(Path(*rel.parts[1:]))] = file_identity(path)
+            self.parts.setdefault(name, {})[str(Path(*rel.parts[1:]))] = file_identity(source)
             self.whole.pop(name, None)
         return name
 
+    def recorded(self, rel: Path) -> str | None:
+        """The identity recorded for ``rel`` (relative to the root): a top-level entry's, or a file's written into
+        a folder one by one."""
+        if len(rel.parts) == 1:
+            return self.whole.get(rel.parts[0])
+        return self.parts.get(rel.parts[0], {}).get(str(Path(*rel.parts[1:])))
+
     def identities(self) -> dict[str, str]:
-        """Name -> identity of everything recorded whole (None-free: an entry that was not a plain file or
-        folder is nobody's to remove)."""
+        """Name -> identity of each top-level entry: placed whole, or a folder whose files were all placed one by
+        one (None-free: an entry that was not a plain file or folder is nobody's to remove)."""
         out = {name: ident for name, ident in self.whole.items() if ident is not None}
         for name, files in self.parts.items():
             if all(ident is not None for ident in files.values()):

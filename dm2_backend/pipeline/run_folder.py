@@ -31,7 +31,7 @@ import json
 import os
 import shutil
 import stat
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -39,7 +39,7 @@ from dm2_backend.atomic import is_temporary, watching_writes
 from dm2_backend.config_schema import RunConfig
 from dm2_backend.errors import InputError
 from dm2_backend.optim.dense_checkpoint import DENSE_CHECKPOINT
-from dm2_backend.pipeline.ownership import Written, still_ours
+from dm2_backend.pipeline.ownership import Written, identity, relative_in, still_ours
 
 MARKER = ".dm2-run.json"
 LOCK = ".dm2-lock"
@@ -57,7 +57,7 @@ OUTPUT_NAMES = ("config.yaml", "resolved.yaml", "report.json", "warm_start.*", "
                 *CHECKPOINTS, "poses*", "*_lidar_*", "graph.g2o", "velodyne", "times.txt", "info.json", "README.txt",
                 "*.rrd", "hba")
 #: a marker larger than this is not one dm2 wrote
-MARKER_MAX_BYTES = 1 << 20
+MARKER_MAX_BYTES = 32 << 20
 
 
 class Interrupted(KeyboardInterrupt):
@@ -94,43 +94,54 @@ class RunFolder:
 
     @property
     def users(self) -> frozenset[str]:
-        """Entries that were here before the run and that no dm2 run listed: never replaced."""
-        return frozenset(name for name in self.before - set(self.inherited) - {LOCK, MARKER}
-                         if not is_temporary(name))
+        """Entries that were here before the run and that are not the run's it continues: never replaced."""
+        return _users(self.before - set(self.inherited))
 
     def record(self, files: list[str] | None = None) -> None:
         """Write the marker: the command, its fingerprint, every file of this run (what ``--force`` may remove
         later: those it announced and those of the run it resumes) and the identity of each that is in place."""
         if files is None:
             files = sorted(self.written | set(self.inherited))
-        known = {**{k: v for k, v in self.inherited_identity.items() if k not in self.written},
-                 **self.content.identities()}
+        known = {**self.inherited_identity, **self.content.identities()}
         _write_marker(self.path, {"command": self.command, "fingerprint": self.fingerprint, "files": files,
                                   "identity": {name: known[name] for name in files if name in known}})
 
-    def placed(self, path: Path) -> None:
-        """Called by :mod:`dm2_backend.atomic` once ``path`` is in place: its identity is recorded (in the marker
-        at once for a top-level entry; a folder written file by file when the run is recorded)."""
-        name = self.content.placed(path)
+    def placed(self, path: Path, temporary: Path) -> None:
+        """Called by :mod:`dm2_backend.atomic` just before ``temporary`` is renamed to ``path``: what the name will
+        hold is recorded, in the marker at once for a top-level entry; a folder written file by file is recorded
+        whole with the next name listed and when the run ends (killed in between, its writing was cut short: left
+        for you to remove)."""
+        name = self.content.placed(path, temporary)
         if name is not None and name in self.content.whole:
             self.record()
 
     def announce(self, path: Path) -> None:
         """Called by :mod:`dm2_backend.atomic` before it writes ``path``: a path inside this folder is listed in
         the marker first (a run killed while writing still names it); one that would replace a file of the
-        user's is refused."""
-        try:
-            rel = Path(os.path.abspath(path)).relative_to(os.path.abspath(self.path))
-        except ValueError:
+        user's, or one another program put there meanwhile, is refused."""
+        rel = relative_in(self.path, path)
+        if rel is None:
             return  # not in this folder (the cache, another output)
-        if not rel.parts:
-            return
         name = rel.parts[0]
         if name in self.users:
             raise InputError(self.path / name, _NOT_OURS)
+        target = self.path / rel
+        if (target.exists() or target.is_symlink()) and not self._may_replace(rel):
+            raise InputError(target, _APPEARED)
         if name not in self.written and name not in self.inherited:
             self.written.add(name)
             self.record(sorted(self.written | set(self.inherited)))
+
+    def _may_replace(self, rel: Path) -> bool:
+        """Whether the existing ``rel`` is this run's, or the run's it continues, and still holds what was written."""
+        name = rel.parts[0]
+        if len(rel.parts) > 1 and (name in self.content.whole or name in self.inherited):
+            return True  # inside a folder checked as a whole when it was placed or inherited
+        if self.content.recorded(rel) is not None:
+            return still_ours(self.path / rel, self.content.recorded(rel))
+        if len(rel.parts) == 1 and name in self.inherited:
+            return name not in self.inherited_identity or still_ours(self.path / name, self.inherited_identity[name])
+        return False
 
     def discard(self) -> None:
         """Remove what this run wrote and still holds what it wrote (and the folder itself, once released, if it
@@ -213,26 +224,33 @@ def open_folder(out: Path, command: str, *, force: bool = False, resume: bool = 
     try:
         previous = _read_marker(out)
         listed = _listed_names(out, previous)
-        recorded = _recorded(out, previous)
-        kept: list[str] = []
+        recorded = _recorded(out, previous, listed)
+        ours = [name for name in listed if still_ours(out / name, recorded.get(name))]
+        changed = [name for name in listed if name not in ours and _present(out / name)]
         if resume:
             _check_resume(out, previous, folder.fingerprint)
-            folder.inherited = tuple(sorted({*listed, *CHECKPOINTS}))
-            folder.inherited_identity = recorded
+            # the checkpoints are judged by their content when read (``pipeline.refine.check_checkpoints``)
+            checkpoints = [name for name in CHECKPOINTS if (out / name).is_file() and not (out / name).is_symlink()]
+            folder.inherited = tuple(sorted({*ours, *checkpoints}))
+            folder.inherited_identity = {name: recorded[name] for name in ours if name in recorded}
         elif _occupied(out, listed):
             if not force:
                 raise InputError(out, "folder is not empty: give --force to replace a previous run's files"
                                       + (", or --resume to continue it" if command == "refine" else ""))
-            kept = _remove_ours(out, listed, recorded)
+            _check_no_collision(out, _users(_entries(out) - set(ours)), changed)  # before anything is removed
+            for name in ours:
+                _remove(out / name)
             if previous is not None:
                 _remove(out / MARKER)
         folder.before = frozenset(_entries(out))
-        _check_no_collision(out, folder.users, kept)
+        _check_no_collision(out, folder.users, changed)
         folder.record(files=list(folder.inherited))  # from now on a killed run can be resumed or replaced
     except BaseException:
         folder.release()
-        if created:
-            shutil.rmtree(out, ignore_errors=True)
+        if created:  # only the marker this run started can be in it
+            _remove(out / MARKER)
+            with contextlib.suppress(OSError):
+                out.rmdir()
         raise
     return folder
 
@@ -265,33 +283,39 @@ def run_folder(out: Path, command: str, *, force: bool = False, resume: bool = F
 @contextlib.contextmanager
 def adding_to(out: Path) -> Iterator[None]:
     """Write more files into a finished run folder (``dm2 map``, ``dm2 view``): the folder is locked meanwhile,
-    only what a dm2 run wrote there and still holds what it wrote may be replaced, and the files written are added
-    to its marker with their identities, so a later ``--force`` replaces them with the rest."""
+    only what a dm2 run wrote there and still holds what it wrote may be replaced, and each file written is added
+    to its marker with its identity as it is put in place, so a later ``--force`` replaces it with the rest."""
     out = Path(out)
     lock = _take_lock(out)
     content = Written(out)
     try:
         marker = _read_marker(out)
-        recorded = _recorded(out, marker)
-        ours = {name for name in _listed_names(out, marker) if still_ours(out / name, recorded.get(name))}
-        users = {name for name in _entries(out) - ours - {LOCK, MARKER} if not is_temporary(name)}
+        listed = _listed_names(out, marker)
+        recorded = _recorded(out, marker, listed)
+        ours = {name for name in listed if still_ours(out / name, recorded.get(name))}
+        users = _users(_entries(out) - ours)
 
-        def refuse_users(path: Path) -> None:
-            with contextlib.suppress(ValueError):
-                rel = Path(os.path.abspath(path)).relative_to(os.path.abspath(out))
-                if rel.parts and rel.parts[0] in users:
-                    raise InputError(out / rel.parts[0], _NOT_OURS.replace("choose another --out", "remove it first"))
+        def refuse(path: Path) -> None:
+            rel = relative_in(out, path)
+            if rel is None:
+                return
+            name = rel.parts[0]
+            if name in users:
+                why = _CHANGED if name in listed else _NOT_OURS
+                raise InputError(out / name, why.replace("choose another --out", "remove it first"))
+            target = out / rel
+            if _present(target) and name not in ours and not still_ours(target, content.recorded(rel)):
+                raise InputError(target, _APPEARED)
 
-        with watching_writes(refuse_users, content.placed):
+        def placed(path: Path, temporary: Path) -> None:
+            if content.placed(path, temporary) is not None and marker is not None:
+                names = sorted({*listed, *content.whole, *content.parts})
+                known = {**recorded, **content.identities()}
+                _write_marker(out, {**marker, "files": names, "identity": {n: known[n] for n in names if n in known}})
+
+        with watching_writes(refuse, placed):
             yield
     finally:
-        previous = _read_marker(out)
-        if previous is not None:
-            with contextlib.suppress(InputError):
-                names = set(_listed_names(out, previous)) | set(content.whole) | set(content.parts)
-                known = {**_recorded(out, previous), **content.identities()}
-                _write_marker(out, {**previous, "files": sorted(names),
-                                    "identity": {n: known[n] for n in sorted(names) if n in known}})
         (out / LOCK).unlink(missing_ok=True)
         lock.close()
 
@@ -300,26 +324,25 @@ _NOT_OURS = ("is not listed in this folder's .dm2-run.json (not a dm2 run's outp
              "that name: dm2 never replaces your files, even with --force; move it or choose another --out")
 _CHANGED = ("was written by a dm2 run but no longer holds what it wrote (or its writing was cut short), and this run "
             "writes a file of that name: dm2 leaves it as it is, even with --force; move it or choose another --out")
+_APPEARED = ("appeared while this run wrote into the folder (another program's): dm2 leaves it as it is; move it and "
+             "run again")
 
 
-def _check_no_collision(out: Path, users: frozenset[str], changed: list[str] = ()) -> None:
-    """Before any work: a file of the user's that has the name of a dm2 output is refused, not replaced."""
+def _users(entries: set[str] | frozenset[str]) -> frozenset[str]:
+    """The entries that are not dm2's lock, marker or temporaries."""
+    return frozenset(name for name in entries - {LOCK, MARKER} if not is_temporary(name))
+
+
+def _present(path: Path) -> bool:
+    return path.exists() or path.is_symlink()
+
+
+def _check_no_collision(out: Path, users: frozenset[str], changed: Collection[str] = ()) -> None:
+    """Before any work: a file of the user's (or one changed since dm2 wrote it) that has the name of a dm2 output
+    is refused, not replaced."""
     clash = sorted(name for name in users if any(fnmatch.fnmatchcase(name, p) for p in OUTPUT_NAMES))
     if clash:
         raise InputError(out / clash[0], _CHANGED if clash[0] in changed else _NOT_OURS)
-
-
-def _remove_ours(out: Path, listed: list[str], recorded: dict[str, str]) -> list[str]:
-    """Remove the listed entries that still hold what dm2 recorded; returns those left (changed since, or never
-    recorded whole)."""
-    kept = []
-    for name in listed:
-        path = out / name
-        if still_ours(path, recorded.get(name)):
-            _remove(path)
-        elif path.exists() or path.is_symlink():
-            kept.append(name)
-    return kept
 
 
 def _remove_parts(folder: Path, parts: dict[str, str | None]) -> None:
@@ -360,17 +383,27 @@ def _listed_names(out: Path, marker: dict | None) -> list[str]:
     return list(files)
 
 
-def _recorded(out: Path, marker: dict | None) -> dict[str, str]:
-    """The ``identity`` of a marker (name -> recorded identity); a marker whose identities are not plain names
+def _recorded(out: Path, marker: dict | None, listed: list[str]) -> dict[str, str]:
+    """The ``identity`` of a marker (name -> recorded identity). A marker without one (written before dm2 recorded
+    identities) owns its listed entries by name: their identities now. One whose identities are not plain names
     and short strings was not written by dm2 and is refused whole."""
     if marker is None:
         return {}
-    ids = marker.get("identity", {})
+    if "identity" not in marker:
+        return {name: ident for name in listed if (ident := _identity_or_none(out / name)) is not None}
+    ids = marker["identity"]
     if not isinstance(ids, dict) or not all(_plain_name(k) and isinstance(v, str) and len(v) <= 64
                                             for k, v in ids.items()):
         raise InputError(out / MARKER, "not a dm2 run marker ('identity' is not a table of names and digests); "
                                        "nothing was removed")
     return dict(ids)
+
+
+def _identity_or_none(path: Path) -> str | None:
+    try:
+        return identity(path)
+    except OSError:
+        return None
 
 
 def _plain_name(name) -> bool:

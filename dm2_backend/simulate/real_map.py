@@ -67,7 +67,6 @@ def write_real_map_sequence(out: Path, scans: ScanSequence, poses: np.ndarray, m
     step = spacing / factor
     warm = drifting_odometry(gt, seed + 1, yaw_sigma=0.001 * np.sqrt(step), trans_sigma=0.02, yaw_bias=0.00035 * step,
                              z_sigma=0.01, tilt_sigma=0.0003 * np.sqrt(step))
-    (out / "velodyne").mkdir(parents=True, exist_ok=True)
     counts = []
     for i, T in enumerate(gt):
         points, intensity = caster.scan_with_intensity(T, np.random.default_rng([seed, 1, i]))

@@ -101,8 +101,7 @@ def write_sequence(out: Path, scans: list[np.ndarray], gt: np.ndarray, warm: np.
     """``velodyne/NNNNNN.bin``, ``poses.txt`` (ground truth, LiDAR frame), ``times.txt``,
     ``warm_start.txt``."""
     out = Path(out)
-    (out / "velodyne").mkdir(parents=True, exist_ok=True)
-    for i, p in enumerate(scans):
+    for i, p in enumerate(scans):  # (each write makes its folder)
         write_bin(out / "velodyne" / f"{i:06d}.bin", p)
     _write_trajectories(out, gt, warm, np.arange(len(scans)) / rate_hz)
 
@@ -120,7 +119,6 @@ def generate(s: SimSettings, out: Path, progress: bool = True) -> dict:
     out = Path(out)
     t0 = time.perf_counter()
     sim = Simulation(s)
-    (out / "velodyne").mkdir(parents=True, exist_ok=True)
     counts = np.zeros(len(sim), dtype=np.int64)
     pending: deque[Future] = deque()
     with ThreadPoolExecutor(max_workers=1) as pool:
