@@ -121,10 +121,11 @@ class OptimConfig(BaseModel):
     #: measured against that solution (``dm2_backend.optim.odometry_noise``), and the stage goes on; False: the
     #: guessed weight of the pose graph throughout (docs/decisions/0007-odometry-noise-measured.md)
     dense_odometry_noise: bool = True
-    #: a depth camera's cells weighed by its range noise, which grows with the square of the range, measured on
-    #: its own frames (``dm2_backend.optim.depth_noise``); False: every point alike
-    #: (docs/decisions/0017-depth-cells-weighed-by-range-noise.md)
-    dense_depth_noise: bool = True
+    #: True: a depth camera's cells weighed by its range noise, which grows with the square of the range, measured
+    #: on its own frames (``dm2_backend.optim.depth_noise``); off by default: every point alike (it moved the
+    #: real frames' result from any start to one place, but a locally exact input ended further from its reference;
+    #: docs/decisions/0017-depth-cells-weighed-by-range-noise.md)
+    dense_depth_noise: bool = False
     #: the first-order DeepMapping2 epochs (Adam on the M-Net BCE, Chamfer and consistency losses over anchor
     #: groups); None: on only when the dense stage did not run (after it, kept or not, they trade the steps the
     #: frames support for a sharper map; docs/decisions/0006-first-order-off-after-dense.md)

@@ -68,15 +68,19 @@ def test_refine_from_the_true_poses_of_a_depth_camera_stays_at_them(tmp_path):
     sim = tmp_path / "room"
     assert invoke(["simulate", "--scene", "room", "-n", "90", "--seed", "3", "-o", str(sim), "-q"]).exit_code == 0
     reports = {}
+    weigh = tmp_path / "weigh.yaml"  # from the truth, with the cells weighed by the measured range noise
+    weigh.write_text("optimiser:\n  dense_depth_noise: true\n")
     for start in ("truth.tum", "warm_start.tum"):
         run = tmp_path / start
+        extra = ["-c", str(weigh)] if start == "truth.tum" else []
         result = invoke(["refine", "-s", str(sim), "-p", str(sim / start), "--gt", str(sim / "truth.tum"), "-o",
-                         str(run), "-q"])
+                         str(run), "-q", *extra])
         assert result.exit_code == 0, result.output
         reports[start] = json.loads((run / "report.json").read_text())
     truth, drifted = reports["truth.tum"], reports["warm_start.tum"]
     noise = truth["start"]["dense"]["depth_noise"]  # measured on the frames, and the cells weighed by it
     assert noise["frames"] == 20 and noise["quartic_m2_per_m4"] > 0.0
+    assert drifted["start"]["dense"]["depth_noise"] is None  # off by default
     assert truth["metrics"]["ape_trans_rmse_m"] < 0.003  # (2.7 m median depth: 1.2-20 mm of noise a point)
     assert truth["metrics"]["rpe_rot_rmse_deg"] < 0.03
     # from the visual odometry (drifting 0.15 deg a frame in rotation), a map as sharp as the truth's; on a path
