@@ -140,6 +140,33 @@ def _prepare(path: Path, folder: bool, replaceable: Callable[[Path], bool] | Non
     clean_stale(path.parent, (path.name,))
 
 
+def _put(tmp: Path, path: Path, existed: bool) -> None:
+    """Rename the file ``tmp`` to ``path``. A name that was not there when the write began (``existed``) is taken
+    with a hard link, which fails if it appeared meanwhile (another program's file is never replaced); where the
+    file system has no hard links, and for a name that was there (checked as replaceable before the write), by
+    rename."""
+    if not existed:
+        try:
+            os.link(tmp, path)
+        except FileExistsError:
+            raise InputError(path, "appeared while it was written (not dm2's): left as it is") from None
+        except OSError as exc:
+            if exc.errno not in _NO_LINKS:
+                raise
+        else:
+            os.unlink(tmp)
+            return
+    os.replace(tmp, path)
+
+
+def _present(path: Path) -> bool:
+    return path.exists() or path.is_symlink()
+
+
+#: errors that mean the file system makes no hard links
+_NO_LINKS = (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EXDEV, errno.EMLINK, errno.ENOSYS)
+
+
 def _remove(tmp: Path) -> None:
     if tmp.is_dir() and not tmp.is_symlink():
         shutil.rmtree(tmp, ignore_errors=True)
@@ -153,12 +180,13 @@ def atomic_write(path: str | Path, mode: str = "w", **kwargs) -> Iterator[IO]:
     replaced, an existing folder is an :class:`InputError`)."""
     path = Path(path)
     _prepare(path, folder=False)
+    existed = _present(path)
     tmp = _temp_name(path)
     try:
         with open(tmp, mode, **kwargs) as fh:
             yield fh
         _placing(path, tmp)
-        os.replace(tmp, path)
+        _put(tmp, path, existed)
     except OSError as exc:
         if (error := no_space_error(exc, path)) is not None:
             raise error from None
@@ -177,6 +205,7 @@ def atomic_path(
     removed."""
     path = Path(path)
     _prepare(path, folder=folder, replaceable=replaceable)
+    existed = _present(path)
     tmp = _temp_name(path)
     old = path.with_name(f".tmp-{os.getpid()}-old-{path.name}")
     try:
@@ -189,7 +218,7 @@ def atomic_path(
                 raise InputError(path, "appeared while it was written; left as it is")
             os.rename(tmp, path)
         else:
-            os.replace(tmp, path)
+            _put(tmp, path, existed)
     except OSError as exc:
         if (error := no_space_error(exc, path)) is not None:
             raise error from None

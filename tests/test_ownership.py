@@ -203,3 +203,14 @@ def test_an_output_another_program_writes_during_the_run_is_not_replaced(tmp_pat
         _write(tmp_path / "again" / "checkpoint.pt", b"1")
         _write(tmp_path / "again" / "checkpoint.pt", b"2")
     assert (tmp_path / "again" / "checkpoint.pt").read_bytes() == b"2"
+
+
+def test_a_name_that_appears_while_dm2_writes_it_is_never_replaced(tmp_path):
+    target = tmp_path / "report.json"
+    with pytest.raises(InputError, match="appeared while it was written"), atomic_write(target) as fh:
+        fh.write("dm2's")
+        target.write_text("another program's")  # created after the write began, before the rename
+    assert target.read_text() == "another program's" and not list(tmp_path.glob(".tmp-*"))
+    with atomic_write(target) as fh:  # a name that is there when the write begins is replaced, as before
+        fh.write("dm2's")
+    assert target.read_text() == "dm2's"
