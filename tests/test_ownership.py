@@ -161,19 +161,19 @@ def test_a_crafted_marker_cannot_name_a_users_file_into_removal(tmp_path):
     assert (out / "Documents" / "cv.txt").read_text() == "mine"
 
 
-def test_a_marker_of_an_earlier_version_owns_its_files_by_name(tmp_path):
+def test_a_marker_without_identities_owns_nothing(tmp_path):
+    """A name alone (a crafted marker, or one of a dm2 that recorded no identities) never gets a file removed."""
     out = tmp_path / "run"
     with run_folder(out, "refine"):
         _write(out / "report.json")
-        _write(out / "map.ply", b"old")
     marker = json.loads((out / MARKER).read_text())
     del marker["identity"]
     (out / MARKER).write_text(json.dumps(marker))
-    with adding_to(out):
-        _write(out / "map.ply", b"new")
-    assert "identity" in json.loads((out / MARKER).read_text())
-    open_folder(out, "refine", force=True).release()
-    assert not (out / "report.json").exists() and not (out / "map.ply").exists()
+    with pytest.raises(InputError, match="no longer holds what it wrote"):
+        open_folder(out, "refine", force=True)
+    with pytest.raises(InputError), adding_to(out):
+        _write(out / "report.json")
+    assert (out / "report.json").read_text() == "dm2"
 
 
 def test_resume_never_replaces_an_output_edited_since(tmp_path):

@@ -39,7 +39,7 @@ from dm2_backend.atomic import is_temporary, watching_writes
 from dm2_backend.config_schema import RunConfig
 from dm2_backend.errors import InputError
 from dm2_backend.optim.dense_checkpoint import DENSE_CHECKPOINT
-from dm2_backend.pipeline.ownership import Written, identity, relative_in, still_ours
+from dm2_backend.pipeline.ownership import Written, relative_in, still_ours
 
 MARKER = ".dm2-run.json"
 LOCK = ".dm2-lock"
@@ -224,7 +224,7 @@ def open_folder(out: Path, command: str, *, force: bool = False, resume: bool = 
     try:
         previous = _read_marker(out)
         listed = _listed_names(out, previous)
-        recorded = _recorded(out, previous, listed)
+        recorded = _recorded(out, previous)
         ours = [name for name in listed if still_ours(out / name, recorded.get(name))]
         changed = [name for name in listed if name not in ours and _present(out / name)]
         if resume:
@@ -291,7 +291,7 @@ def adding_to(out: Path) -> Iterator[None]:
     try:
         marker = _read_marker(out)
         listed = _listed_names(out, marker)
-        recorded = _recorded(out, marker, listed)
+        recorded = _recorded(out, marker)
         ours = {name for name in listed if still_ours(out / name, recorded.get(name))}
         users = _users(_entries(out) - ours)
 
@@ -322,8 +322,9 @@ def adding_to(out: Path) -> Iterator[None]:
 
 _NOT_OURS = ("is not listed in this folder's .dm2-run.json (not a dm2 run's output), and this run writes a file of "
              "that name: dm2 never replaces your files, even with --force; move it or choose another --out")
-_CHANGED = ("was written by a dm2 run but no longer holds what it wrote (or its writing was cut short), and this run "
-            "writes a file of that name: dm2 leaves it as it is, even with --force; move it or choose another --out")
+_CHANGED = ("was listed by a dm2 run but no longer holds what it wrote (changed since, its writing cut short, or "
+            "listed by a dm2 that did not record what it wrote), and this run writes a file of that name: dm2 leaves "
+            "it as it is, even with --force; move it or choose another --out")
 _APPEARED = ("appeared while this run wrote into the folder (another program's): dm2 leaves it as it is; move it and "
              "run again")
 
@@ -383,27 +384,18 @@ def _listed_names(out: Path, marker: dict | None) -> list[str]:
     return list(files)
 
 
-def _recorded(out: Path, marker: dict | None, listed: list[str]) -> dict[str, str]:
-    """The ``identity`` of a marker (name -> recorded identity). A marker without one (written before dm2 recorded
-    identities) owns its listed entries by name: their identities now. One whose identities are not plain names
-    and short strings was not written by dm2 and is refused whole."""
+def _recorded(out: Path, marker: dict | None) -> dict[str, str]:
+    """The ``identity`` of a marker (name -> recorded identity). A marker without one (crafted, or written by a dm2
+    that did not record identities) owns nothing: a name alone never gets a file removed. One whose identities are
+    not plain names and short strings was not written by dm2 and is refused whole."""
     if marker is None:
         return {}
-    if "identity" not in marker:
-        return {name: ident for name in listed if (ident := _identity_or_none(out / name)) is not None}
-    ids = marker["identity"]
+    ids = marker.get("identity", {})
     if not isinstance(ids, dict) or not all(_plain_name(k) and isinstance(v, str) and len(v) <= 64
                                             for k, v in ids.items()):
         raise InputError(out / MARKER, "not a dm2 run marker ('identity' is not a table of names and digests); "
                                        "nothing was removed")
     return dict(ids)
-
-
-def _identity_or_none(path: Path) -> str | None:
-    try:
-        return identity(path)
-    except OSError:
-        return None
 
 
 def _plain_name(name) -> bool:
