@@ -100,6 +100,12 @@ def test_the_demo_leaves_one_folder_in_the_temporary_directory(tmp_path, monkeyp
         assert r.exit_code == 0, r.output
     demos = [p.name for p in tmp_path.iterdir() if p.name.startswith("dm2-demo")]
     assert demos == [f"dm2-demo-{getpass.getuser()}"]  # the second demo replaced the first
+    marker = tmp_path / demos[0] / ".dm2-run.json"  # as an earlier dm2 wrote it: no identities
+    doc = json.loads(marker.read_text())
+    del doc["identity"]
+    marker.write_text(json.dumps(doc))
+    r = run("demo", "--frames", "40", "--epochs", "1", "-q")
+    assert r.exit_code == 0, r.output  # the demo's own folder: its earlier files are replaced all the same
 
 
 def test_a_runs_total_counts_the_whole_command(tmp_path):

@@ -36,12 +36,14 @@ def command(out: Path | None, frames: int, epochs: int | None, seed: int, force:
     from dm2_backend.formats import ReadOptions
     from dm2_backend.pipeline.inputs import load_inputs
     from dm2_backend.pipeline.refine import refine
-    from dm2_backend.pipeline.run_folder import run_folder
+    from dm2_backend.pipeline.run_folder import adopt_unrecorded, run_folder
     from dm2_backend.simulate.sequence import SimSettings, simulate, write_sequence
 
     root = out or default_folder()
     # the default folder is the demo's own: each demo replaces the last one's files (as --force) instead of
-    # leaving another folder in the temporary directory
+    # leaving another folder in the temporary directory, those of an earlier dm2's demo too
+    if out is None:
+        adopt_unrecorded(root, "demo")
     with run_folder(root, "demo", force=force or out is None):
         sample = root / "sample"
         click.echo(f"simulating {frames} planar laser frames (seed {seed}) into {sample}")

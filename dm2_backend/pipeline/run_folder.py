@@ -39,7 +39,7 @@ from dm2_backend.atomic import is_temporary, watching_writes
 from dm2_backend.config_schema import RunConfig
 from dm2_backend.errors import InputError
 from dm2_backend.optim.dense_checkpoint import DENSE_CHECKPOINT
-from dm2_backend.pipeline.ownership import Written, relative_in, still_ours
+from dm2_backend.pipeline.ownership import Written, identity, relative_in, still_ours
 
 MARKER = ".dm2-run.json"
 LOCK = ".dm2-lock"
@@ -382,6 +382,25 @@ def _listed_names(out: Path, marker: dict | None) -> list[str]:
                                            "folder: dm2 never writes such a marker; nothing was removed (remove "
                                            "the marker, or the folder, yourself)")
     return list(files)
+
+
+def adopt_unrecorded(out: Path, command: str) -> None:
+    """For a folder that is dm2's own (the demo's default): a marker of ``command`` written by a dm2 that recorded no
+    identities gets those of the entries it lists, as they are now (never through a link), so that ``--force``
+    replaces them. Anything else is left as it is."""
+    marker = _read_marker(out) if out.is_dir() else None
+    if marker is None or "identity" in marker or marker.get("command") != command:
+        return
+    names = _listed_names(out, marker)
+    known = {name: ident for name in names if (ident := _identity_or_none(out / name)) is not None}
+    _write_marker(out, {**marker, "identity": known})
+
+
+def _identity_or_none(path: Path) -> str | None:
+    try:
+        return identity(path)
+    except OSError:
+        return None
 
 
 def _recorded(out: Path, marker: dict | None) -> dict[str, str]:
