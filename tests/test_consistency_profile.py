@@ -210,6 +210,24 @@ def test_a_trajectory_refined_to_the_noise_floor_raises_no_flag():
     assert profile(seq, near).segments == []
 
 
+def test_the_fast_street_of_dm2_simulate_raises_no_flag_from_truth_or_the_floor_and_a_jump_does():
+    """``dm2 simulate --frames 120`` (the README's street: 2.9 m a frame, so two-frame stretches that see a fifth
+    of each frame): a flat cell measured against another surface's plane reaching into its voxel (the ground into
+    a wall's cell) and a score from a subset of the cells flagged its true poses in 6 stretches."""
+    scans, gt, _ = simulate(SimSettings(frames=120), progress=False)
+    seq = ScanSequence(lambda i: Scan(scans[i]), len(scans), timestamps=np.arange(len(scans)) * 0.1, planar=False)
+    rng = np.random.default_rng(1)
+    near = gt.copy()
+    near[:, :3, 3] += rng.normal(0.0, 1e-3, (len(gt), 3))
+    near[:, :3, :3] = near[:, :3, :3] @ se3.exp_so3(rng.normal(0.0, np.radians(0.01), (len(gt), 3)))
+    jumped = jump_from(gt, 60)
+    profiles = cp.consistency_profiles(seq, {"truth": gt, "floor": near, "jump": jumped}, seq.timestamps)
+    assert profiles["truth"].window == 2
+    assert profiles["truth"].segments == [] and profiles["floor"].segments == []
+    hit, false = flags(profiles["jump"], gt, jumped)
+    assert hit and false == 0, profiles["jump"].segments
+
+
 def test_the_flag_threshold_never_falls_below_the_measured_noise():
     """Relative to the agreeing frames' level, and at least the noise the planes measure: a trajectory whose
     frames all agree to a hair is not flagged for its scene's own spread."""

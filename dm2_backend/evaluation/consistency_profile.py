@@ -5,8 +5,9 @@ frame's score (m) is the largest of three views of "the others":
 
 - **past** and **future**: the planes of the neighbouring stretch before / after it (blocks of ``window``
   frames). Each cell of the frame is measured to the nearest of those planes that reaches it (so a point a jump
-  moved out of its plane's voxel still finds it), capped at ``CAP`` noise sigmas, and the frame's worst ``TRIM``
-  of points is left out (what the stretch could not see). A front-end jump makes the frames after it disagree
+  moved out of its plane's voxel still finds it) and, for a flat cell, faces its way (``SAME_SURFACE_DEG``),
+  capped at ``CAP`` noise sigmas, and the frame's worst ``TRIM`` of points is left out (what the stretch could
+  not see). A front-end jump makes the frames after it disagree
   with the sharp map of the stretch before;
 - **all**: every other frame (leave-one-out, robust weights), which sees a revisit that does not line up (a
   wrong loop closure, a drift that shows where the path comes back).
@@ -41,9 +42,12 @@ from scipy.spatial import cKDTree
 from dm2_backend.atomic import atomic_write
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.report_writers import safe_name
+from dm2_backend.geometry.symmetric3 import smallest_eigen
 from dm2_backend.geometry.voxels import group_rows
 from dm2_backend.memory import release_freed_memory
 from dm2_backend.optim.planes import (
+    FLATNESS,
+    MIN_WIDTH,
     Assignment,
     Cells,
     Planes,
@@ -74,8 +78,10 @@ RESOLUTION = 0.01
 NEAREST_PLANES = 8
 #: the worst share of a frame's points left out of its score (surfaces the reference could not see)
 TRIM = 0.2
-#: the cells of a frame measured against the neighbouring stretch's planes
-JUDGED_CELLS = 1024
+#: a flat cell is measured only against a plane within this angle of its own: a plane turned further is nearer
+#: perpendicular to the cell's surface than parallel, another surface (the ground reaching into a wall's cell where
+#: the stretch never saw the wall); a misplacement turns a surface far less
+SAME_SURFACE_DEG = 45.0
 #: flagged frames this close (frames) are one segment
 GAP = 2
 #: the cells kept per frame (as the dense stage keeps them), and in the stretches of frames judged at once
@@ -197,14 +203,17 @@ def _apart(poses: np.ndarray, group: np.ndarray, far: float) -> np.ndarray:
 
 
 def _against(judged: Cells, placed: np.ndarray, a: Assignment, planes: Planes, tree: cKDTree, shift: np.ndarray,
-             has_reference: np.ndarray, cap: float) -> np.ndarray:
+             has_reference: np.ndarray, cap: float, surface: np.ndarray) -> np.ndarray:
     """Per frame, the RMS distance (m) of the ``judged`` cells' means (at ``placed`` moved by their frame's
-    ``shift`` onto another group's planes) to the nearest plane that reaches the cell (each distance capped at
-    ``cap`` (m), weighted by the cell's points, the worst ``TRIM`` left out); NaN for a frame without
-    ``has_reference``. A point a jump moved out of its plane's voxel still finds that plane."""
+    ``shift`` onto another group's planes) to the nearest plane that reaches the cell and, for a flat cell, lies
+    within ``SAME_SURFACE_DEG`` of its normal (``surface``, :func:`_flat_normals`) (each distance capped at ``cap``
+    (m), weighted by the cell's points, the worst ``TRIM`` left out); NaN for a frame without ``has_reference``.
+    A point a jump moved out of its plane's voxel still finds that plane."""
     f = judged.frame.astype(np.int64)
     best = np.empty(len(judged))
     centre, normal = np.ascontiguousarray(a.centre.T), np.ascontiguousarray(planes.normal.T)
+    flat = np.isfinite(surface[:, 0])
+    cos_limit = np.cos(np.radians(SAME_SURFACE_DEG))
     for c in chunks(len(judged)):  # bounded temporaries: a few (NEAREST_PLANES, chunk) arrays
         world = placed_means(judged, placed, c) + shift[f[c]]
         _, idx = tree.query(world, k=min(NEAREST_PLANES, a.voxels), distance_upper_bound=a.size.max())
@@ -218,6 +227,8 @@ def _against(judged: Cells, placed: np.ndarray, a: Assignment, planes: Planes, t
         # elsewhere does not stand in for it)
         for axis in range(3):
             found &= np.abs(x[axis] - centre[axis][i]) <= size
+        n = np.ascontiguousarray(np.nan_to_num(surface[c]).T)[:, None, :]
+        found &= ~flat[c] | (np.abs(normal[0][i] * n[0] + normal[1][i] * n[1] + normal[2][i] * n[2]) >= cos_limit)
         dist = np.abs(normal[0][i] * x[0] + normal[1][i] * x[1] + normal[2][i] * x[2] - planes.offset[i])
         nearest = np.where(found, dist, np.inf).min(0)
         best[c] = nearest
@@ -226,15 +237,15 @@ def _against(judged: Cells, placed: np.ndarray, a: Assignment, planes: Planes, t
                         has_reference)
 
 
-def _spread_subset(cells: Cells, per_frame: int) -> Cells:
-    """At most about ``per_frame`` cells of each frame, every k-th of its cells (a frame's score is a mean)."""
-    n = int(cells.frame.max()) + 1 if len(cells) else 0
-    count = np.bincount(cells.frame, minlength=n)
-    start = np.concatenate([[0], np.cumsum(count)[:-1]])
-    stride = np.maximum(1, np.ceil(count / per_frame)).astype(np.int64)
-    rank = np.arange(len(cells)) - start[cells.frame]  # cells are in frame order
-    keep = rank % stride[cells.frame] == 0
-    return Cells(cells.frame[keep], cells.count[keep], cells.mean[keep], cells.scatter[keep], cells.size)
+def _flat_normals(cells: Cells, poses: np.ndarray) -> np.ndarray:
+    """The unit normal (world, at ``poses``) of each flat cell (the voxels' test of ``optim.planes`` on the cell's
+    own points and size), NaN rows for the others (a line, a corner, too few points)."""
+    count = np.maximum(cells.count.astype(np.float64), 1.0)
+    lam, normal = smallest_eigen(*(cells.scatter[:, k] / count for k in range(6)))
+    flat = (cells.count >= 3) & (lam[:, 0] < FLATNESS * lam[:, 1]) & (lam[:, 1] >= (MIN_WIDTH * cells.size) ** 2)
+    out = np.full((len(cells), 3), np.nan)
+    out[flat] = np.einsum("kij,kj->ki", poses[cells.frame[flat], :3, :3], normal[flat])
+    return out
 
 
 def _trimmed_rms(frame: np.ndarray, dist: np.ndarray, weight: np.ndarray, judged: np.ndarray) -> np.ndarray:
@@ -268,15 +279,18 @@ def _neighbour_views(cells: Cells, poses: np.ndarray, voxel: float, window: int,
         return np.full(n, np.nan), np.full(n, np.nan)
     planes = fit(a, placed)
     tree = cKDTree(a.centre)
-    judged = _spread_subset(cells, JUDGED_CELLS)
+    judged = cells  # every cell: where a stretch sees a fifth of a frame, fewer leave a score of a few cells
     if scored is not None:
         keep = np.zeros(n, bool)
         keep[scored] = True
         judged = judged.of_frames(keep)
     own = _offset(block, far)
     cap = CAP * a.sigma
-    past = _against(judged, placed, a, planes, tree, _offset(block - 1, far) - own, np.isin(block - 1, block), cap)
-    future = _against(judged, placed, a, planes, tree, _offset(block + 1, far) - own, np.isin(block + 1, block), cap)
+    surface = _flat_normals(judged, placed)
+    past = _against(judged, placed, a, planes, tree, _offset(block - 1, far) - own, np.isin(block - 1, block), cap,
+                    surface)
+    future = _against(judged, placed, a, planes, tree, _offset(block + 1, far) - own, np.isin(block + 1, block), cap,
+                      surface)
     return past, future
 
 
