@@ -206,9 +206,9 @@ def _against(judged: Cells, placed: np.ndarray, a: Assignment, planes: Planes, t
              has_reference: np.ndarray, cap: float, surface: np.ndarray) -> np.ndarray:
     """Per frame, the RMS distance (m) of the ``judged`` cells' means (at ``placed`` moved by their frame's
     ``shift`` onto another group's planes) to the nearest plane that reaches the cell and, for a flat cell, lies
-    within ``SAME_SURFACE_DEG`` of its normal (``surface``, :func:`_flat_normals`) (each distance capped at ``cap``
-    (m), weighted by the cell's points, the worst ``TRIM`` left out); NaN for a frame without ``has_reference``.
-    A point a jump moved out of its plane's voxel still finds that plane."""
+    within ``SAME_SURFACE_DEG`` of its normal (``surface``, sensor frame: :func:`_flat_normals`), each distance
+    capped at ``cap`` (m), weighted by the cell's points, the worst ``TRIM`` left out; NaN for a frame without
+    ``has_reference``. A point a jump moved out of its plane's voxel still finds that plane."""
     f = judged.frame.astype(np.int64)
     best = np.empty(len(judged))
     centre, normal = np.ascontiguousarray(a.centre.T), np.ascontiguousarray(planes.normal.T)
@@ -227,7 +227,7 @@ def _against(judged: Cells, placed: np.ndarray, a: Assignment, planes: Planes, t
         # elsewhere does not stand in for it)
         for axis in range(3):
             found &= np.abs(x[axis] - centre[axis][i]) <= size
-        n = np.ascontiguousarray(np.nan_to_num(surface[c]).T)[:, None, :]
+        n = _rotated(np.nan_to_num(surface[c]), placed, f[c])[:, None, :]
         found &= ~flat[c] | (np.abs(normal[0][i] * n[0] + normal[1][i] * n[1] + normal[2][i] * n[2]) >= cos_limit)
         dist = np.abs(normal[0][i] * x[0] + normal[1][i] * x[1] + normal[2][i] * x[2] - planes.offset[i])
         nearest = np.where(found, dist, np.inf).min(0)
@@ -237,15 +237,35 @@ def _against(judged: Cells, placed: np.ndarray, a: Assignment, planes: Planes, t
                         has_reference)
 
 
-def _flat_normals(cells: Cells, poses: np.ndarray) -> np.ndarray:
-    """The unit normal (world, at ``poses``) of each flat cell (the voxels' test of ``optim.planes`` on the cell's
-    own points and size), NaN rows for the others (a line, a corner, too few points)."""
-    count = np.maximum(cells.count.astype(np.float64), 1.0)
-    lam, normal = smallest_eigen(*(cells.scatter[:, k] / count for k in range(6)))
-    flat = (cells.count >= 3) & (lam[:, 0] < FLATNESS * lam[:, 1]) & (lam[:, 1] >= (MIN_WIDTH * cells.size) ** 2)
+def _flat_normals(cells: Cells) -> np.ndarray:
+    """The unit normal (sensor frame) of each flat cell (the voxels' test of ``optim.planes`` on the cell's own points
+    and size), NaN rows for the others (a line, a corner, too few points)."""
     out = np.full((len(cells), 3), np.nan)
-    out[flat] = np.einsum("kij,kj->ki", poses[cells.frame[flat], :3, :3], normal[flat])
+    some = np.flatnonzero(cells.count >= 3)  # (most cells of a far surface hold a point or two)
+    count = cells.count[some].astype(np.float64)
+    lam, normal = smallest_eigen(*(cells.scatter[some, k] / count for k in range(6)))
+    flat = (lam[:, 0] < FLATNESS * lam[:, 1]) & (lam[:, 1] >= (MIN_WIDTH * cells.size) ** 2)
+    out[some[flat]] = normal[flat]
     return out
+
+
+def _rotated(vectors: np.ndarray, poses: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """``vectors`` (k,3) of frames ``frame`` turned into the world by ``poses``, as (3,k) rows."""
+    v = np.ascontiguousarray(vectors.T)
+    r = poses[:, :3, :3]
+    return np.stack([r[:, i, 0][frame] * v[0] + r[:, i, 1][frame] * v[1] + r[:, i, 2][frame] * v[2]
+                     for i in range(3)])
+
+
+def _every_kth(cells: Cells, per_frame: int) -> Cells:
+    """At most about ``per_frame`` cells of each frame, every k-th of its cells."""
+    n = int(cells.frame.max()) + 1 if len(cells) else 0
+    count = np.bincount(cells.frame, minlength=n)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    stride = np.maximum(1, np.ceil(count / per_frame)).astype(np.int64)
+    rank = np.arange(len(cells)) - start[cells.frame]  # cells are in frame order
+    keep = rank % stride[cells.frame] == 0
+    return Cells(cells.frame[keep], cells.count[keep], cells.mean[keep], cells.scatter[keep], cells.size)
 
 
 def _trimmed_rms(frame: np.ndarray, dist: np.ndarray, weight: np.ndarray, judged: np.ndarray) -> np.ndarray:
@@ -265,10 +285,12 @@ def _trimmed_rms(frame: np.ndarray, dist: np.ndarray, weight: np.ndarray, judged
 
 
 def _neighbour_views(cells: Cells, poses: np.ndarray, voxel: float, window: int, first: int = 0,
-                     scored: slice | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     scored: slice | None = None, surface: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """Each frame (of ``scored``, default all; NaN for the others) against the planes of the block of ``window``
     frames before it (past) and after it (future), all blocks' planes from one assignment; ``first``: the
-    sequence's number of frame 0 here (blocks are counted from the sequence's start)."""
+    sequence's number of frame 0 here (blocks are counted from the sequence's start); ``surface``: the
+    :func:`_flat_normals` of the scored frames' cells, when known."""
     n = len(poses)
     block = (np.arange(n) + first) // window
     reach = float(np.linalg.norm(cells.mean, axis=1).max()) if len(cells) else 0.0
@@ -279,14 +301,13 @@ def _neighbour_views(cells: Cells, poses: np.ndarray, voxel: float, window: int,
         return np.full(n, np.nan), np.full(n, np.nan)
     planes = fit(a, placed)
     tree = cKDTree(a.centre)
-    judged = cells  # every cell: where a stretch sees a fifth of a frame, fewer leave a score of a few cells
-    if scored is not None:
-        keep = np.zeros(n, bool)
-        keep[scored] = True
-        judged = judged.of_frames(keep)
+    keep = np.zeros(n, bool)
+    keep[slice(None) if scored is None else scored] = True
+    # every cell: where a stretch sees a fifth of a frame, fewer leave a score of a few cells
+    judged = cells.of_frames(keep)
+    surface = _flat_normals(judged) if surface is None else surface
     own = _offset(block, far)
     cap = CAP * a.sigma
-    surface = _flat_normals(judged, placed)
     past = _against(judged, placed, a, planes, tree, _offset(block - 1, far) - own, np.isin(block - 1, block), cap,
                     surface)
     future = _against(judged, placed, a, planes, tree, _offset(block + 1, far) - own, np.isin(block + 1, block), cap,
@@ -373,8 +394,10 @@ def _stretched_views(scans: ScanSequence, cells: Cells, full: bool, candidates: 
     workers = min(len(candidates), SIDE_BY_SIDE, WORKERS)
     views = {name: {view: np.full(n, np.nan) for view in ("all", "past", "future")} for name in candidates}
     noise: dict[str, list[float]] = {name: [] for name in candidates}
-    reach = {} if whole else {name: _Reach.of(cells, poses, voxel) for name, poses in candidates.items()}
     bounds = np.searchsorted(cells.frame, np.arange(n + 1))  # cells are in frame order
+    # the other frames' map: at the density the sparse cells have (a revisit is many frames, each sampled)
+    far = cells if whole or not full else _every_kth(cells, max(1, MAX_CELLS // n))
+    reach = {} if whole else {name: _Reach.of(far, poses, voxel) for name, poses in candidates.items()}
     for s in progress_of(range(0, n, length), "profile stretches", total=-(-n // length), unit="stretch",
                          enabled=progress and not whole):
         release_freed_memory()  # the last stretch's blocks
@@ -386,8 +409,11 @@ def _stretched_views(scans: ScanSequence, cells: Cells, full: bool, candidates: 
                           cells.size)
         else:
             dense = _cells(scans.subset(np.arange(a, b)), voxel, (b - a) * CELLS_PER_FRAME, seed + s, planar, False)
-        judge = partial(_judge_stretch, dense=dense, cells=cells, whole=whole, reach=reach, frames=(a, b),
-                        judged=(s, e), voxel=voxel)
+        scored = np.zeros(b - a, bool)
+        scored[s - a:e - a] = True
+        surface = _flat_normals(dense.of_frames(scored))  # the candidates' shared judged cells
+        judge = partial(_judge_stretch, dense=dense, cells=far, whole=whole, reach=reach, frames=(a, b),
+                        judged=(s, e), voxel=voxel, surface=surface)
         # the sets of poses side by side (numpy's sorts, ufuncs and the KD-tree release the GIL)
         for name, past, future, every, sigma in ordered_map(judge, candidates.items(), workers=workers):
             views[name]["past"][s:e], views[name]["future"][s:e], views[name]["all"][s:e] = past, future, every
@@ -396,8 +422,8 @@ def _stretched_views(scans: ScanSequence, cells: Cells, full: bool, candidates: 
 
 
 def _judge_stretch(candidate: tuple[str, np.ndarray], dense: Cells, cells: Cells, whole: bool,
-                   reach: dict[str, _Reach], frames: tuple[int, int], judged: tuple[int, int], voxel: float
-                   ) -> tuple[str, np.ndarray, np.ndarray, np.ndarray, float]:
+                   reach: dict[str, _Reach], frames: tuple[int, int], judged: tuple[int, int], voxel: float,
+                   surface: np.ndarray) -> tuple[str, np.ndarray, np.ndarray, np.ndarray, float]:
     """One set of poses over one stretch (:func:`_stretched_views`): frames ``frames`` (a, b) in ``dense``,
     those of ``judged`` (s, e) scored against the map of ``cells`` (all of them when the stretch is the
     ``whole`` sequence, else those within its ``reach``). Its name, the past, future and
@@ -405,7 +431,7 @@ def _judge_stretch(candidate: tuple[str, np.ndarray], dense: Cells, cells: Cells
     name, poses = candidate
     (a, b), (s, e) = frames, judged
     local = slice(s - a, e - a)
-    past, future = _neighbour_views(dense, poses[a:b], voxel, window_frames(poses, voxel), a, local)
+    past, future = _neighbour_views(dense, poses[a:b], voxel, window_frames(poses, voxel), a, local, surface)
     mixed = cells if whole else _with_reach(dense, a, b, cells, reach[name], poses, voxel)
     assigned = assign(mixed, poses, voxel)
     scored = np.zeros(len(poses), bool)
