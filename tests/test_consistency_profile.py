@@ -14,7 +14,7 @@ from optim_cases import one_thread
 from shared_helpers import DATA, need, run
 
 from dm2_backend.evaluation import consistency_profile as cp
-from dm2_backend.evaluation import plots
+from dm2_backend.evaluation import plots, profile_cells
 from dm2_backend.evaluation.consistency_profile import GAP, consistency_profile, write_profiles
 from dm2_backend.formats import ReadOptions, write_trajectory
 from dm2_backend.geometry import se3
@@ -88,13 +88,14 @@ def test_a_broken_stretch_of_the_street_is_flagged_and_nothing_far_from_it(break
 def test_a_sequence_longer_than_the_cell_budget_is_judged_a_stretch_at_a_time(monkeypatch, poses_of, one_pass):
     """A budget of 8 frames' cells for 80 frames (as 1.5 million cells for 1,000 frames): the frames are
     judged a stretch at a time, each at full density, whether all cells fit in memory at once (a slice of them a
-    stretch) or not (the far frames' cells sparse, each stretch's scans read again: as 20,000 frames), so the truth
-    scores as in one piece (no flag, each view's median within 15 %) and a jump is still found, nothing far from
-    it."""
+    stretch) or not (summed 40 frames at a time into a temporary file the stretches slice: as 20,000 frames), so
+    the truth scores as in one piece (no flag, each view's median within 15 %) and a jump is still found, nothing
+    far from it."""
     _, seq, gt = street()
     full = profile(seq, gt)
     monkeypatch.setattr(cp, "MAX_CELLS", 8 * cp.CELLS_PER_FRAME)
-    monkeypatch.setattr(cp, "ONE_PASS_CELLS", cp.ONE_PASS_CELLS if one_pass else 40 * cp.CELLS_PER_FRAME)
+    one_pass_cells = profile_cells.ONE_PASS_CELLS if one_pass else 40 * cp.CELLS_PER_FRAME
+    monkeypatch.setattr(profile_cells, "ONE_PASS_CELLS", one_pass_cells)
     poses = gt if poses_of == "truth" else jump_from(gt, 40)
     p = profile(seq, poses)
     assert np.isfinite(p.score_m).all()

@@ -40,7 +40,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from dm2_backend.atomic import atomic_write
-from dm2_backend.evaluation import plots
+from dm2_backend.evaluation import plots, profile_cells
+from dm2_backend.evaluation.profile_cells import CELLS_PER_FRAME, full_cells
 from dm2_backend.evaluation.report_writers import safe_name
 from dm2_backend.geometry.symmetric3 import smallest_eigen
 from dm2_backend.geometry.voxels import group_rows
@@ -52,7 +53,6 @@ from dm2_backend.optim.planes import (
     Cells,
     Planes,
     assign,
-    cells_from_scans,
     chunks,
     disagreement,
     fit,
@@ -84,11 +84,8 @@ TRIM = 0.2
 SAME_SURFACE_DEG = 45.0
 #: flagged frames this close (frames) are one segment
 GAP = 2
-#: the cells kept per frame (as the dense stage keeps them), and in the stretches of frames judged at once
-CELLS_PER_FRAME, MAX_CELLS = 2048, 1_500_000
-#: a sequence whose cells at full density fit this many is summed into cells once (about 45 bytes a cell and 24
-#: more a profiled trajectory); a longer one keeps ``MAX_CELLS`` for the far frames and reads each stretch again
-ONE_PASS_CELLS = 6_000_000
+#: the cells of the stretches of frames judged at once (and of the far frames' map beside a long sequence's stretch)
+MAX_CELLS = 1_500_000
 #: sets of poses judged at once (the warm start and the result): a stretch holds ``MAX_CELLS / SIDE_BY_SIDE``
 #: cells (a sequence of at most ``MAX_CELLS`` is judged whole, ``SIDE_BY_SIDE`` assignments of it at once) ...
 SIDE_BY_SIDE = 2
@@ -227,9 +224,10 @@ def _against(judged: Cells, placed: np.ndarray, a: Assignment, planes: Planes, t
         # elsewhere does not stand in for it)
         for axis in range(3):
             found &= np.abs(x[axis] - centre[axis][i]) <= size
+        nx, ny, nz = normal[0][i], normal[1][i], normal[2][i]
         n = _rotated(np.nan_to_num(surface[c]), placed, f[c])[:, None, :]
-        found &= ~flat[c] | (np.abs(normal[0][i] * n[0] + normal[1][i] * n[1] + normal[2][i] * n[2]) >= cos_limit)
-        dist = np.abs(normal[0][i] * x[0] + normal[1][i] * x[1] + normal[2][i] * x[2] - planes.offset[i])
+        found &= ~flat[c] | (np.abs(nx * n[0] + ny * n[1] + nz * n[2]) >= cos_limit)
+        dist = np.abs(nx * x[0] + ny * x[1] + nz * x[2] - planes.offset[i])
         nearest = np.where(found, dist, np.inf).min(0)
         best[c] = nearest
     on = np.isfinite(best)
@@ -257,15 +255,15 @@ def _rotated(vectors: np.ndarray, poses: np.ndarray, frame: np.ndarray) -> np.nd
                      for i in range(3)])
 
 
-def _every_kth(cells: Cells, per_frame: int) -> Cells:
-    """At most about ``per_frame`` cells of each frame, every k-th of its cells."""
-    n = int(cells.frame.max()) + 1 if len(cells) else 0
-    count = np.bincount(cells.frame, minlength=n)
-    start = np.concatenate([[0], np.cumsum(count)[:-1]])
-    stride = np.maximum(1, np.ceil(count / per_frame)).astype(np.int64)
-    rank = np.arange(len(cells)) - start[cells.frame]  # cells are in frame order
-    keep = rank % stride[cells.frame] == 0
-    return Cells(cells.frame[keep], cells.count[keep], cells.mean[keep], cells.scatter[keep], cells.size)
+def _every_kth(cells: Cells, per_frame: int, bounds: np.ndarray) -> Cells:
+    """At most about ``per_frame`` cells of each frame, every k-th of its cells (frame i's are
+    ``bounds[i]:bounds[i + 1]``), copied into memory."""
+    count = np.diff(bounds)
+    stride = np.maximum(1, -(-count // per_frame))
+    kept = -(-count // stride)
+    rank = np.arange(int(kept.sum())) - np.repeat(np.cumsum(kept) - kept, kept)
+    at = np.repeat(bounds[:-1], kept) + rank * np.repeat(stride, kept)
+    return Cells(cells.frame[at], cells.count[at], cells.mean[at], cells.scatter[at], cells.size)
 
 
 def _trimmed_rms(frame: np.ndarray, dist: np.ndarray, weight: np.ndarray, judged: np.ndarray) -> np.ndarray:
@@ -342,18 +340,17 @@ def threshold_of(score: np.ndarray, noise: float = 0.0) -> tuple[float, float]:
 
 def consistency_profiles(scans: ScanSequence, candidates: dict[str, np.ndarray], stamps: np.ndarray | None = None,
                          planar: bool = False, voxel: float | None = None, seed: int = 0,
-                         progress: bool = False) -> dict[str, ConsistencyProfile]:
+                         progress: bool = False, folder: Path | None = None) -> dict[str, ConsistencyProfile]:
     """The profile of each set of poses (one per scan). The scans are summed into cells once, at full density
-    while ``ONE_PASS_CELLS`` hold them; a longer sequence keeps ``MAX_CELLS`` for the far frames and reads its
-    scans again a stretch at a time (:func:`_stretched_views`). ``planar``: 2D scans, their lines seen as
-    vertical walls."""
+    (:func:`profile_cells.full_cells`: in memory, or a temporary file in ``folder`` for a long sequence), and judged
+    a stretch at a time (:func:`_stretched_views`). ``planar``: 2D scans, their lines seen as vertical walls."""
     scale = derive_scale(scans)
     voxel = voxel or profile_voxel(scans, scale)
     release_freed_memory()
     candidates = {name: np.asarray(poses, dtype=np.float64) for name, poses in candidates.items()}
-    full = len(scans) * CELLS_PER_FRAME <= ONE_PASS_CELLS
-    cells = _cells(scans, voxel, len(scans) * CELLS_PER_FRAME if full else MAX_CELLS, seed, planar, progress)
-    views = _stretched_views(scans, cells, full, candidates, voxel, seed, planar, progress)
+    in_memory = len(scans) * CELLS_PER_FRAME <= profile_cells.ONE_PASS_CELLS
+    with full_cells(scans, voxel, seed, planar, progress, folder) as cells:
+        views = _stretched_views(len(scans), cells, in_memory, candidates, voxel, progress)
     # the sensor's: as measured at the poses that make the sharpest planes, at least the scans' resolution
     noise = max(min(measured for _, measured in views.values()), RESOLUTION * scale.spacing_raw)
     return {name: _profile(views[name][0], noise, stamps, voxel, window_frames(poses, voxel))
@@ -366,27 +363,15 @@ def consistency_profile(scans: ScanSequence, poses: np.ndarray, stamps: np.ndarr
     return consistency_profiles(scans, {"poses": poses}, stamps, planar, voxel, seed)["poses"]
 
 
-def _cells(scans: ScanSequence, voxel: float, budget: int, seed: int, planar: bool, progress: bool) -> Cells:
-    """The profiles' cells: a quarter voxel, ``CELLS_PER_FRAME`` a frame within ``budget``, every cell's scatter
-    (a judge of the poses, not the dense stage's objective: its settings stay those its thresholds were measured
-    with)."""
-    # the cubes of a sensor-frame grid: along the beams a jump stands out less against the last frames' scores
-    cells = cells_from_scans(scans, voxel / 4.0, CELLS_PER_FRAME, budget, seed, progress, keep_scatter="all",
-                             along_beams=False)
-    return cells.extruded(voxel) if planar else cells
-
-
-def _stretched_views(scans: ScanSequence, cells: Cells, full: bool, candidates: dict[str, np.ndarray],
-                     voxel: float, seed: int, planar: bool, progress: bool
-                     ) -> dict[str, tuple[dict[str, np.ndarray], float]]:
+def _stretched_views(n: int, cells: Cells, in_memory: bool, candidates: dict[str, np.ndarray], voxel: float,
+                     progress: bool) -> dict[str, tuple[dict[str, np.ndarray], float]]:
     """The views of every frame, and the noise the planes measure (m), a stretch of frames at a time: each frame
     is judged by its own cells at full density against the neighbouring blocks (past, future) and against the map
-    of the stretch's cells and the other frames' ``cells`` in the voxels the stretch reaches (all). ``full``:
-    ``cells`` hold every frame at full density (a stretch is a slice of them); else they are sparse, for the far
-    frames only, and each stretch's scans are read again (fewer cells a frame make a true frame's score noise)."""
-    n = len(scans)
+    of the stretch's cells and the other frames' cells (all: at the density ``MAX_CELLS`` gives them) in the voxels
+    the stretch reaches. ``in_memory``: ``cells`` (every frame's, at full density) are in memory, else a file the
+    stretches slice, beside the far frames' map in memory (half the budget each)."""
     margin = 2 * max(window_frames(poses, voxel) for poses in candidates.values())
-    budget = MAX_CELLS if full else MAX_CELLS // 2  # with the sparse cells: one budget
+    budget = MAX_CELLS if in_memory else MAX_CELLS // 2
     whole = n * CELLS_PER_FRAME <= budget
     # the SIDE_BY_SIDE sets of poses judged at once share the budget (on any number of processors: the same
     # stretches, the same scores)
@@ -395,20 +380,17 @@ def _stretched_views(scans: ScanSequence, cells: Cells, full: bool, candidates: 
     views = {name: {view: np.full(n, np.nan) for view in ("all", "past", "future")} for name in candidates}
     noise: dict[str, list[float]] = {name: [] for name in candidates}
     bounds = np.searchsorted(cells.frame, np.arange(n + 1))  # cells are in frame order
-    # the other frames' map: at the density the sparse cells have (a revisit is many frames, each sampled)
-    far = cells if whole or not full else _every_kth(cells, max(1, MAX_CELLS // n))
+    # the other frames' map: sparser (a revisit is many frames, each sampled)
+    far = cells if whole else _every_kth(cells, max(64, MAX_CELLS // n), bounds)
     reach = {} if whole else {name: _Reach.of(far, poses, voxel) for name, poses in candidates.items()}
     for s in progress_of(range(0, n, length), "profile stretches", total=-(-n // length), unit="stretch",
                          enabled=progress and not whole):
         release_freed_memory()  # the last stretch's blocks
         e = min(n, s + length)
         a, b = max(0, s - margin), min(n, e + margin)
-        if full:
-            part = slice(bounds[a], bounds[b])
-            dense = Cells(cells.frame[part] - np.int32(a), cells.count[part], cells.mean[part], cells.scatter[part],
-                          cells.size)
-        else:
-            dense = _cells(scans.subset(np.arange(a, b)), voxel, (b - a) * CELLS_PER_FRAME, seed + s, planar, False)
+        part = slice(bounds[a], bounds[b])
+        dense = Cells(np.asarray(cells.frame[part]) - np.int32(a), np.asarray(cells.count[part]),
+                      np.asarray(cells.mean[part]), np.asarray(cells.scatter[part]), cells.size)
         scored = np.zeros(b - a, bool)
         scored[s - a:e - a] = True
         surface = _flat_normals(dense.of_frames(scored))  # the candidates' shared judged cells
