@@ -40,7 +40,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from dm2_backend.atomic import atomic_write
-from dm2_backend.evaluation import plots, profile_cells
+from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.profile_cells import CELLS_PER_FRAME, full_cells
 from dm2_backend.evaluation.report_writers import safe_name
 from dm2_backend.geometry.symmetric3 import smallest_eigen
@@ -342,15 +342,15 @@ def consistency_profiles(scans: ScanSequence, candidates: dict[str, np.ndarray],
                          planar: bool = False, voxel: float | None = None, seed: int = 0,
                          progress: bool = False, folder: Path | None = None) -> dict[str, ConsistencyProfile]:
     """The profile of each set of poses (one per scan). The scans are summed into cells once, at full density
-    (:func:`profile_cells.full_cells`: in memory, or a temporary file in ``folder`` for a long sequence), and judged
+    (:func:`~dm2_backend.evaluation.profile_cells.full_cells`: in memory, or a temporary file in ``folder`` for a
+    long sequence), and judged
     a stretch at a time (:func:`_stretched_views`). ``planar``: 2D scans, their lines seen as vertical walls."""
     scale = derive_scale(scans)
     voxel = voxel or profile_voxel(scans, scale)
     release_freed_memory()
     candidates = {name: np.asarray(poses, dtype=np.float64) for name, poses in candidates.items()}
-    in_memory = len(scans) * CELLS_PER_FRAME <= profile_cells.ONE_PASS_CELLS
     with full_cells(scans, voxel, seed, planar, progress, folder) as cells:
-        views = _stretched_views(len(scans), cells, in_memory, candidates, voxel, progress)
+        views = _stretched_views(len(scans), cells, candidates, voxel, progress)
     # the sensor's: as measured at the poses that make the sharpest planes, at least the scans' resolution
     noise = max(min(measured for _, measured in views.values()), RESOLUTION * scale.spacing_raw)
     return {name: _profile(views[name][0], noise, stamps, voxel, window_frames(poses, voxel))
@@ -363,19 +363,18 @@ def consistency_profile(scans: ScanSequence, poses: np.ndarray, stamps: np.ndarr
     return consistency_profiles(scans, {"poses": poses}, stamps, planar, voxel, seed)["poses"]
 
 
-def _stretched_views(n: int, cells: Cells, in_memory: bool, candidates: dict[str, np.ndarray], voxel: float,
+def _stretched_views(n: int, cells: Cells, candidates: dict[str, np.ndarray], voxel: float,
                      progress: bool) -> dict[str, tuple[dict[str, np.ndarray], float]]:
     """The views of every frame, and the noise the planes measure (m), a stretch of frames at a time: each frame
     is judged by its own cells at full density against the neighbouring blocks (past, future) and against the map
     of the stretch's cells and the other frames' cells (all: at the density ``MAX_CELLS`` gives them) in the voxels
-    the stretch reaches. ``in_memory``: ``cells`` (every frame's, at full density) are in memory, else a file the
-    stretches slice, beside the far frames' map in memory (half the budget each)."""
+    the stretch reaches. ``cells``: every frame's at full density, in memory or a file the stretches slice (in
+    memory then: a stretch and the far frames' map, at most ``MAX_CELLS`` each)."""
     margin = 2 * max(window_frames(poses, voxel) for poses in candidates.values())
-    budget = MAX_CELLS if in_memory else MAX_CELLS // 2
-    whole = n * CELLS_PER_FRAME <= budget
+    whole = n * CELLS_PER_FRAME <= MAX_CELLS
     # the SIDE_BY_SIDE sets of poses judged at once share the budget (on any number of processors: the same
     # stretches, the same scores)
-    length = n if whole else max(budget // SIDE_BY_SIDE // CELLS_PER_FRAME - 2 * margin, 2 * margin)
+    length = n if whole else max(MAX_CELLS // SIDE_BY_SIDE // CELLS_PER_FRAME - 2 * margin, 2 * margin)
     workers = min(len(candidates), SIDE_BY_SIDE, WORKERS)
     views = {name: {view: np.full(n, np.nan) for view in ("all", "past", "future")} for name in candidates}
     noise: dict[str, list[float]] = {name: [] for name in candidates}
