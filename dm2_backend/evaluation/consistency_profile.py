@@ -7,16 +7,15 @@ frame's score (m) is the largest of three views of "the others":
   frames). Each cell of the frame is measured to the nearest of those planes that reaches it (so a point a jump
   moved out of its plane's voxel still finds it) and, for a flat cell, faces its way (``SAME_SURFACE_DEG``),
   capped at ``CAP`` noise sigmas, and the frame's worst ``TRIM`` of points is left out (what the stretch could
-  not see). A front-end jump makes the frames after it disagree
-  with the sharp map of the stretch before;
+  not see). A front-end jump makes the frames after it disagree with the sharp map of the stretch before;
 - **all**: every other frame (leave-one-out, robust weights), which sees a revisit that does not line up (a
   wrong loop closure, a drift that shows where the path comes back).
 
 A frame needs its cells at full density (``CELLS_PER_FRAME``) for its score to mean anything (fewer cells a
-frame make a true frame's score noise): the scans are summed into cells once while ``ONE_PASS_CELLS`` hold them
-(a longer sequence keeps sparse cells for the far frames and is read again a stretch at a time), and a sequence
-longer than ``MAX_CELLS`` cells is judged a stretch of frames at a time (:func:`_stretched_views`), so memory stays
-bounded and every frame is judged as in a short sequence. The sets of poses (the warm start and the result) are
+frame make a true frame's score noise): the scans are summed into cells once (``profile_cells``: in memory, or for a
+long sequence in temporary files), and a sequence longer than ``MAX_CELLS`` cells is judged a stretch of frames at a
+time (:func:`_stretched_views`) against a sparser map of the other frames, so memory stays bounded and every frame
+is judged as in a short sequence. The sets of poses (the warm start and the result) are
 judged side by side (``SIDE_BY_SIDE``), on threads where there are processors, sharing that budget.
 
 Segments scoring above the flag threshold are flagged with their frame and time ranges: ``RATIO`` times the
@@ -45,7 +44,7 @@ from dm2_backend.evaluation.profile_cells import CELLS_PER_FRAME, full_cells
 from dm2_backend.evaluation.report_writers import safe_name
 from dm2_backend.geometry.symmetric3 import smallest_eigen
 from dm2_backend.geometry.voxels import group_rows
-from dm2_backend.memory import release_freed_memory
+from dm2_backend.memory import release_freed_memory, release_mapped
 from dm2_backend.optim.planes import (
     FLATNESS,
     MIN_WIDTH,
@@ -84,8 +83,9 @@ TRIM = 0.2
 SAME_SURFACE_DEG = 45.0
 #: flagged frames this close (frames) are one segment
 GAP = 2
-#: the cells of the stretches of frames judged at once (and of the far frames' map beside a long sequence's stretch)
-MAX_CELLS = 1_500_000
+#: the cells of the stretches of frames judged at once, and of the other frames' map beside a stretch, which keeps
+#: at least ``OTHERS_PER_FRAME`` of each frame
+MAX_CELLS, OTHERS_PER_FRAME = 1_500_000, 64
 #: sets of poses judged at once (the warm start and the result): a stretch holds ``MAX_CELLS / SIDE_BY_SIDE``
 #: cells (a sequence of at most ``MAX_CELLS`` is judged whole, ``SIDE_BY_SIDE`` assignments of it at once) ...
 SIDE_BY_SIDE = 2
@@ -203,13 +203,15 @@ def _against(judged: Cells, placed: np.ndarray, a: Assignment, planes: Planes, t
              has_reference: np.ndarray, cap: float, surface: np.ndarray) -> np.ndarray:
     """Per frame, the RMS distance (m) of the ``judged`` cells' means (at ``placed`` moved by their frame's
     ``shift`` onto another group's planes) to the nearest plane that reaches the cell and, for a flat cell, lies
-    within ``SAME_SURFACE_DEG`` of its normal (``surface``, sensor frame: :func:`_flat_normals`), each distance
+    within ``SAME_SURFACE_DEG`` of its normal (``surface`` (3,K), world, NaN where not flat), each distance
     capped at ``cap`` (m), weighted by the cell's points, the worst ``TRIM`` left out; NaN for a frame without
     ``has_reference``. A point a jump moved out of its plane's voxel still finds that plane."""
     f = judged.frame.astype(np.int64)
     best = np.empty(len(judged))
     centre, normal = np.ascontiguousarray(a.centre.T), np.ascontiguousarray(planes.normal.T)
-    flat = np.isfinite(surface[:, 0])
+    assert surface.shape == (3, len(judged))
+    flat = np.isfinite(surface[0])
+    surface = np.nan_to_num(surface)
     cos_limit = np.cos(np.radians(SAME_SURFACE_DEG))
     for c in chunks(len(judged)):  # bounded temporaries: a few (NEAREST_PLANES, chunk) arrays
         world = placed_means(judged, placed, c) + shift[f[c]]
@@ -225,7 +227,7 @@ def _against(judged: Cells, placed: np.ndarray, a: Assignment, planes: Planes, t
         for axis in range(3):
             found &= np.abs(x[axis] - centre[axis][i]) <= size
         nx, ny, nz = normal[0][i], normal[1][i], normal[2][i]
-        n = _rotated(np.nan_to_num(surface[c]), placed, f[c])[:, None, :]
+        n = surface[:, None, c]
         found &= ~flat[c] | (np.abs(nx * n[0] + ny * n[1] + nz * n[2]) >= cos_limit)
         dist = np.abs(nx * x[0] + ny * x[1] + nz * x[2] - planes.offset[i])
         nearest = np.where(found, dist, np.inf).min(0)
@@ -248,21 +250,25 @@ def _flat_normals(cells: Cells) -> np.ndarray:
 
 
 def _rotated(vectors: np.ndarray, poses: np.ndarray, frame: np.ndarray) -> np.ndarray:
-    """``vectors`` (k,3) of frames ``frame`` turned into the world by ``poses``, as (3,k) rows."""
+    """``vectors`` (k,3) of frames ``frame`` turned into the world by ``poses``, as (3,k) rows (NaN stays NaN)."""
     v = np.ascontiguousarray(vectors.T)
     r = poses[:, :3, :3]
     return np.stack([r[:, i, 0][frame] * v[0] + r[:, i, 1][frame] * v[1] + r[:, i, 2][frame] * v[2]
                      for i in range(3)])
 
 
-def _every_kth(cells: Cells, per_frame: int, bounds: np.ndarray) -> Cells:
-    """At most about ``per_frame`` cells of each frame, every k-th of its cells (frame i's are
-    ``bounds[i]:bounds[i + 1]``), copied into memory."""
+def _sampled(cells: Cells, per_frame: int, bounds: np.ndarray, seed: int) -> Cells:
+    """About ``per_frame`` cells of each frame (frame i's are rows ``bounds[i]:bounds[i + 1]``), each kept with the
+    same chance (seeded), copied into memory a thousand frames at a time."""
+    rng = np.random.default_rng(seed)
     count = np.diff(bounds)
-    stride = np.maximum(1, -(-count // per_frame))
-    kept = -(-count // stride)
-    rank = np.arange(int(kept.sum())) - np.repeat(np.cumsum(kept) - kept, kept)
-    at = np.repeat(bounds[:-1], kept) + rank * np.repeat(stride, kept)
+    chance = np.minimum(1.0, per_frame / np.maximum(count, 1))
+    kept = []
+    for a in range(0, len(count), 1000):
+        b = min(len(count), a + 1000)
+        draw = rng.random(int(bounds[b] - bounds[a])) < np.repeat(chance[a:b], count[a:b])
+        kept.append(bounds[a] + np.flatnonzero(draw))
+    at = np.concatenate(kept) if kept else np.zeros(0, np.int64)
     return Cells(cells.frame[at], cells.count[at], cells.mean[at], cells.scatter[at], cells.size)
 
 
@@ -306,6 +312,7 @@ def _neighbour_views(cells: Cells, poses: np.ndarray, voxel: float, window: int,
     surface = _flat_normals(judged) if surface is None else surface
     own = _offset(block, far)
     cap = CAP * a.sigma
+    surface = _rotated(surface, placed, judged.frame)  # world (3,K), NaN rows stay NaN
     past = _against(judged, placed, a, planes, tree, _offset(block - 1, far) - own, np.isin(block - 1, block), cap,
                     surface)
     future = _against(judged, placed, a, planes, tree, _offset(block + 1, far) - own, np.isin(block + 1, block), cap,
@@ -350,7 +357,7 @@ def consistency_profiles(scans: ScanSequence, candidates: dict[str, np.ndarray],
     release_freed_memory()
     candidates = {name: np.asarray(poses, dtype=np.float64) for name, poses in candidates.items()}
     with full_cells(scans, voxel, seed, planar, progress, folder) as cells:
-        views = _stretched_views(len(scans), cells, candidates, voxel, progress)
+        views = _stretched_views(len(scans), cells, candidates, voxel, seed, progress)
     # the sensor's: as measured at the poses that make the sharpest planes, at least the scans' resolution
     noise = max(min(measured for _, measured in views.values()), RESOLUTION * scale.spacing_raw)
     return {name: _profile(views[name][0], noise, stamps, voxel, window_frames(poses, voxel))
@@ -363,13 +370,13 @@ def consistency_profile(scans: ScanSequence, poses: np.ndarray, stamps: np.ndarr
     return consistency_profiles(scans, {"poses": poses}, stamps, planar, voxel, seed)["poses"]
 
 
-def _stretched_views(n: int, cells: Cells, candidates: dict[str, np.ndarray], voxel: float,
+def _stretched_views(n: int, cells: Cells, candidates: dict[str, np.ndarray], voxel: float, seed: int,
                      progress: bool) -> dict[str, tuple[dict[str, np.ndarray], float]]:
     """The views of every frame, and the noise the planes measure (m), a stretch of frames at a time: each frame
     is judged by its own cells at full density against the neighbouring blocks (past, future) and against the map
     of the stretch's cells and the other frames' cells (all: at the density ``MAX_CELLS`` gives them) in the voxels
-    the stretch reaches. ``cells``: every frame's at full density, in memory or a file the stretches slice (in
-    memory then: a stretch and the far frames' map, at most ``MAX_CELLS`` each)."""
+    the stretch reaches. ``cells``: every frame's at full density, in memory or mapped from files; in memory
+    besides: a stretch's (``MAX_CELLS``) and the other frames' map (``OTHERS_PER_FRAME`` a frame at least)."""
     margin = 2 * max(window_frames(poses, voxel) for poses in candidates.values())
     whole = n * CELLS_PER_FRAME <= MAX_CELLS
     # the SIDE_BY_SIDE sets of poses judged at once share the budget (on any number of processors: the same
@@ -378,13 +385,15 @@ def _stretched_views(n: int, cells: Cells, candidates: dict[str, np.ndarray], vo
     workers = min(len(candidates), SIDE_BY_SIDE, WORKERS)
     views = {name: {view: np.full(n, np.nan) for view in ("all", "past", "future")} for name in candidates}
     noise: dict[str, list[float]] = {name: [] for name in candidates}
-    bounds = np.searchsorted(cells.frame, np.arange(n + 1))  # cells are in frame order
+    bounds = np.searchsorted(cells.frame, np.arange(n + 1, dtype=cells.frame.dtype))  # cells are in frame order
     # the other frames' map: sparser (a revisit is many frames, each sampled)
-    far = cells if whole else _every_kth(cells, max(64, MAX_CELLS // n), bounds)
-    reach = {} if whole else {name: _Reach.of(far, poses, voxel) for name, poses in candidates.items()}
+    others = cells if whole else _sampled(cells, max(OTHERS_PER_FRAME, MAX_CELLS // n), bounds, seed)
+    index = {} if whole else {name: _Reach.of(others, poses, voxel) for name, poses in candidates.items()}
+    release_mapped([cells.frame, cells.count, cells.mean, cells.scatter])  # read whole: its pages, if files
     for s in progress_of(range(0, n, length), "profile stretches", total=-(-n // length), unit="stretch",
                          enabled=progress and not whole):
         release_freed_memory()  # the last stretch's blocks
+        release_mapped([cells.frame, cells.count, cells.mean, cells.scatter])  # the last stretch's pages, if files
         e = min(n, s + length)
         a, b = max(0, s - margin), min(n, e + margin)
         part = slice(bounds[a], bounds[b])
@@ -393,7 +402,7 @@ def _stretched_views(n: int, cells: Cells, candidates: dict[str, np.ndarray], vo
         scored = np.zeros(b - a, bool)
         scored[s - a:e - a] = True
         surface = _flat_normals(dense.of_frames(scored))  # the candidates' shared judged cells
-        judge = partial(_judge_stretch, dense=dense, cells=far, whole=whole, reach=reach, frames=(a, b),
+        judge = partial(_judge_stretch, dense=dense, others=others, whole=whole, index=index, frames=(a, b),
                         judged=(s, e), voxel=voxel, surface=surface)
         # the sets of poses side by side (numpy's sorts, ufuncs and the KD-tree release the GIL)
         for name, past, future, every, sigma in ordered_map(judge, candidates.items(), workers=workers):
@@ -402,18 +411,19 @@ def _stretched_views(n: int, cells: Cells, candidates: dict[str, np.ndarray], vo
     return {name: (views[name], float(np.median(noise[name]))) for name in candidates}
 
 
-def _judge_stretch(candidate: tuple[str, np.ndarray], dense: Cells, cells: Cells, whole: bool,
-                   reach: dict[str, _Reach], frames: tuple[int, int], judged: tuple[int, int], voxel: float,
+def _judge_stretch(candidate: tuple[str, np.ndarray], dense: Cells, others: Cells, whole: bool,
+                   index: dict[str, _Reach], frames: tuple[int, int], judged: tuple[int, int], voxel: float,
                    surface: np.ndarray) -> tuple[str, np.ndarray, np.ndarray, np.ndarray, float]:
     """One set of poses over one stretch (:func:`_stretched_views`): frames ``frames`` (a, b) in ``dense``,
-    those of ``judged`` (s, e) scored against the map of ``cells`` (all of them when the stretch is the
-    ``whole`` sequence, else those within its ``reach``). Its name, the past, future and
-    all views of the judged frames, and the noise its planes measure."""
+    those of ``judged`` (s, e) scored against the map of ``others`` (every frame's cells when the stretch is the
+    ``whole`` sequence, else the other frames' sparser ones, of which ``index`` finds those the stretch reaches),
+    ``surface`` the judged cells' :func:`_flat_normals`. Its name, the past, future and all views of the judged
+    frames, and the noise its planes measure."""
     name, poses = candidate
     (a, b), (s, e) = frames, judged
     local = slice(s - a, e - a)
     past, future = _neighbour_views(dense, poses[a:b], voxel, window_frames(poses, voxel), a, local, surface)
-    mixed = cells if whole else _with_reach(dense, a, b, cells, reach[name], poses, voxel)
+    mixed = others if whole else _with_reach(dense, a, b, others, index[name], poses, voxel)
     assigned = assign(mixed, poses, voxel)
     scored = np.zeros(len(poses), bool)
     scored[s:e] = True

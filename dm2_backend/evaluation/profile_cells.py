@@ -1,15 +1,17 @@
-"""The consistency profile's cells: every scan summed once at full density, in memory or, for a long sequence, in a
-temporary file that the profile's stretches slice (the scans are read once, never again a stretch at a time)."""
+"""The consistency profile's cells: every scan summed once at full density, in memory or, for a long sequence, in
+temporary files that the profile's stretches map read-only (the scans are read once, never again a stretch at a
+time)."""
 
 from __future__ import annotations
 
 import tempfile
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 import numpy as np
 
+from dm2_backend.atomic import clean_stale, no_space_error, temp_prefix
 from dm2_backend.optim.planes import Cells, cells_from_scans
 from dm2_backend.progress import progress as progress_of
 from dm2_backend.scans import ScanSequence
@@ -17,8 +19,11 @@ from dm2_backend.scans import ScanSequence
 #: the cells kept per frame (as the dense stage keeps them at most)
 CELLS_PER_FRAME = 2048
 #: a sequence whose cells fit this many is held in memory (about 45 bytes a cell); a longer one is summed this many
-#: at a time into a temporary file (20,000 frames: at most 1.8 GB on disk)
+#: at a time into temporary files (20,000 frames: at most 1.8 GB on disk)
 ONE_PASS_CELLS = 6_000_000
+#: the columns of :class:`Cells` in the files: name, type, shape of a row
+COLUMNS = (("frame", np.int32, ()), ("count", np.float32, ()), ("mean", np.float32, (3,)),
+           ("scatter", np.float32, (6,)))
 
 
 def cells_of(scans: ScanSequence, voxel: float, budget: int, seed: int, planar: bool, progress: bool) -> Cells:
@@ -31,37 +36,45 @@ def cells_of(scans: ScanSequence, voxel: float, budget: int, seed: int, planar: 
     return cells.extruded(voxel) if planar else cells
 
 
+def cells_folder(folder: Path | None = None) -> Path:
+    """Where a long sequence's cells are kept while it is profiled: ``folder``, by default ``dm2-profile-cells`` in
+    the system's temporary folder (dm2's alone: what an ended run left there is removed first)."""
+    parent = Path(folder) if folder is not None else Path(tempfile.gettempdir()) / "dm2-profile-cells"
+    parent.mkdir(parents=True, exist_ok=True)
+    clean_stale(parent)
+    return parent
+
+
 @contextmanager
 def full_cells(scans: ScanSequence, voxel: float, seed: int, planar: bool, progress: bool,
                folder: Path | None = None) -> Iterator[Cells]:
     """Every frame's cells at full density (:func:`cells_of`), in frame order: in memory while ``ONE_PASS_CELLS``
-    hold them, else memory-mapped from a temporary file in ``folder`` (default the system's), summed a part of the
-    sequence at a time (each part seeded by its first frame) and removed on leaving."""
+    hold them, else appended a part of the sequence at a time (each part seeded by its first frame) to files in
+    :func:`cells_folder`, mapped read-only (``memory.release_mapped`` drops their pages) and removed on leaving.
+    Out of disk space: one line (``InputError``)."""
     n = len(scans)
     if n * CELLS_PER_FRAME <= ONE_PASS_CELLS:
         yield cells_of(scans, voxel, n * CELLS_PER_FRAME, seed, planar, progress)
         return
     part = max(1, ONE_PASS_CELLS // CELLS_PER_FRAME)
-    with tempfile.TemporaryDirectory(prefix="dm2-profile-cells-", dir=folder) as tmp:
-        rows = n * CELLS_PER_FRAME  # at most; a sparse file holds only the rows written
-
-        def column(name: str, dtype: type, width: int) -> np.ndarray:
-            shape = (rows,) if width == 1 else (rows, width)
-            return np.lib.format.open_memmap(Path(tmp) / f"{name}.npy", "w+", dtype, shape)
-
-        frame, count = column("frame", np.int32, 1), column("count", np.float32, 1)
-        mean, scatter = column("mean", np.float32, 3), column("scatter", np.float32, 6)
-        k = 0
-        for first in progress_of(range(0, n, part), "profile cells", total=-(-n // part), unit="part",
-                                 enabled=progress):
-            last = min(n, first + part)
-            some = cells_of(scans.subset(np.arange(first, last)), voxel, (last - first) * CELLS_PER_FRAME,
-                            seed + first, planar, False)
-            end = k + len(some)
-            frame[k:end], count[k:end] = some.frame + np.int32(first), some.count
-            mean[k:end], scatter[k:end] = some.mean, some.scatter
-            k = end
-            del some
-        size = voxel / 4.0
-        yield Cells(frame[:k], count[:k], mean[:k], scatter[:k], size)
-        del frame, count, mean, scatter
+    with tempfile.TemporaryDirectory(prefix=f"{temp_prefix()}profile-", dir=cells_folder(folder)) as tmp:
+        path = {name: Path(tmp) / f"{name}.bin" for name, _, _ in COLUMNS}
+        rows = 0
+        try:
+            with ExitStack() as stack:
+                files = {name: stack.enter_context(open(p, "wb")) for name, p in path.items()}
+                for first in progress_of(range(0, n, part), "profile cells", total=-(-n // part), unit="part",
+                                         enabled=progress):
+                    some = cells_of(scans.subset(np.arange(first, min(n, first + part))), voxel,
+                                    part * CELLS_PER_FRAME, seed + first, planar, False)
+                    some.frame += np.int32(first)
+                    for name, dtype, _ in COLUMNS:
+                        np.ascontiguousarray(getattr(some, name), dtype).tofile(files[name])
+                    rows += len(some)
+        except OSError as exc:
+            raise (no_space_error(exc, path["scatter"]) or exc) from exc
+        if rows == 0:  # no scan had a point
+            yield Cells(*(np.zeros((0, *shape), dtype) for _, dtype, shape in COLUMNS), voxel / 4.0)
+            return
+        yield Cells(*(np.memmap(path[name], dtype, "r", shape=(rows, *shape)) for name, dtype, shape in COLUMNS),
+                    voxel / 4.0)
