@@ -3,7 +3,8 @@
     python benchmarks/consistency_cases.py [--out benchmarks/results]
 
 Cases: the real LiDAR keyframes' front-end poses (../shared/data, skipped when absent), the true poses of the LiDAR
-ray-cast through their map (when the benchmark cache holds it) and of the simulated street, each as given and broken
+ray-cast through their map and of the benchmark's 2,000-frame street (when the benchmark cache holds them) and of a
+simulated street, each as given and broken
 four ways (a 0.3 m / 2 degree jump at one frame, the same jump carried on, a drift building up to it over 10 frames,
 a closure 1 m / 5 degrees off forced into their pose graph). A hit is a flag within the profile's resolution (a
 neighbouring stretch and a gap) of a broken frame; a false flag lies farther from every one. Writes
@@ -55,6 +56,10 @@ def sequences() -> dict[str, tuple[ScanSequence, np.ndarray]]:
         sim = load_inputs(folder / "velodyne", None, folder / "poses.txt", None,
                           ReadOptions(times=folder / "times.txt"))
         out["LiDAR ray-cast through the keyframes' map (truth)"] = (sim.scans, sim.given.poses)
+    for folder in sorted(BENCH_CACHE.glob("sim-frames-2000-seed-0-extent-*[0-9a-f]"))[-1:]:  # `run.py --set 3d`
+        sim = load_inputs(folder / "velodyne", None, folder / "poses.txt", None,
+                          ReadOptions(times=folder / "times.txt"))
+        out["simulated street, 2,000 frames at 0.5 m (truth)"] = (sim.scans, sim.given.poses)
     scans, gt, _ = simulate(SimSettings(frames=80, seed=3, extent=10.0, laps=1.5), progress=False)
     out["simulated street (truth)"] = (ScanSequence(lambda i: Scan(scans[i]), len(scans),
                                                     timestamps=np.arange(len(scans)) * 0.1, planar=False), gt)

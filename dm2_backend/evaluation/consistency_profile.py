@@ -259,7 +259,7 @@ def _rotated(vectors: np.ndarray, poses: np.ndarray, frame: np.ndarray) -> np.nd
 
 def _sampled(cells: Cells, per_frame: int, bounds: np.ndarray, seed: int) -> Cells:
     """About ``per_frame`` cells of each frame (frame i's are rows ``bounds[i]:bounds[i + 1]``), each kept with the
-    same chance (seeded), copied into memory a thousand frames at a time."""
+    same chance (seeded), copied into memory a thousand frames at a time (a file's pages dropped after each)."""
     rng = np.random.default_rng(seed)
     count = np.diff(bounds)
     chance = np.minimum(1.0, per_frame / np.maximum(count, 1))
@@ -267,9 +267,11 @@ def _sampled(cells: Cells, per_frame: int, bounds: np.ndarray, seed: int) -> Cel
     for a in range(0, len(count), 1000):
         b = min(len(count), a + 1000)
         draw = rng.random(int(bounds[b] - bounds[a])) < np.repeat(chance[a:b], count[a:b])
-        kept.append(bounds[a] + np.flatnonzero(draw))
-    at = np.concatenate(kept) if kept else np.zeros(0, np.int64)
-    return Cells(cells.frame[at], cells.count[at], cells.mean[at], cells.scatter[at], cells.size)
+        at = bounds[a] + np.flatnonzero(draw)
+        kept.append(Cells(cells.frame[at], cells.count[at], cells.mean[at], cells.scatter[at], cells.size))
+        release_mapped([cells.frame, cells.count, cells.mean, cells.scatter])  # the pages read, if files
+    return Cells(*(np.concatenate([getattr(k, f) for k in kept]) if kept else getattr(cells, f)[:0]
+                   for f in ("frame", "count", "mean", "scatter")), cells.size)
 
 
 def _trimmed_rms(frame: np.ndarray, dist: np.ndarray, weight: np.ndarray, judged: np.ndarray) -> np.ndarray:
@@ -386,6 +388,7 @@ def _stretched_views(n: int, cells: Cells, candidates: dict[str, np.ndarray], vo
     views = {name: {view: np.full(n, np.nan) for view in ("all", "past", "future")} for name in candidates}
     noise: dict[str, list[float]] = {name: [] for name in candidates}
     bounds = np.searchsorted(cells.frame, np.arange(n + 1, dtype=cells.frame.dtype))  # cells are in frame order
+    release_mapped([cells.frame])
     # the other frames' map: sparser (a revisit is many frames, each sampled)
     others = cells if whole else _sampled(cells, max(OTHERS_PER_FRAME, MAX_CELLS // n), bounds, seed)
     index = {} if whole else {name: _Reach.of(others, poses, voxel) for name, poses in candidates.items()}
