@@ -351,9 +351,9 @@ def consistency_profiles(scans: ScanSequence, candidates: dict[str, np.ndarray],
                          planar: bool = False, voxel: float | None = None, seed: int = 0,
                          progress: bool = False, folder: Path | None = None) -> dict[str, ConsistencyProfile]:
     """The profile of each set of poses (one per scan). The scans are summed into cells once, at full density
-    (:func:`~dm2_backend.evaluation.profile_cells.full_cells`: in memory, or a temporary file in ``folder`` for a
-    long sequence), and judged
-    a stretch at a time (:func:`_stretched_views`). ``planar``: 2D scans, their lines seen as vertical walls."""
+    (:func:`~dm2_backend.evaluation.profile_cells.full_cells`: in memory, or for a long sequence temporary files in
+    ``folder``), and judged a stretch at a time (:func:`_stretched_views`). ``planar``: 2D scans, their lines seen
+    as vertical walls."""
     scale = derive_scale(scans)
     voxel = voxel or profile_voxel(scans, scale)
     release_freed_memory()
@@ -392,7 +392,6 @@ def _stretched_views(n: int, cells: Cells, candidates: dict[str, np.ndarray], vo
     # the other frames' map: sparser (a revisit is many frames, each sampled)
     others = cells if whole else _sampled(cells, max(OTHERS_PER_FRAME, MAX_CELLS // n), bounds, seed)
     index = {} if whole else {name: _Reach.of(others, poses, voxel) for name, poses in candidates.items()}
-    release_mapped([cells.frame, cells.count, cells.mean, cells.scatter])  # read whole: its pages, if files
     for s in progress_of(range(0, n, length), "profile stretches", total=-(-n // length), unit="stretch",
                          enabled=progress and not whole):
         release_freed_memory()  # the last stretch's blocks
