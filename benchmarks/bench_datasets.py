@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from dm2_backend.trajectory import Trajectory
+    from dm2_backend.kernel.trajectory import Trajectory
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -93,7 +93,7 @@ def degrade(poses: np.ndarray, yaw_bias: float, yaw_noise: float, scale: float, 
             seed: int) -> np.ndarray:
     """The odometry re-chained with its increments spoiled in proportion to their length (a robot standing
     still keeps still): yaw bias and noise, a scale error and noise on translation."""
-    from dm2_backend.geometry import se3
+    from dm2_backend.kernel.geometry import se3
 
     rng = np.random.default_rng(seed)
     inc = se3.to_xy_yaw(se3.relative(poses[:-1], poses[1:]))
@@ -114,8 +114,8 @@ def carmen_degraded(name: str) -> Callable[[Env], Inputs]:
         from dm2_backend.evaluation.relations import load_relations, relations_error
         from dm2_backend.formats import ReadOptions
         from dm2_backend.formats.carmen import write_carmen
+        from dm2_backend.kernel.trajectory import Trajectory
         from dm2_backend.pipeline.inputs import load_inputs
-        from dm2_backend.trajectory import Trajectory
 
         log, rel = DATA / "carmen" / f"{name}.clf.bz2", DATA / "carmen" / f"{name}.relations"
         _need(log, rel)
@@ -203,7 +203,7 @@ def drifted(reference: Trajectory, rate: float | None, out: Path) -> Path:
     exact, globally off. ``rate``: sampled at that rate (Hz, interpolated on SE(3)) instead of at its stamps."""
     from scipy.spatial.transform import Rotation
 
-    from dm2_backend.geometry import se3
+    from dm2_backend.kernel.geometry import se3
 
     stamps = reference.timestamps
     s = np.linspace(0.0, 1.0, len(reference))
@@ -299,8 +299,8 @@ def deepmapping2d(env: Env) -> Inputs:
 
     from dm2_backend.formats.kitti import write_kitti
     from dm2_backend.formats.scan_folder import read_scan_file
-    from dm2_backend.geometry import se3
-    from dm2_backend.trajectory import Trajectory
+    from dm2_backend.kernel.geometry import se3
+    from dm2_backend.kernel.trajectory import Trajectory
 
     tar = DATA / "deepmapping2d" / "v1_pose0.tar"
     _need(tar)

@@ -31,11 +31,11 @@ from pathlib import Path
 import numpy as np
 
 from dm2_backend.algorithms.common import path_length
-from dm2_backend.atomic import atomic_write
-from dm2_backend.errors import InputError
 from dm2_backend.evaluation.relations import MAX_DT, load_relations
 from dm2_backend.formats import read_trajectory
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.runtime.atomic import atomic_write
+from dm2_backend.runtime.errors import InputError
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_GAP = 10.0

@@ -26,8 +26,8 @@ import numpy as np
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.consistency_profile import GAP, consistency_profiles
 from dm2_backend.formats import ReadOptions
+from dm2_backend.kernel.scans import Scan, ScanSequence
 from dm2_backend.pipeline.inputs import load_inputs
-from dm2_backend.scans import Scan, ScanSequence
 from dm2_backend.simulate.broken import (
     broken_frames,
     bump,

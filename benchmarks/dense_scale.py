@@ -23,11 +23,11 @@ import psutil
 
 from dm2_backend.evaluation.consistency_profile import consistency_profiles, profile_voxel
 from dm2_backend.formats import open_scans
-from dm2_backend.geometry import se3
-from dm2_backend.optim import planes
+from dm2_backend.kernel import planes
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.pose_graph import PoseGraph
 from dm2_backend.optim.config import OptimConfig
 from dm2_backend.optim.dense import refine_dense
-from dm2_backend.pose_graph import PoseGraph
 
 
 class Stages:

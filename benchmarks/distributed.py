@@ -108,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timeout", type=float, default=1800.0, help="Seconds per run.")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
     args = ap.parse_args(argv)
-    from dm2_backend.atomic import atomic_write
+    from dm2_backend.runtime.atomic import atomic_write
 
     cache = Path(os.environ.get("DM2_BENCH_CACHE", Path.home() / ".cache" / "dm2" / "bench"))
     runs = cache / "runs" / f"{datetime.datetime.now():%Y%m%d-%H%M%S}-distributed"

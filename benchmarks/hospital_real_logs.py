@@ -19,11 +19,11 @@ import numpy as np
 
 from dm2_backend.evaluation.relations import load_relations, relations_error
 from dm2_backend.formats.carmen import open_carmen_scans
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.plugins.warm_start_icp import IcpWarmStart
 from dm2_backend.prepare.frames import load_frames
 from dm2_backend.simulate.hospital import HospitalTraits
 from dm2_backend.simulate.hospital_rewrite import write_rewritten
-from dm2_backend.trajectory import Trajectory
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "carmen"
 RESULTS = Path(__file__).resolve().parent / "results"

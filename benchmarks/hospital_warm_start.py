@@ -15,10 +15,10 @@ import numpy as np
 from dm2_backend.evaluation.relations import load_relations, relations_error
 from dm2_backend.formats.carmen import open_carmen_scans
 from dm2_backend.formats.registry import ReadOptions
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.plugins.warm_start_icp import IcpWarmStart
 from dm2_backend.prepare.frames import load_frames
 from dm2_backend.simulate.hospital import HospitalSettings, HospitalTraits, simulate_hospital, write_hospital
-from dm2_backend.trajectory import Trajectory
 
 
 def ate(poses: np.ndarray, truth: np.ndarray) -> float:

@@ -8,7 +8,7 @@ frames do not show, relative poses the registrations put centimetres away while 
 fixed point for a map optimiser, and an error measured against it says as much about the reference as about the
 estimate.
 
-Lengths come from the data (``dm2_backend.scan_scale``): the clouds are thinned to the larger of the raw point
+Lengths come from the data (``dm2_backend.kernel.scan_scale``): the clouds are thinned to the larger of the raw point
 spacing and the median range / 200; the correspondence distance is three times that.
 
     python benchmarks/reference_check.py --scans ../shared/data/depth3d/redkitchen_000-499 \\
@@ -34,9 +34,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from dm2_backend.formats import ReadOptions, open_scans, read_trajectory  # noqa: E402
-from dm2_backend.geometry import se3  # noqa: E402
-from dm2_backend.scan_scale import derive_scale  # noqa: E402
-from dm2_backend.scans import associate_scans  # noqa: E402
+from dm2_backend.kernel.geometry import se3  # noqa: E402
+from dm2_backend.kernel.scan_scale import derive_scale  # noqa: E402
+from dm2_backend.kernel.scans import associate_scans  # noqa: E402
 
 #: pairs whose best registration matches fewer than this fraction of the moving frame's points are not compared
 MIN_FITNESS = 0.5

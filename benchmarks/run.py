@@ -162,7 +162,7 @@ def commit() -> str:
 
 def write_results(results: dict, out: Path, t_start: float, complete: bool) -> dict:
     """Derived numbers and warm-start rows on a copy; write the JSON, the Markdown table and the plot."""
-    from dm2_backend.atomic import atomic_write
+    from dm2_backend.runtime.atomic import atomic_write
 
     r = copy.deepcopy(results)
     r["complete"] = complete
@@ -189,7 +189,7 @@ def write_results(results: dict, out: Path, t_start: float, complete: bool) -> d
 
 
 def render(path: Path) -> int:
-    from dm2_backend.atomic import atomic_write
+    from dm2_backend.runtime.atomic import atomic_write
 
     r = json.loads(path.read_text())
     with atomic_write(path.parent / f"latest-{r['set']}.md") as fh:
@@ -241,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
     results: dict = {
         "set": label, "date": date, "commit": commit(), "dm2_version": importlib.metadata.version("dm2"),
         "machine": machine(), "settings": {"epochs": epochs, "timeout_s": timeout, "only": args.only,
-                                           "config": "default (dm2_backend/config.py) + method overrides"},
+                                           "config": "default (dm2_backend/config/__init__.py) + method overrides"},
         **({"targets": spec["targets"]} if "targets" in spec else {}),
         "methods": {m.name: {"command": m.command, "config": m.config, "description": m.description}
                     for m in METHODS.values()},

@@ -17,7 +17,7 @@ from typing import BinaryIO
 
 import numpy as np
 
-from dm2_backend.errors import InputError
+from dm2_backend.runtime.errors import InputError
 
 #: largest array accepted from one .npy file or .npz member (bytes)
 MAX_ARRAY_BYTES = 2 << 30

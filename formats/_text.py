@@ -10,9 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.errors import InputError
-from dm2_backend.input_files import TEXT_MAX_BYTES, check_kind
-from dm2_backend.trajectory import Trajectory, validate_poses, validate_timestamps
+from dm2_backend.kernel.trajectory import Trajectory, validate_poses, validate_timestamps
+from dm2_backend.runtime.errors import InputError
+from dm2_backend.runtime.input_files import TEXT_MAX_BYTES, check_kind
 
 log = logging.getLogger(__name__)
 

@@ -39,8 +39,6 @@ try:
 except ImportError:  # pragma: no cover - the backport rosbags depends on before 3.14
     from backports import zstd as _zstd
 
-from dm2_backend.atomic import atomic_path, temp_prefix
-from dm2_backend.errors import InputError
 from dm2_backend.formats import bag_messages as bm
 from dm2_backend.formats.bag_tf import TfBuffer, TfError, TfId, parse_tf_id
 from dm2_backend.formats.registry import (
@@ -50,9 +48,11 @@ from dm2_backend.formats.registry import (
     scan_source,
     trajectory_format,
 )
-from dm2_backend.geometry import se3
-from dm2_backend.scans import Scan, ScanSequence
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.scans import Scan, ScanSequence
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.atomic import atomic_path, temp_prefix
+from dm2_backend.runtime.errors import InputError
 
 DEFAULT_WRITE_TOPIC = "/dm2/poses"
 SUFFIXES = (".bag", ".db3", ".mcap")

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dm2_backend.scans import Scan
+from dm2_backend.kernel.scans import Scan
 
 #: pose-carrying message types read as trajectories (the ones evo reads, less PointStamped)
 POSE_TYPES = (

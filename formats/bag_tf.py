@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dm2_backend.formats.bag_messages import bad_quaternion, split_ns, stamp_ns
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 _ROS_NAME = re.compile(r"[\/|a-z|A-Z][\/|_|0-9|a-z|A-Z]+")  # evo's tf_id.ROS_NAME_REGEX
 LOOKUP_STEP_NS = 100_000_000  # evo's default tf_cache_lookup_frequency, 10 Hz

@@ -15,12 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.atomic import atomic_write
-from dm2_backend.errors import InputError
 from dm2_backend.formats import _text
 from dm2_backend.formats.registry import ReadOptions, TrajectoryFormat, trajectory_format
-from dm2_backend.geometry import se3
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.atomic import atomic_write
+from dm2_backend.runtime.errors import InputError
 
 WHAT = "BALM pose: a row-major 4x4 matrix, four lines of 4 numbers (the time last) or 16 numbers a line"
 HOMOGENEOUS = np.array([0.0, 0.0, 0.0, 1.0])

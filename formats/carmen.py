@@ -40,7 +40,7 @@ Conventions:
   ``"odometry"`` = the robot pose fields, ``"logged"`` = laser pose (+) offset^-1. For RAWLASER both are the
   ODOM poses interpolated at the scan times. Timestamps are the ipc_timestamp, parsed with ``float()``.
 * Readings ``<= min_range`` (0) or ``>= max_range`` are invalid and dropped, and so are isolated long returns
-  (one beam far beyond two neighbours on one surface: glass, open doors; :mod:`dm2_backend.planar_returns`).
+  (one beam far beyond two neighbours on one surface: glass, open doors; :mod:`dm2_backend.kernel.planar_returns`).
   ``max_range``: the ``ReadOptions.max_range``, else the message's ``maximum_range`` field, else (FLASER)
   CARMEN's 80 m, lowered to the log's largest reading when that value repeats as a saturation value (ACES: 50 m; a
   ROBOTLASER1 log whose field declares more than its scanner's 81.91 m code: 81.91 m).
@@ -68,8 +68,6 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.atomic import atomic_write
-from dm2_backend.errors import InputError
 from dm2_backend.formats.carmen_parser import (  # noqa: F401 (parse_line, Message, ...: the format's API)
     _TOKEN,
     CARMEN_MAX_RANGE,
@@ -95,10 +93,12 @@ from dm2_backend.formats.registry import (
     scan_source,
     trajectory_format,
 )
-from dm2_backend.geometry import se3
-from dm2_backend.planar_returns import isolated_long_returns
-from dm2_backend.scans import Scan, ScanSequence, SensorKind
-from dm2_backend.trajectory import Trajectory, validate_poses
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.planar_returns import isolated_long_returns
+from dm2_backend.kernel.scans import Scan, ScanSequence, SensorKind
+from dm2_backend.kernel.trajectory import Trajectory, validate_poses
+from dm2_backend.runtime.atomic import atomic_write
+from dm2_backend.runtime.errors import InputError
 
 
 def _pick(log: CarmenLog, wanted: str | None, order: tuple[str, ...], what: str) -> str:
@@ -275,7 +275,7 @@ def saturation_code(msgs: list[Message]) -> float | None:
 def scan_points(msg: Message, offset: tuple[float, float, float], max_r: float | None,
                 min_r: float = 0.0) -> tuple[np.ndarray, np.ndarray | None]:
     """Valid readings of ``msg`` as (M,3) float32 points in the robot frame, and their remissions; isolated long
-    returns (:mod:`dm2_backend.planar_returns`) are not valid."""
+    returns (:mod:`dm2_backend.kernel.planar_returns`) are not valid."""
     r = msg.ranges.astype(np.float64)
     limit = max_r if max_r is not None else msg.max_range
     valid = r > min_r

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.errors import InputError
-from dm2_backend.input_files import check_kind
+from dm2_backend.runtime.errors import InputError
+from dm2_backend.runtime.input_files import check_kind
 
 SUFFIXES = (".clf", ".log", ".clf.gz", ".log.gz", ".clf.bz2", ".log.bz2")
 POSE_KINDS = ("FLASER", "ROBOTLASER1")

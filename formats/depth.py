@@ -33,7 +33,6 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from dm2_backend.errors import InputError
 from dm2_backend.formats.registry import (
     ReadOptions,
     ScanSource,
@@ -41,8 +40,9 @@ from dm2_backend.formats.registry import (
     scan_source,
     trajectory_format,
 )
-from dm2_backend.scans import DEPTH_CAMERA, Scan, ScanSequence
-from dm2_backend.trajectory import Trajectory, associate_by_time, validate_poses
+from dm2_backend.kernel.scans import DEPTH_CAMERA, Scan, ScanSequence
+from dm2_backend.kernel.trajectory import Trajectory, associate_by_time, validate_poses
+from dm2_backend.runtime.errors import InputError
 
 SEVEN_SCENES_INTRINSICS = (585.0, 585.0, 320.0, 240.0)
 TUM_INTRINSICS = (525.0, 525.0, 319.5, 239.5)

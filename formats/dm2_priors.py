@@ -9,7 +9,7 @@ Semantics as in the official code (github.com/ai4ce/DeepMapping2):
   (``transform_to_global_KITTI``: ``p_world = R @ p + t``). The angles are Euler ``"XYZ"``:
   written with ``scipy Rotation.as_euler("XYZ")`` (``mat2ang_np``) and read with pytorch3d's
   ``euler_angles_to_matrix(..., "XYZ")`` = ``Rx(a) @ Ry(b) @ Rz(c)``, i.e. scipy's intrinsic ``"XYZ"``,
-  which is what :func:`dm2_backend.geometry.se3.from_xyz_euler` uses. ``train.py`` casts it to float32.
+  which is what :func:`dm2_backend.kernel.geometry.se3.from_xyz_euler` uses. ``train.py`` casts it to float32.
 * ``group_matrix.npy``: (N, G) int; row i is ``[i, neighbour_1, ..., neighbour_{G-1}]`` (the anchor
   first; ``pre_processing_custom.py`` builds ``neighbor = [i] + ...``, the KD-tree variant
   ``script/helpful_functions/generate_group_matrix.py`` gets the anchor first as its own nearest point).
@@ -21,7 +21,7 @@ Semantics as in the official code (github.com/ai4ce/DeepMapping2):
   multiplies it with float32 tensors. (An older ``script/pairwise_icp.py`` wrote (N, G-1, 4)
   ``x y z yaw`` in the other direction; that layout is rejected.)
 
-Our representation (:mod:`dm2_backend.stages`): poses (N,4,4); ``groups`` (N, k) neighbour indices
+Our representation (:mod:`dm2_backend.kernel.stages`): poses (N,4,4); ``groups`` (N, k) neighbour indices
 without the anchor, -1 pads; ``relative`` (N, k, 4, 4) = ``T_j^i``, the neighbour in the anchor's frame,
 the inverse of the file's entries. Pads are written as the anchor itself with an identity pairwise pose
 (a self-pair), and a neighbour equal to its anchor reads back as a pad.
@@ -33,12 +33,12 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.atomic import atomic_write
-from dm2_backend.errors import InputError
 from dm2_backend.formats._npy import load_numeric_npy, npy_shape, sniff_shape
 from dm2_backend.formats.registry import ReadOptions, TrajectoryFormat, trajectory_format
-from dm2_backend.geometry import se3
-from dm2_backend.trajectory import Trajectory, validate_poses
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory, validate_poses
+from dm2_backend.runtime.atomic import atomic_write
+from dm2_backend.runtime.errors import InputError
 
 INIT_POSE = "init_pose.npy"
 GROUP_MATRIX = "group_matrix.npy"

@@ -12,11 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.errors import InputError
 from dm2_backend.formats import _text
 from dm2_backend.formats.registry import ReadOptions, TrajectoryFormat, trajectory_format
-from dm2_backend.geometry import se3
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.errors import InputError
 
 COLUMNS = (17, 8)
 WHAT = "EuRoC: timestamp[ns] px py pz qw qx qy qz [+ 9 velocity/bias columns]"

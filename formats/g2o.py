@@ -22,13 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.atomic import atomic_write
-from dm2_backend.errors import InputError
 from dm2_backend.formats import _text
 from dm2_backend.formats.registry import ReadOptions, TrajectoryFormat, trajectory_format
-from dm2_backend.geometry import se3
-from dm2_backend.pose_graph import PoseGraph
-from dm2_backend.trajectory import Trajectory, validate_poses
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.pose_graph import PoseGraph
+from dm2_backend.kernel.trajectory import Trajectory, validate_poses
+from dm2_backend.runtime.atomic import atomic_write
+from dm2_backend.runtime.errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -127,14 +127,6 @@ PSD_FLOOR = 1e-9
 #: how information matrices that are not positive semi-definite are read: as the file writes them, or the
 #: nearest positive-definite ones
 INFORMATION_MODES = ("file", "nearest-psd")
-
-
-def indefinite(info: np.ndarray) -> np.ndarray:
-    """Which of the (E, d, d) information matrices are not positive semi-definite (beyond rounding)."""
-    if len(info) == 0:
-        return np.zeros(0, bool)
-    w = np.linalg.eigvalsh(info)
-    return w[:, 0] < -1e-9 * np.maximum(np.abs(w).max(axis=1), 1.0)
 
 
 def _project_information(info: np.ndarray, lines: np.ndarray, path: Path, project: bool = True,

@@ -21,13 +21,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from dm2_backend.atomic import atomic_write
-from dm2_backend.errors import InputError
 from dm2_backend.formats import _text, scan_folder
 from dm2_backend.formats.registry import ReadOptions, ScanSource, TrajectoryFormat, scan_source, trajectory_format
-from dm2_backend.geometry import se3
-from dm2_backend.scans import ScanSequence
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.scans import ScanSequence
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.atomic import atomic_write
+from dm2_backend.runtime.errors import InputError
 
 POSE_FILE = "pose.json"
 SCANS_DIR = "pcd"

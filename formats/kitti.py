@@ -13,12 +13,12 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.atomic import atomic_write
-from dm2_backend.errors import InputError
 from dm2_backend.formats import _text
 from dm2_backend.formats.registry import ReadOptions, TrajectoryFormat, trajectory_format
-from dm2_backend.geometry import se3
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.atomic import atomic_write
+from dm2_backend.runtime.errors import InputError
 
 CALIB_KEYS = ("Tr:", "Tr_velo_to_cam:", "Tr_velo_cam:")
 

@@ -26,7 +26,6 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.errors import InputError
 from dm2_backend.formats import _text
 from dm2_backend.formats.registry import (
     ReadOptions,
@@ -36,9 +35,10 @@ from dm2_backend.formats.registry import (
     trajectory_format,
 )
 from dm2_backend.formats.scan_folder import read_bin, scan_files
-from dm2_backend.geometry import se3
-from dm2_backend.scans import ScanSequence, SensorKind
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.scans import ScanSequence, SensorKind
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.errors import InputError
 
 EARTH_RADIUS = 6378137.0  # m, as in the devkit
 OXTS_FIELDS = 30

@@ -27,8 +27,6 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from dm2_backend.atomic import atomic_write
-from dm2_backend.errors import InputError
 from dm2_backend.formats import _text
 from dm2_backend.formats.registry import (
     ReadOptions,
@@ -37,9 +35,11 @@ from dm2_backend.formats.registry import (
     scan_source,
     trajectory_format,
 )
-from dm2_backend.geometry import se3
-from dm2_backend.scans import Scan, ScanSequence, SensorKind
-from dm2_backend.trajectory import Trajectory, validate_timestamps
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.scans import Scan, ScanSequence, SensorKind
+from dm2_backend.kernel.trajectory import Trajectory, validate_timestamps
+from dm2_backend.runtime.atomic import atomic_write
+from dm2_backend.runtime.errors import InputError
 
 SCALE = 0.005  # m per count
 OFFSET = -100.0  # m

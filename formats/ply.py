@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.errors import InputError
+from dm2_backend.runtime.errors import InputError
 
 #: PLY scalar type names -> numpy type codes
 TYPES = {

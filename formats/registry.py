@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.errors import InputError
-from dm2_backend.input_files import check_kind
-from dm2_backend.scans import ScanSequence, SensorKind
-from dm2_backend.trajectory import Trajectory, validate_poses, validate_timestamps
+from dm2_backend.kernel.scans import ScanSequence, SensorKind
+from dm2_backend.kernel.trajectory import Trajectory, validate_poses, validate_timestamps
+from dm2_backend.runtime.errors import InputError
+from dm2_backend.runtime.input_files import check_kind
 
 
 @dataclass

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.errors import InputError
 from dm2_backend.formats.carmen_parser import _num, read_text
+from dm2_backend.runtime.errors import InputError
 
 _RELATION_FIELDS = ("t1", "t2", "x", "y", "z", "roll", "pitch", "yaw")
 

@@ -21,14 +21,14 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.atomic import atomic_write
-from dm2_backend.errors import InputError
 from dm2_backend.formats import ply
 from dm2_backend.formats._npy import load_npy, load_npz
 from dm2_backend.formats.pcd import read_pcd, write_pcd
 from dm2_backend.formats.registry import ReadOptions, ScanSource, scan_source
-from dm2_backend.input_files import check_kind
-from dm2_backend.scans import Scan, ScanSequence
+from dm2_backend.kernel.scans import Scan, ScanSequence
+from dm2_backend.runtime.atomic import atomic_write
+from dm2_backend.runtime.errors import InputError
+from dm2_backend.runtime.input_files import check_kind
 
 SCAN_SUFFIXES = (".bin", ".pcd", ".ply", ".npy", ".npz")
 INTENSITY_FIELDS = ("intensity", "i", "reflectivity")

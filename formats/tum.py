@@ -9,11 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.atomic import atomic_write
 from dm2_backend.formats import _text
 from dm2_backend.formats.registry import ReadOptions, TrajectoryFormat, trajectory_format
-from dm2_backend.geometry import se3
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.atomic import atomic_write
 
 
 def read_tum(path: str | Path, options: ReadOptions | None = None) -> Trajectory:

@@ -9,8 +9,8 @@ from typing import Protocol
 
 import numpy as np
 
-from dm2_backend.stages import Frames, Pairwise, Topology
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.stages import Frames, Pairwise, Topology
+from dm2_backend.kernel.trajectory import Trajectory
 
 
 class WarmStart(Protocol):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from importlib.metadata import EntryPoint, entry_points
 
-from dm2_backend.errors import InputError
+from dm2_backend.runtime.errors import InputError
 
 GROUPS: dict[str, str] = {
     "dm2.warm_start": "initial trajectory",

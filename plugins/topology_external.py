@@ -14,8 +14,8 @@ from scipy.spatial import cKDTree
 
 from dm2_backend.algorithms.common import assemble
 from dm2_backend.algorithms.topology import check_k, check_poses
-from dm2_backend.errors import InputError
-from dm2_backend.stages import Frames, Topology
+from dm2_backend.kernel.stages import Frames, Topology
+from dm2_backend.runtime.errors import InputError
 
 
 @dataclass

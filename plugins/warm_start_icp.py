@@ -60,11 +60,11 @@ from dm2_backend.algorithms.common import (
 from dm2_backend.algorithms.drift_windows import OdometryNoise, WindowVerdict, apply_verdicts, check_windows
 from dm2_backend.algorithms.icp import information_2d, register, slide_loss
 from dm2_backend.algorithms.match_noise import AXES, MIN_TRIPLES, MatchWeights, match_weights
-from dm2_backend.errors import InputError
-from dm2_backend.geometry import se3
-from dm2_backend.progress import progress
-from dm2_backend.stages import Frames
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.stages import Frames
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.errors import InputError
+from dm2_backend.runtime.progress import progress
 
 
 class StepReason(enum.Enum):

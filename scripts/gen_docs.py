@@ -178,13 +178,13 @@ def config_page() -> str:
     import yaml
     from pydantic import BaseModel
 
-    from dm2_backend.config_schema import PLUGIN_GROUPS, RunConfig
+    from dm2_backend.config.schema import PLUGIN_GROUPS, RunConfig
 
     lines = [
         "# Configuration reference",
         "",
-        "Generated from the pydantic model `RunConfig` (`dm2_backend/config_schema.py`, its `optimiser` section "
-        "`OptimConfig` in `dm2_backend/config_optimiser.py`) and from the registered plugins' option dataclasses. "
+        "Generated from the pydantic model `RunConfig` (`dm2_backend/config/schema.py`, its `optimiser` section "
+        "`OptimConfig` in `dm2_backend/config/optimiser.py`) and from the registered plugins' option dataclasses. "
         "`dm2 refine --config C.yaml` reads a YAML file of these sections; what it leaves out keeps the default "
         "below, and every value is checked when the file is read (an unknown or wrong field is one line naming it, "
         "exit code 2). Each run folder keeps the effective configuration as `config.yaml` and the plugins as they "
@@ -291,7 +291,7 @@ def config_fields() -> list[str]:
     """Every field path of :class:`RunConfig`, recursively (``optimiser.dense_voxel``)."""
     from pydantic import BaseModel
 
-    from dm2_backend.config_schema import RunConfig
+    from dm2_backend.config.schema import RunConfig
 
     out: list[str] = []
 
@@ -612,6 +612,31 @@ def decisions_page() -> str:
     return "\n".join(lines) + "\n"
 
 
+def layers_page() -> str:
+    """The layers of ``dm2_backend/layers.py``, top first, each package with its docstring's first sentence."""
+    import importlib
+
+    from dm2_backend.layers import LAYERS
+
+    lines = [
+        "# Layers",
+        "",
+        "Drawn from `dm2_backend/layers.py`. An import goes down to a lower layer or stays inside its own package; "
+        "the packages of one layer stand side by side and import none of each other. `tests/test_architecture.py` "
+        "checks every import of every module, at module level and inside functions.",
+        "",
+        "| layer | package | what it holds |",
+        "|---|---|---|",
+    ]
+    for name, units in reversed(LAYERS):
+        for unit in units:
+            module = importlib.import_module("dm2_backend" if unit == "dm2_backend" else f"dm2_backend.{unit}")
+            folder = {"formats": "formats/", "plugins": "plugins/", "dm2_backend": "dm2_backend/__init__.py"}
+            where = folder.get(unit, f"dm2_backend/{unit}/")
+            lines.append(f"| {name} | `{where}` | {cell(rst_to_md(first_paragraph(module.__doc__)))} |")
+    return "\n".join(lines) + "\n"
+
+
 # ------------------------------------------------------------------------------------------------- main
 
 
@@ -619,6 +644,7 @@ GENERATORS = {
     "reference/config.md": config_page,
     "reference/cli.md": cli_page,
     "reference/formats.md": formats_page,
+    "reference/layers.md": layers_page,
     "results.md": results_page,
     "decisions/index.md": decisions_page,
 }

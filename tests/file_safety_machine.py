@@ -18,8 +18,8 @@ from click.testing import CliRunner
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 
-from dm2_backend import atomic
 from dm2_backend.cli.main import cli
+from dm2_backend.runtime import atomic
 
 #: names the user's things take: plain, dm2's outputs and checkpoints, temporaries of dead processes
 NAMES = ("notes.txt", "photos", "report.json", "poses.txt", "velodyne", "checkpoint-dense.npz", "checkpoint.pt",

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.errors import InputError
+from dm2_backend.runtime.errors import InputError
 
 #: an input: relative path -> bytes ("." is never used; the entry names the path handed to dm2)
 Files = dict[str, bytes]
@@ -72,8 +72,8 @@ class Family:
 
 
 def _walk(n: int, rng: np.random.Generator, planar: bool = False):
-    from dm2_backend.geometry import se3
-    from dm2_backend.trajectory import Trajectory
+    from dm2_backend.kernel.geometry import se3
+    from dm2_backend.kernel.trajectory import Trajectory
 
     yaw = np.cumsum(rng.normal(0, 0.1, n))
     xy = np.cumsum(np.stack([np.cos(yaw), np.sin(yaw)], 1) * 0.5, axis=0)
@@ -112,7 +112,7 @@ def _seeds_kitti(tmp: Path) -> list[Seed]:
 
 
 def _seeds_euroc(tmp: Path) -> list[Seed]:
-    from dm2_backend.geometry import se3
+    from dm2_backend.kernel.geometry import se3
 
     traj = _walk(10, np.random.default_rng(3))
     xyz, q = se3.to_xyz_quat(traj.poses, "wxyz")
@@ -129,8 +129,8 @@ def _seeds_euroc(tmp: Path) -> list[Seed]:
 
 def _seeds_g2o(tmp: Path) -> list[Seed]:
     from dm2_backend.formats.g2o import write_g2o
-    from dm2_backend.geometry import se3
-    from dm2_backend.pose_graph import PoseGraph
+    from dm2_backend.kernel.geometry import se3
+    from dm2_backend.kernel.pose_graph import PoseGraph
 
     seeds = []
     for planar, name in ((False, "graph3d.g2o"), (True, "graph2d.g2o")):
@@ -184,7 +184,7 @@ def _seeds_carmen_compressed(tmp: Path) -> list[Seed]:
 
 def _seeds_priors(tmp: Path) -> list[Seed]:
     from dm2_backend.formats.dm2_priors import write_priors
-    from dm2_backend.geometry import se3
+    from dm2_backend.kernel.geometry import se3
 
     traj = _walk(6, np.random.default_rng(6))
     groups = np.array([[1, 2], [0, 2], [1, 3], [2, 4], [3, 5], [4, -1]])

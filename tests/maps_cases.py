@@ -11,10 +11,10 @@ import numpy as np
 import open3d as o3d
 import torch
 
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.scans import Scan, ScanSequence
 from dm2_backend.optim.losses import occupancy_bce
 from dm2_backend.optim.occupancy import GridOccupancy
-from dm2_backend.scans import Scan, ScanSequence
 from dm2_backend.simulate.lidar import LidarModel, Raycaster
 
 HALF = (5.0, 3.0)  # interior half sizes (m) in x and y

@@ -11,14 +11,14 @@ import numpy as np
 import torch
 import yaml
 
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.scans import Scan, ScanSequence
+from dm2_backend.kernel.stages import Frames, Pairwise, Topology
 from dm2_backend.optim.config import OptimConfig
 from dm2_backend.plugins.registration_icp import IcpRegistration
 from dm2_backend.plugins.topology_radius import RadiusTopology
 from dm2_backend.prepare.frames import load_frames
-from dm2_backend.scans import Scan, ScanSequence
 from dm2_backend.simulate.sequence import SimSettings, simulate, write_sequence
-from dm2_backend.stages import Frames, Pairwise, Topology
 
 FRAMES = 60
 #: 2 laps of a 14 m-radius street (about 3 m between frames, so neighbours overlap and the laps close loops)

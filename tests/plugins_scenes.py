@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.scans import Scan, ScanSequence
+from dm2_backend.kernel.stages import Frames
 from dm2_backend.prepare.frames import load_frames
-from dm2_backend.scans import Scan, ScanSequence
 from dm2_backend.simulate.lidar import LidarModel, Raycaster
-from dm2_backend.stages import Frames
 
 #: rectangles (x0, y0, x1, y1) of solid walls and obstacles of the 2D floor
 FLOOR = [

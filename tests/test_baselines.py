@@ -13,16 +13,16 @@ import pytest
 from click.testing import CliRunner
 from shared_helpers import gtsam_direct
 
-from dm2_backend.baselines import gtsam_backend
-from dm2_backend.baselines.graph import InformationModel, build_graph, registration_information
 from dm2_backend.baselines.multiway import multiway
-from dm2_backend.baselines.options import SolverOptions
 from dm2_backend.cli.main import cli
-from dm2_backend.errors import InputError
 from dm2_backend.formats.g2o import read_g2o, write_g2o
-from dm2_backend.geometry import se3
-from dm2_backend.pose_graph import PoseGraph
-from dm2_backend.stages import Frames, Pairwise, ScanScale, Topology
+from dm2_backend.kernel import gtsam_solver
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.graph_edges import InformationModel, build_graph, registration_information
+from dm2_backend.kernel.pose_graph import PoseGraph
+from dm2_backend.kernel.solver_options import SolverOptions
+from dm2_backend.kernel.stages import Frames, Pairwise, ScanScale, Topology
+from dm2_backend.runtime.errors import InputError
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 GRAPHS = DATA / "posegraphs"
@@ -41,10 +41,10 @@ def test_gtsam_matches_direct_gtsam(name, is3d):
     path = graph_file(name)
     options = SolverOptions()
     expected, values = gtsam_direct(path, is3d, options)
-    result = gtsam_backend.optimize(read_g2o(path), options)
+    result = gtsam_solver.optimize(read_g2o(path), options)
     assert result.final_error == pytest.approx(expected, rel=1e-6)
     assert result.final_error < result.initial_error
-    direct = gtsam_backend.from_values(read_g2o(path), values)
+    direct = gtsam_solver.from_values(read_g2o(path), values)
     np.testing.assert_allclose(result.poses, direct, atol=1e-4)
 
 
@@ -53,8 +53,8 @@ def test_written_g2o_reads_back_in_gtsam(tmp_path, name, is3d):
     graph = read_g2o(graph_file(name))
     write_g2o(graph, tmp_path / "g.g2o")
     fg, values = gtsam.readG2o(str(tmp_path / "g.g2o"), is3d)
-    np.testing.assert_allclose(gtsam_backend.from_values(graph, values), graph.poses, atol=1e-12)
-    ours = gtsam_backend.factor_graph(graph)
+    np.testing.assert_allclose(gtsam_solver.from_values(graph, values), graph.poses, atol=1e-12)
+    ours = gtsam_solver.factor_graph(graph)
     assert fg.size() == ours.size() - 1  # + our prior
     for k in range(fg.size()):
         theirs, mine = fg.at(k), ours.at(k + 1)
@@ -67,14 +67,14 @@ def test_written_g2o_reads_back_in_gtsam(tmp_path, name, is3d):
 @pytest.mark.parametrize("name,is3d", SMALL)
 def test_g2o_agrees_with_gtsam(name, is3d):
     pytest.importorskip("g2opy")
-    from dm2_backend.baselines import g2o_backend
+    from dm2_backend.kernel import g2o_solver
 
     graph = read_g2o(graph_file(name))
     options = SolverOptions(max_iterations=200, relative_error_tol=1e-9)
-    ref = gtsam_backend.optimize(graph, options)
-    got = g2o_backend.optimize(graph, options)
+    ref = gtsam_solver.optimize(graph, options)
+    got = g2o_solver.optimize(graph, options)
     # judged by GTSAM's objective at g2o's solution
-    at_g2o = gtsam_backend.factor_graph(graph).error(gtsam_backend.to_values(graph, got.poses))
+    at_g2o = gtsam_solver.factor_graph(graph).error(gtsam_solver.to_values(graph, got.poses))
     if name == "MIT":  # GTSAM's LM stops in a worse local minimum from the odometry start
         assert at_g2o <= ref.final_error * (1 + 1e-3)
         return
@@ -101,9 +101,9 @@ def ring_graph() -> tuple[PoseGraph, np.ndarray]:
 def test_robust_kernel_rejects_outlier(backend):
     if backend == "g2o":
         pytest.importorskip("g2opy")
-        from dm2_backend.baselines import g2o_backend as module
+        from dm2_backend.kernel import g2o_solver as module
     else:
-        module = gtsam_backend
+        module = gtsam_solver
     graph, gt = ring_graph()
     plain = module.optimize(graph, SolverOptions())
     robust = module.optimize(graph, SolverOptions(robust="geman-mcclure"))
@@ -139,7 +139,7 @@ def test_build_graph_from_registrations():
     np.testing.assert_allclose(graph.information[3], registration_information(0.01, 0.5, 100, 5.0, True, 0.01))
     np.testing.assert_allclose(graph.information[1], 0.1 * graph.information[0])  # median * fallback weight
     assert graph.meta["odometry_from_warm_start"] == 1 and graph.meta["loop_edges"] == 1
-    solved = gtsam_backend.optimize(graph)  # the weak warm-start edge gives way to the registrations
+    solved = gtsam_solver.optimize(graph)  # the weak warm-start edge gives way to the registrations
     err = [np.abs(se3.relative(P[0], P[2]) - se3.relative(gt[0], gt[2])).max() for P in (solved.poses, warm)]
     assert err[0] < 0.01 < err[1]
 
@@ -161,7 +161,7 @@ def test_build_graph_3d_solves_and_round_trips(tmp_path):
     graph = build_graph(frames, warm, Topology(groups), pair, InformationModel(odometry="registration"))
     assert not graph.planar and graph.information.shape[1:] == (6, 6)
     assert graph.meta["odometry_from_warm_start"] == 0 and graph.meta["loop_edges"] == n
-    solved = gtsam_backend.optimize(graph)
+    solved = gtsam_solver.optimize(graph)
     aligned = se3.relative(solved.poses[0], solved.poses) - se3.relative(gt[0], gt)
     assert np.abs(aligned).max() < 1e-6
     write_g2o(graph, tmp_path / "g.g2o")

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from dm2_backend.formats import write_trajectory
-from dm2_backend.geometry import se3
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "closures.py"
 N = 200  # two laps of a 10 m circle: 0.63 m of path per frame, 62.8 m per lap

@@ -16,7 +16,7 @@ from optim_cases import one_thread, planar_case
 
 from dm2_backend import config
 from dm2_backend.cli.main import cli
-from dm2_backend.config_schema import RunConfig
+from dm2_backend.config.schema import RunConfig
 from dm2_backend.formats import ReadOptions, open_scans, read_trajectory
 from dm2_backend.prepare import store
 from dm2_backend.prepare.cache_keys import code_fingerprint, file_fingerprint, module_closure, source_key, step_key
@@ -92,7 +92,8 @@ def test_the_code_of_a_plugin_and_of_what_it_uses_is_in_the_key():
 
     closure = module_closure(LoopsTopology.__module__)
     # the shared algorithms the plugin calls are part of its fingerprint, not just its own file
-    assert {"dm2_backend.algorithms.common", "dm2_backend.algorithms.gates", "dm2_backend.geometry.se3"} <= closure
+    shared = {"dm2_backend.algorithms.common", "dm2_backend.algorithms.gates", "dm2_backend.kernel.geometry.se3"}
+    assert shared <= closure
     assert code_fingerprint(LoopsTopology) != code_fingerprint(RadiusTopology)
 
 

@@ -10,8 +10,8 @@ import numpy as np
 
 from dm2_backend.formats.carmen import laser_offset, load, open_carmen_scans, read_carmen, write_carmen
 from dm2_backend.formats.registry import ReadOptions
-from dm2_backend.geometry import se3
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
 
 #: robot poses and the laser 0.3 m ahead of the axle, 0.05 m to the left, turned 0.02 rad
 OFFSET = (0.3, 0.05, 0.02)

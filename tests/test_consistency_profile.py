@@ -17,9 +17,10 @@ from dm2_backend.evaluation import consistency_profile as cp
 from dm2_backend.evaluation import plots, profile_cells
 from dm2_backend.evaluation.consistency_profile import GAP, consistency_profile, write_profiles
 from dm2_backend.formats import ReadOptions, write_trajectory
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.scans import Scan, ScanSequence
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.pipeline.inputs import load_inputs
-from dm2_backend.scans import Scan, ScanSequence
 from dm2_backend.simulate.broken import (
     broken_frames,
     bump,
@@ -30,7 +31,6 @@ from dm2_backend.simulate.broken import (
     wrong_closure,
 )
 from dm2_backend.simulate.sequence import SimSettings, simulate, write_sequence
-from dm2_backend.trajectory import Trajectory
 
 KEYFRAMES = DATA / "lidar3d" / "balm_realworld_000-079"
 
@@ -301,8 +301,8 @@ def test_the_console_line_counts_the_stretches_and_names_the_worst_few():
 def test_the_cells_within_a_stretchs_reach_are_those_its_voxels_share(where):
     """The index of the other frames' cells by voxel gives exactly the cells of the voxels a stretch occupies
     (as grouping every key with the stretch's), in order, wherever the poses lie."""
-    from dm2_backend.geometry.voxels import group_rows
-    from dm2_backend.optim.planes import Cells
+    from dm2_backend.kernel.geometry.voxels import group_rows
+    from dm2_backend.kernel.planes import Cells
 
     rng = np.random.default_rng(0)
     n, k = 40, 5000

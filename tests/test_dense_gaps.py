@@ -15,13 +15,13 @@ import yaml
 from optim_cases import one_thread, planar_case
 from shared_helpers import SMALL_RUN, one_line_error, run
 
-from dm2_backend.errors import InputError
 from dm2_backend.evaluation.map_quality import poses_of_scans
 from dm2_backend.formats import ReadOptions, open_scans, read_trajectory, write_trajectory
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import GAP_PERIODS, Trajectory
 from dm2_backend.pipeline.inputs import load_inputs
+from dm2_backend.runtime.errors import InputError
 from dm2_backend.simulate.sequence import write_sequence
-from dm2_backend.trajectory import GAP_PERIODS, Trajectory
 
 T0 = 1305031102.175304  # stamps of TUM's size: the association must hold at this precision
 N = 12

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from dm2_backend.formats import open_scans
-from dm2_backend.optim import depth_noise, planes
+from dm2_backend.kernel import planes
+from dm2_backend.optim import depth_noise
 from dm2_backend.simulate.depth_room import write_depth_room
 
 

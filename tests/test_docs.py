@@ -55,7 +55,7 @@ def test_mkdocs_build_strict(generated, tmp_path):
 
 
 def test_config_page_lists_every_field(generated):
-    from dm2_backend.config_schema import PLUGIN_GROUPS, RunConfig
+    from dm2_backend.config.schema import PLUGIN_GROUPS, RunConfig
     from dm2_backend.plugins.registry import discover
 
     page = generated["reference/config.md"]

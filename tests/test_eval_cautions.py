@@ -12,10 +12,10 @@ from click.testing import CliRunner
 
 from dm2_backend.cli.main import cli
 from dm2_backend.evaluation.cautions import principal_spread, rotation_caution, standing_still_rmse
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.pipeline.inputs import RunInputs
 from dm2_backend.pipeline.run_writer import evaluation_of
-from dm2_backend.trajectory import Trajectory
 
 
 def _write_tum(path: Path, stamps: np.ndarray, poses: np.ndarray) -> Path:

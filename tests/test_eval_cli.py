@@ -12,7 +12,7 @@ from click.testing import CliRunner
 from evo.tools import file_interface
 
 from dm2_backend.cli.main import cli
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 
 def _write_tum(path: Path, stamps: np.ndarray, poses: np.ndarray) -> Path:

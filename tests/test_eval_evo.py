@@ -13,7 +13,7 @@ from evo.tools import file_interface
 
 from dm2_backend.cli.main import cli
 from dm2_backend.evaluation.ape_rpe import STAT_KEYS, evaluate_poses
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.trajectory import Trajectory
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "trajectories"
 KITTI = (DATA / "KITTI_00_gt.txt", DATA / "KITTI_00_ORB.txt")

@@ -12,9 +12,9 @@ from click.testing import CliRunner
 from dm2_backend.cli.main import cli
 from dm2_backend.evaluation.map_quality import MapSampler, MapSettings, map_quality, voxelise
 from dm2_backend.formats.kitti import write_kitti
-from dm2_backend.geometry import se3
-from dm2_backend.scans import Scan, ScanSequence
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.scans import Scan, ScanSequence
+from dm2_backend.kernel.trajectory import Trajectory
 
 
 def test_entropy_and_plane_variance_by_hand():

@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from dm2_backend.evaluation.paper_ate import paper_ate
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "trajectories"
 

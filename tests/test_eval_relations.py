@@ -9,10 +9,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dm2_backend.errors import InputError
 from dm2_backend.evaluation.relations import load_relations, relations_error
-from dm2_backend.geometry import se3
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.errors import InputError
 
 CARMEN = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "carmen"
 

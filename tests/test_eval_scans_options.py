@@ -13,7 +13,7 @@ from test_formats_depth import tum_layout
 from dm2_backend.cli.main import cli
 from dm2_backend.cli.options import read_options
 from dm2_backend.formats import open_scans
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 from dm2_backend.prepare.cache_keys import source_key
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from dm2_backend.evaluation.continuity import MIN_STEPS, Cuts, cuts
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 SLIP, RANGE = 0.3, 2.5  # how far a scan-matching step slides (m) and the scans' median range (m)
 

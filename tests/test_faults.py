@@ -31,7 +31,7 @@ SMALL = {"seed": 3, "frames": {"max_points": 128},
 CHILD = """
 import fnmatch, os, signal, sys
 from pathlib import Path
-from dm2_backend import atomic
+from dm2_backend.runtime import atomic
 from dm2_backend.cli.main import main
 pattern, signame, nth = sys.argv[1], sys.argv[2], int(sys.argv[3])
 seen = [0]

@@ -107,8 +107,8 @@ def test_a_crafted_dense_checkpoint_is_refused_before_it_is_decoded(tmp_path, cr
     the file, memory untouched."""
     import numpy as np
 
-    from dm2_backend.errors import InputError
     from dm2_backend.optim import dense_checkpoint
+    from dm2_backend.runtime.errors import InputError
 
     start = np.tile(np.eye(4), (5, 1, 1))
     good = {"poses.npy": _npy(start), "start.npy": _npy(start), "meta.npy": _npy(np.array("{}"))}
@@ -132,8 +132,8 @@ def test_a_crafted_optimiser_checkpoint_is_refused(tmp_path, craft):
     import numpy as np
     import torch
 
-    from dm2_backend.errors import InputError
     from dm2_backend.optim.checkpoint import load_checkpoint, plain_state
+    from dm2_backend.runtime.errors import InputError
 
     poses = np.tile(np.eye(4), (6, 1, 1))
     epoch = 0
@@ -155,7 +155,7 @@ def test_a_crafted_optimiser_checkpoint_is_refused(tmp_path, craft):
 def test_a_writer_cleans_its_own_leftovers_only(tmp_path):
     """The temporaries a killed writer of ``out`` left (its file, the old output it set aside, a work folder) go;
     ``.tmp-<pid>-outdoor/`` of the user's stays."""
-    from dm2_backend.atomic import atomic_write
+    from dm2_backend.runtime.atomic import atomic_write
 
     dead = 2**22 + 4321
     for name in ("out", "old-out", "out-work-x1"):
@@ -168,7 +168,7 @@ def test_a_writer_cleans_its_own_leftovers_only(tmp_path):
 
 def test_a_yaml_key_that_is_a_list_is_one_line(tmp_path):
     from dm2_backend import config
-    from dm2_backend.errors import InputError
+    from dm2_backend.runtime.errors import InputError
 
     path = tmp_path / "c.yaml"
     path.write_text("? [a, b]\n: 1\n")
@@ -180,8 +180,8 @@ def test_a_yaml_key_that_is_a_list_is_one_line(tmp_path):
 def test_a_dense_checkpoint_with_a_corrupt_member_or_a_reflection_is_one_line(tmp_path):
     import numpy as np
 
-    from dm2_backend.errors import InputError
     from dm2_backend.optim import dense_checkpoint
+    from dm2_backend.runtime.errors import InputError
 
     start = np.tile(np.eye(4), (5, 1, 1))
     mirrored = start.copy()

@@ -20,7 +20,6 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 
 from dm2_backend.cli.main import cli
-from dm2_backend.errors import InputError
 from dm2_backend.formats import (
     ReadOptions,
     detect_scan_source,
@@ -30,8 +29,9 @@ from dm2_backend.formats import (
     write_trajectory,
 )
 from dm2_backend.formats.bag import describe
-from dm2_backend.geometry import se3
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.errors import InputError
 
 BAGS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bags"
 

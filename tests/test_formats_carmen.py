@@ -15,12 +15,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dm2_backend.cli.main import cli
-from dm2_backend.errors import InputError
 from dm2_backend.formats import ReadOptions, carmen, detect_trajectory_format, open_scans, read_trajectory
 from dm2_backend.formats.relations import read_relations
-from dm2_backend.geometry import se3
-from dm2_backend.planar_returns import isolated_long_returns
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.planar_returns import isolated_long_returns
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.errors import InputError
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "carmen"
 

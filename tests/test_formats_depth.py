@@ -15,7 +15,6 @@ from PIL import Image
 from shared_helpers import DATA, need
 
 from dm2_backend.cli.main import cli
-from dm2_backend.errors import InputError
 from dm2_backend.formats import (
     ReadOptions,
     detect_scan_source,
@@ -24,7 +23,8 @@ from dm2_backend.formats import (
     read_trajectory,
 )
 from dm2_backend.formats.depth import back_project, read_depth_image, read_depth_list
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.runtime.errors import InputError
 
 KITCHEN = DATA / "depth3d" / "redkitchen_000-499"
 K585 = (585.0, 585.0, 320.0, 240.0)

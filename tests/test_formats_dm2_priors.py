@@ -11,7 +11,6 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 from shared_helpers import DATA, assert_one_line_error, run
 
-from dm2_backend.errors import InputError
 from dm2_backend.formats import detect_trajectory_format, read_trajectory
 from dm2_backend.formats.dm2_priors import (
     read_group_matrix,
@@ -23,7 +22,8 @@ from dm2_backend.formats.dm2_priors import (
     write_pairwise_pose,
     write_priors,
 )
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.runtime.errors import InputError
 
 
 def official_euler_to_matrix(e: np.ndarray) -> np.ndarray:

@@ -10,12 +10,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from shared_helpers import DATA, assert_one_line_error, need, run
 
-from dm2_backend.errors import InputError
 from dm2_backend.formats import detect_trajectory_format, read_trajectory, write_trajectory
 from dm2_backend.formats.g2o import read_g2o, write_g2o
-from dm2_backend.geometry import se3
-from dm2_backend.pose_graph import PoseGraph
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.pose_graph import PoseGraph
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.errors import InputError
 
 GRAPHS = DATA / "posegraphs"
 NAMES = ["MIT", "intel", "kitti_00", "parking-garage", "sphere2500", "tinyGrid3D"]
@@ -216,11 +216,11 @@ def test_indefinite_information_is_read_as_the_nearest_psd_with_one_warning(tmp_
 
 
 def test_baselines_solve_a_graph_with_indefinite_information(tmp_path):
-    from dm2_backend.baselines import gtsam_backend
+    from dm2_backend.kernel import gtsam_solver
 
     path = tmp_path / "cubicle.g2o"
     _indefinite_graph(path)
-    result = gtsam_backend.optimize(read_g2o(path, "nearest-psd"))
+    result = gtsam_solver.optimize(read_g2o(path, "nearest-psd"))
     assert np.isfinite(result.poses).all()
     np.testing.assert_allclose(result.poses[1, :3, 3], [1, 0, 0], atol=0.1)
 

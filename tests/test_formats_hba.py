@@ -16,18 +16,18 @@ from hypothesis import strategies as st
 from optim_cases import one_thread
 from shared_helpers import SMALL_RUN, assert_one_line_error, run
 
-from dm2_backend.errors import InputError
 from dm2_backend.formats import ReadOptions, detect_scan_source, detect_trajectory_format, open_scans, read_trajectory
 from dm2_backend.formats.balm import write_balm
 from dm2_backend.formats.hba import read_hba, write_hba
 from dm2_backend.formats.kitti import write_kitti
 from dm2_backend.formats.pcd import write_pcd
 from dm2_backend.formats.scan_folder import read_scan_file, scan_files
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.pipeline.inputs import load_inputs
 from dm2_backend.pipeline.outputs import aligned_to, write_trajectories
 from dm2_backend.pipeline.run_folder import MARKER
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.runtime.errors import InputError
 
 
 def hba_read_pose(path: Path) -> np.ndarray:

@@ -11,7 +11,6 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 from shared_helpers import DATA, assert_one_line_error, need, run
 
-from dm2_backend.errors import InputError
 from dm2_backend.formats import ReadOptions, detect_trajectory_format, read_trajectory
 from dm2_backend.formats.kitti import (
     camera_to_lidar,
@@ -21,7 +20,8 @@ from dm2_backend.formats.kitti import (
     read_times,
     write_kitti,
 )
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.runtime.errors import InputError
 
 TRAJ = DATA / "trajectories"
 KITTI00 = DATA / "lidar3d" / "kitti00"
@@ -84,7 +84,7 @@ def test_writer_is_exact(tmp_path):
 
 
 def read_kitti_like(poses):
-    from dm2_backend.trajectory import Trajectory
+    from dm2_backend.kernel.trajectory import Trajectory
 
     return Trajectory(poses=poses)
 

@@ -7,12 +7,12 @@ import pytest
 from scipy.spatial.transform import Rotation
 from shared_helpers import assert_one_line_error, run
 
-from dm2_backend.errors import InputError
 from dm2_backend.formats import detect_trajectory_format, read_trajectory, write_trajectory
 from dm2_backend.formats.dm2_priors import write_init_pose
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.pipeline.outputs import write_trajectories
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.runtime.errors import InputError
 
 
 def poses(n: int = 20, planar: bool = False) -> np.ndarray:

@@ -15,7 +15,6 @@ from hypothesis import strategies as st
 from shared_helpers import DATA, need
 
 from dm2_backend.cli.main import cli
-from dm2_backend.errors import InputError
 from dm2_backend.formats import ReadOptions, detect_scan_source, open_scans
 from dm2_backend.formats import pcd as pcdmod
 from dm2_backend.formats.scan_folder import (
@@ -26,6 +25,7 @@ from dm2_backend.formats.scan_folder import (
     write_bin,
     write_pcd,
 )
+from dm2_backend.runtime.errors import InputError
 
 LIDAR = DATA / "lidar3d"
 

@@ -13,7 +13,7 @@ from dm2_backend.formats import TRAJECTORY_FORMATS, read_trajectory, registry
 ADDON = '''
 import numpy as np
 from dm2_backend.formats.registry import TrajectoryFormat, trajectory_format
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.trajectory import Trajectory
 
 
 def read(path, options):

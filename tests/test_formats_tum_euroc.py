@@ -8,13 +8,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from shared_helpers import DATA, assert_one_line_error, need, run
 
-from dm2_backend.errors import InputError
 from dm2_backend.formats import ReadOptions, detect_trajectory_format, read_trajectory
 from dm2_backend.formats.euroc import read_euroc
 from dm2_backend.formats.g2o import read_g2o
 from dm2_backend.formats.tum import read_tum, write_tum
-from dm2_backend.geometry import se3
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.errors import InputError
 
 TRAJ = DATA / "trajectories"
 TUM_FILES = ["fr2_desk_ORB.txt", "freiburg1_xyz-ORB_kf_mono.txt", "freiburg1_xyz-groundtruth.txt",

@@ -12,10 +12,10 @@ import pytest
 
 from dm2_backend.evaluation.relations import load_relations, relations_error
 from dm2_backend.formats.carmen import open_carmen_scans
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.plugins.warm_start_icp import IcpWarmStart
 from dm2_backend.prepare.frames import load_frames
-from dm2_backend.trajectory import Trajectory
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "carmen"
 LOG, RELATIONS = DATA / "fr-clinic_robotlaser.clf.bz2", DATA / "fr-clinic.relations"

@@ -15,10 +15,10 @@ from shared_helpers import SMALL_RUN
 
 from dm2_backend.cli.main import cli
 from dm2_backend.formats import ReadOptions, read_trajectory, write_trajectory
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.pipeline.full_rate import corrected_full_rate
 from dm2_backend.simulate.sequence import write_sequence
-from dm2_backend.trajectory import Trajectory
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -24,12 +24,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from shared_helpers import assert_one_line_error, run
 
-from dm2_backend.atomic import atomic_path, atomic_write, clean_stale
-from dm2_backend.errors import InputError
 from dm2_backend.formats import ReadOptions, open_scans, read_trajectory, write_trajectory
 from dm2_backend.formats.scan_folder import read_scan_file
-from dm2_backend.geometry import se3
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.atomic import atomic_path, atomic_write, clean_stale
+from dm2_backend.runtime.errors import InputError
 
 SECONDS_PER_FAMILY = 1.2
 

@@ -9,7 +9,7 @@ import pytest
 
 from dm2_backend.algorithms.common import Cloud
 from dm2_backend.algorithms.gates import depth_image, free_space
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 ROOM = np.array([[-10.0, -5.0, -1.5], [10.0, 5.0, 2.5]])  # box corners (m)
 

@@ -13,12 +13,12 @@ from click.testing import CliRunner
 from optim_cases import one_thread, planar_case
 
 from dm2_backend.cli.main import cli
-from dm2_backend.errors import InputError
 from dm2_backend.evaluation.paper_ate import paper_ate
 from dm2_backend.formats import ReadOptions, read_trajectory, write_trajectory
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.pipeline.inputs import load_inputs
+from dm2_backend.runtime.errors import InputError
 from dm2_backend.simulate.sequence import write_sequence
-from dm2_backend.trajectory import Trajectory
 
 RATE = 10.0
 T0 = 1305031102.175304

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from shared_helpers import gtsam_direct, run
 
-from dm2_backend.baselines.options import SolverOptions
-from dm2_backend.formats.g2o import indefinite, read_g2o, write_g2o
-from dm2_backend.geometry import se3
-from dm2_backend.pose_graph import PoseGraph
+from dm2_backend.formats.g2o import read_g2o, write_g2o
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.pose_graph import PoseGraph, indefinite
+from dm2_backend.kernel.solver_options import SolverOptions
 
 GRAPHS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "posegraphs"
 

@@ -12,7 +12,7 @@ import pytest
 from dm2_backend.algorithms.drift_windows import WindowVerdict, apply_verdicts, window_bounds
 from dm2_backend.formats.carmen import open_carmen_scans
 from dm2_backend.formats.registry import ReadOptions
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 from dm2_backend.plugins.warm_start_icp import IcpWarmStart
 from dm2_backend.prepare.frames import load_frames
 from dm2_backend.simulate.hospital import MAX_RANGE_CODE, HospitalSettings, HospitalTraits, write_hospital
@@ -213,7 +213,7 @@ def test_aces_rewritten_as_robotlaser1_reads_the_same_scans(tmp_path):
     from pathlib import Path
 
     from dm2_backend.formats.carmen import load, robotlaser1_line
-    from dm2_backend.planar_returns import isolated_long_returns
+    from dm2_backend.kernel.planar_returns import isolated_long_returns
 
     aces = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "carmen" / "aces.clf.bz2"
     if not aces.exists():
@@ -234,7 +234,7 @@ def test_aces_rewritten_as_robotlaser1_reads_the_same_scans(tmp_path):
 
 
 def test_windows_option_checked(hospital):
-    from dm2_backend.errors import InputError
+    from dm2_backend.runtime.errors import InputError
 
     with pytest.raises(InputError, match="unknown windows 'maybe'"):
         warm_start(hospital[0], windows="maybe")

@@ -54,7 +54,7 @@ def test_rewritten_aces_has_the_traits(tmp_path):
     assert seq.meta["max_range"] == pytest.approx(MAX_RANGE_CODE, abs=1e-4)
     assert max(np.linalg.norm(seq[i].points, axis=1).max() for i in range(0, COUNT, 9)) <= 50.01  # no code
     from dm2_backend.evaluation.relations import load_relations, relations_error
-    from dm2_backend.trajectory import Trajectory
+    from dm2_backend.kernel.trajectory import Trajectory
 
     errors = []
     for name in ("all", "clean"):

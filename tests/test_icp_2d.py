@@ -7,7 +7,7 @@ import pytest
 
 from dm2_backend.algorithms.common import Cloud
 from dm2_backend.algorithms.icp import icp_2d
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 
 def _room(rng: np.random.Generator, spacing: float = 0.05, noise: float = 0.01) -> np.ndarray:

@@ -18,9 +18,9 @@ from shared_helpers import DATA, need
 from dm2_backend.cli.main import cli
 from dm2_backend.formats import read_trajectory, write_trajectory
 from dm2_backend.formats.kitti import camera_to_lidar, find_calib, lidar_to_camera, looks_camera_frame, read_calib_tr
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.simulate.sequence import write_sequence
-from dm2_backend.trajectory import Trajectory
 
 #: KITTI's velodyne -> camera rotation (x forward, z up -> z forward, y down) with a small offset
 TR = se3.make_poses(np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]]), [0.03, -0.07, -0.27])

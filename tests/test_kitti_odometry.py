@@ -17,11 +17,11 @@ from dm2_backend.cli.summary import print_summary
 from dm2_backend.evaluation.kitti_odometry import LENGTHS_M, kitti_odometry_error, result_line
 from dm2_backend.formats import read_trajectory
 from dm2_backend.formats.kitti import camera_to_lidar, read_calib_tr
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.pipeline.inputs import RunInputs
 from dm2_backend.pipeline.run_report import PrepareSummary, RunReport
 from dm2_backend.pipeline.run_writer import run_evaluation
-from dm2_backend.trajectory import Trajectory
 
 # --- the devkit (devkit_odometry/cpp/evaluate_odometry.cpp), transcribed literally with plain loops ---------------
 

@@ -18,15 +18,15 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 from shared_helpers import assert_one_line_error, run
 
-from dm2_backend.errors import InputError
 from dm2_backend.formats import ReadOptions, detect_scan_source, detect_trajectory_format, open_scans, read_trajectory
 from dm2_backend.formats.kitti_raw import oxts_poses, parse_stamp, read_drive, read_oxts_file
 from dm2_backend.formats.scan_folder import write_bin
 from dm2_backend.formats.tum import read_tum
+from dm2_backend.kernel.stages import Frames
 from dm2_backend.pipeline.inputs import load_inputs
 from dm2_backend.plugins.topology_poses import GpsTopology
 from dm2_backend.plugins.topology_radius import RadiusTopology
-from dm2_backend.stages import Frames
+from dm2_backend.runtime.errors import InputError
 
 
 def _import_pykitti():

@@ -10,11 +10,11 @@ from plugins_scenes import frames_from
 
 from dm2_backend.algorithms import correlative as cm
 from dm2_backend.algorithms.loop_graph import Closure, KeyframeGraph, closure_error, confirms, cycle_error
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.plugins.topology_loops import LoopsTopology
 from dm2_backend.plugins.warm_start_icp import IcpWarmStart
 from dm2_backend.simulate.corridor import corridor_sequence
-from dm2_backend.trajectory import Trajectory
 
 
 def _corridor(length: float = 12.0, spacing: float = 0.03) -> np.ndarray:
@@ -134,7 +134,7 @@ def test_corridor_ring_closes_across_corridors(ring):
 
 @pytest.mark.parametrize("option", [{"max_ambiguity": 1.2}, {"weak_fitness": 0.6}, {"weak_fitness": -0.1}])
 def test_loops_refuses_bad_ambiguity_and_weak_settings(ring, option):
-    from dm2_backend.errors import InputError
+    from dm2_backend.runtime.errors import InputError
 
     frames, _, warm = ring
     with pytest.raises(InputError, match=next(iter(option))):

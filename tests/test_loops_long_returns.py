@@ -10,7 +10,7 @@ from plugins_scenes import FLOOR, WAYPOINTS_2D, box_mesh, frames_from, polyline_
 
 from dm2_backend.algorithms import correlative as cm
 from dm2_backend.algorithms import keyframes as kf
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 from dm2_backend.plugins.topology_loops import LoopsTopology
 from dm2_backend.simulate.lidar import LidarModel, Raycaster
 from dm2_backend.simulate.path import drifting_odometry

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from dm2_backend.algorithms.common import Cloud
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 from dm2_backend.plugins.topology_loops import LoopsTopology
 
 

@@ -11,10 +11,10 @@ from maps_cases import HALF, HEIGHT, distance, room, train_field
 from optim_cases import one_thread
 from scipy.spatial import cKDTree
 
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 from dm2_backend.maps import octomap_export, run_maps
-from dm2_backend.memory import release_freed_memory
 from dm2_backend.optim import mnet_file
+from dm2_backend.runtime.memory import release_freed_memory
 
 WALL = 0.2  # thickness of the simulated walls, floor and ceiling
 

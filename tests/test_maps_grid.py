@@ -9,7 +9,7 @@ import yaml
 from maps_cases import HALF, PILLAR, distance, room, train_field, wall_samples
 from optim_cases import one_thread
 
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 from dm2_backend.maps import occupancy_grid, run_maps
 from dm2_backend.optim import mnet_file
 

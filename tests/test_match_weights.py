@@ -10,10 +10,10 @@ from plugins_scenes import FLOOR, WAYPOINTS_2D, box_mesh, frames_from, polyline_
 
 from dm2_backend.algorithms.common import fine_distance
 from dm2_backend.algorithms.match_noise import MatchWeights, match_weights
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.plugins.warm_start_icp import IcpWarmStart
 from dm2_backend.simulate.lidar import LidarModel, Raycaster
-from dm2_backend.trajectory import Trajectory
 
 
 def scans_along(truth: np.ndarray, range_noise: float, seed: int = 0):

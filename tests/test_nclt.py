@@ -17,7 +17,6 @@ from hypothesis.extra import numpy as hnp
 from scipy.spatial.transform import Rotation, Slerp
 from shared_helpers import assert_one_line_error, run
 
-from dm2_backend.errors import InputError
 from dm2_backend.formats import ReadOptions, detect_scan_source, detect_trajectory_format, open_scans, read_trajectory
 from dm2_backend.formats.nclt import (
     T_BODY_VEL,
@@ -28,8 +27,9 @@ from dm2_backend.formats.nclt import (
     write_nclt_csv,
 )
 from dm2_backend.formats.tum import read_tum
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.pipeline.inputs import load_inputs
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.runtime.errors import InputError
 
 DATE = "2012-01-08"
 UTIME0 = 1326030975726043  # first scan, microseconds

@@ -12,8 +12,8 @@ from shared_helpers import one_line_error, run
 
 from dm2_backend.formats import read_trajectory
 from dm2_backend.formats.g2o import write_g2o
-from dm2_backend.geometry import se3
-from dm2_backend.pose_graph import PoseGraph
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.pose_graph import PoseGraph
 
 
 def loop(n: int = 30) -> np.ndarray:

@@ -13,15 +13,15 @@ from optim_cases import one_thread
 from scipy.sparse import bsr_matrix
 from scipy.spatial.transform import Rotation
 
-from dm2_backend.geometry import se3
-from dm2_backend.geometry.voxels import group_rows
-from dm2_backend.memory import release_mapped
-from dm2_backend.optim import planes
+from dm2_backend.kernel import planes
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.geometry.voxels import group_rows
+from dm2_backend.kernel.pose_graph import PoseGraph
+from dm2_backend.kernel.scans import Scan, ScanSequence
 from dm2_backend.optim.config import OptimConfig
 from dm2_backend.optim.dense import refine_dense
 from dm2_backend.pipeline.live import ate_rmse
-from dm2_backend.pose_graph import PoseGraph
-from dm2_backend.scans import Scan, ScanSequence
+from dm2_backend.runtime.memory import release_mapped
 from dm2_backend.simulate.broken import bump, closure_graph, wrong_closure
 from dm2_backend.simulate.sequence import SimSettings, simulate
 
@@ -228,8 +228,8 @@ def _prepared_3d(frames: int = 12):
     """A small 3D preparation (odometry only) for the dense stage's guard."""
     from optim_cases import frames_of
 
+    from dm2_backend.kernel.stages import Pairwise, Topology
     from dm2_backend.prepare.steps import Prepared
-    from dm2_backend.stages import Pairwise, Topology
 
     scans, gt, warm = simulate(SimSettings(frames=frames, seed=5, extent=10.0, laps=0.5), progress=False)
     fr = frames_of(scans, planar=False)
@@ -259,7 +259,7 @@ def test_a_dense_result_that_agrees_worse_is_not_kept(monkeypatch, scores):
 def test_a_dense_result_that_cuts_the_sequence_is_not_kept(monkeypatch):
     """Its frames agree best with the others' planes, but one of its steps is 2 m and 29 deg from the odometry's:
     the start stands, and the report says why."""
-    from dm2_backend.config_schema import PluginSection
+    from dm2_backend.config.schema import PluginSection
     from dm2_backend.optim.dense import DenseResult
     from dm2_backend.pipeline import start as start_module
 
@@ -322,8 +322,8 @@ def test_eliminating_the_planes_gives_the_curvature_of_the_refitted_cost():
 def test_an_interrupted_dense_stage_resumes_where_it_stopped(tmp_path):
     """Interrupted after two rounds, resumed from its checkpoint: the same poses as a run never interrupted;
     a finished stage is returned as it ended; a checkpoint of another start or a damaged one is one line."""
-    from dm2_backend.errors import InputError
     from dm2_backend.optim import dense_checkpoint
+    from dm2_backend.runtime.errors import InputError
 
     cells, gt = street()
     graph, dead = odometry_graph(gt, 0.01, 0.001, seed=2)

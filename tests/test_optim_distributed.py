@@ -219,7 +219,7 @@ def test_load_prepared_needs_every_entry(tmp_path):
 
 
 def test_nproc_must_be_positive(tmp_path):
-    from dm2_backend.errors import InputError
+    from dm2_backend.runtime.errors import InputError
 
     with pytest.raises(InputError, match="nproc"):
         config.load(None, {"nproc": 0})

@@ -8,13 +8,13 @@ import pytest
 import torch
 from optim_cases import Case, one_thread, perturb, planar_case, small_config
 
-from dm2_backend.geometry import se3, se3_torch
+from dm2_backend.kernel.geometry import se3, se3_torch
+from dm2_backend.kernel.stages import Topology
 from dm2_backend.optim import losses
 from dm2_backend.optim.occupancy import GridOccupancy
 from dm2_backend.optim.pose_model import PoseModel
 from dm2_backend.optim.trainer import Optimiser, sample_points
 from dm2_backend.plugins.topology_radius import RadiusTopology
-from dm2_backend.stages import Topology
 
 
 @pytest.fixture(autouse=True, scope="module")

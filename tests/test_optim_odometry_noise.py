@@ -13,13 +13,14 @@ import pytest
 from optim_cases import one_thread
 from test_optim_dense import VOXEL, odometry_graph
 
-from dm2_backend.errors import InputError
-from dm2_backend.geometry import se3
-from dm2_backend.optim import dense_checkpoint, odometry_noise, planes
+from dm2_backend.kernel import planes
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.pose_graph import ROTATION_FIRST, PoseGraph
+from dm2_backend.kernel.scans import Scan, ScanSequence
+from dm2_backend.optim import dense_checkpoint, odometry_noise
 from dm2_backend.optim.dense import refine_dense
 from dm2_backend.pipeline.live import ate_rmse
-from dm2_backend.pose_graph import ROTATION_FIRST, PoseGraph
-from dm2_backend.scans import Scan, ScanSequence
+from dm2_backend.runtime.errors import InputError
 from dm2_backend.simulate.sequence import SimSettings, simulate
 
 #: odometry noise per step (m, rad) and the solution's own error per frame, twice as large

@@ -11,7 +11,8 @@ import pytest
 import torch
 from optim_cases import Case, frames_of, one_thread, planar_case, small_config
 
-from dm2_backend.geometry import se3, se3_torch
+from dm2_backend.kernel.geometry import se3, se3_torch
+from dm2_backend.kernel.stages import ScanScale
 from dm2_backend.optim import losses
 from dm2_backend.optim.batching import make_groups, random_groups, temporal_groups
 from dm2_backend.optim.checkpoint import CHECKPOINT
@@ -30,7 +31,6 @@ from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.plugins.topology_radius import RadiusTopology
 from dm2_backend.simulate.lidar import LidarModel
 from dm2_backend.simulate.sequence import SimSettings, simulate
-from dm2_backend.stages import ScanScale
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from dm2_backend.atomic import atomic_path, atomic_write
-from dm2_backend.errors import InputError
 from dm2_backend.pipeline.ownership import Written, identity, tree_identity
 from dm2_backend.pipeline.run_folder import MARKER, adding_to, open_folder, run_folder
+from dm2_backend.runtime.atomic import atomic_path, atomic_write
+from dm2_backend.runtime.errors import InputError
 
 
 def _write(path: Path, data: bytes = b"dm2") -> None:

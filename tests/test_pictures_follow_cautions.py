@@ -18,9 +18,9 @@ from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.ape_rpe import evaluate_poses
 from dm2_backend.evaluation.paper_ate import paper_ate
 from dm2_backend.formats import ReadOptions, read_trajectory
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.pipeline import outputs
-from dm2_backend.trajectory import Trajectory
 
 
 def rotating_in_place(n: int = 300, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:

@@ -8,17 +8,17 @@ import pytest
 from optim_cases import one_thread, perturb, planar_case
 from pydantic import ValidationError
 
-from dm2_backend.baselines import gtsam_backend
-from dm2_backend.baselines.graph import build_graph
-from dm2_backend.baselines.options import GraphResult
 from dm2_backend.evaluation.map_quality import MapSampler
-from dm2_backend.geometry import se3
+from dm2_backend.kernel import gtsam_solver
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.graph_edges import build_graph
+from dm2_backend.kernel.scans import Scan, ScanSequence
+from dm2_backend.kernel.solver_options import GraphResult
 from dm2_backend.optim.config import OptimConfig
 from dm2_backend.pipeline import start as start_module
 from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.pipeline.start import GRAPH_SOLVER, StartKind, choose_start
 from dm2_backend.prepare.steps import Prepared
-from dm2_backend.scans import Scan, ScanSequence
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -42,7 +42,7 @@ def sampler() -> MapSampler:
 def test_graph_start_is_the_gtsam_baseline_when_sharper(prepared, sampler):
     start = choose_start(prepared, OptimConfig(start="graph"), sampler)
     graph = build_graph(prepared.frames, prepared.initial, prepared.topology, prepared.pairwise)
-    np.testing.assert_allclose(start.poses, gtsam_backend.optimize(graph, GRAPH_SOLVER).poses)
+    np.testing.assert_allclose(start.poses, gtsam_solver.optimize(graph, GRAPH_SOLVER).poses)
     assert start.name is StartKind.GRAPH and start.map_entropy["graph"] < start.map_entropy["prepared"]
     assert sampler.entropy(start.poses) == pytest.approx(start.map_entropy["graph"])
 
@@ -51,7 +51,7 @@ def test_a_blurrier_graph_solution_is_not_taken(prepared, sampler, monkeypatch):
     def bent(graph, options):
         return GraphResult(perturb(graph.poses, 0.5, 0.05, seed=3), None, None, None, 0.0, "gtsam")
 
-    monkeypatch.setattr(start_module.gtsam_backend, "optimize", bent)
+    monkeypatch.setattr(start_module.gtsam_solver, "optimize", bent)
     start = choose_start(prepared, OptimConfig(start="graph"), sampler)
     assert start.name is StartKind.PREPARED and "blurrier" in start.why
     np.testing.assert_array_equal(start.poses, prepared.initial)
@@ -65,7 +65,7 @@ def test_a_graph_solution_that_cuts_the_sequence_is_not_taken(prepared, sampler,
         poses[31:] = se3.from_xy_yaw(np.array([1.0, 0.5, 0.4])) @ poses[31:]
         return GraphResult(poses, None, None, None, 0.0, "gtsam")
 
-    monkeypatch.setattr(start_module.gtsam_backend, "optimize", cut)
+    monkeypatch.setattr(start_module.gtsam_solver, "optimize", cut)
     start = choose_start(prepared, OptimConfig(start="graph"), sampler)
     assert start.name is StartKind.PREPARED and "cuts the sequence at step 30 (" in start.why
     assert start.cuts["graph"]["steps"] == [30] and start.summary()["cuts"] == start.cuts
@@ -90,7 +90,7 @@ def test_the_dense_stages_cells_judge_the_graph_start(prepared, monkeypatch):
     ranked = judge.agreement({"truth": case.gt, "bent": bent_poses})
     assert ranked["truth"] < 0.5 * ranked["bent"]
     start = choose_start(prepared, OptimConfig(start="graph"), None, judge)
-    solved = gtsam_backend.optimize(build_graph(prepared.frames, prepared.initial, prepared.topology,
+    solved = gtsam_solver.optimize(build_graph(prepared.frames, prepared.initial, prepared.topology,
                                                 prepared.pairwise), GRAPH_SOLVER).poses
     again = judge.agreement({"prepared": prepared.initial, "graph": solved})
     assert start.agreement_m2 == pytest.approx(again) and start.summary()["agreement_m2"] == start.agreement_m2
@@ -102,7 +102,7 @@ def test_the_dense_stages_cells_judge_the_graph_start(prepared, monkeypatch):
     def bent(graph, options):
         return GraphResult(perturb(graph.poses, 0.1, 0.02, seed=3), None, None, None, 0.0, "gtsam")
 
-    monkeypatch.setattr(start_module.gtsam_backend, "optimize", bent)
+    monkeypatch.setattr(start_module.gtsam_solver, "optimize", bent)
     start = choose_start(prepared, OptimConfig(start="graph"), None, judge)
     assert start.name is StartKind.PREPARED and "agree worse" in start.why
     assert start.agreement_m2["graph"] > start.agreement_m2["prepared"]
@@ -111,7 +111,7 @@ def test_the_dense_stages_cells_judge_the_graph_start(prepared, monkeypatch):
 def test_a_judge_with_no_shared_plane_leaves_the_choice_to_the_maps(prepared, sampler):
     """Scans whose frames share no plane (here: cells of one frame only) give the judge nothing (NaN): the start is
     chosen by map entropy, as without the dense stage, and the judge's empty verdict is kept in the report."""
-    from dm2_backend.optim.planes import Cells
+    from dm2_backend.kernel.planes import Cells
     from dm2_backend.pipeline.start import DenseCells
 
     rng = np.random.default_rng(0)
@@ -165,12 +165,12 @@ def test_a_planar_graph_lifted_to_se3_has_the_planar_costs_and_optimum(prepared)
     poses = perturb(graph.poses, 0.1, 0.03, seed=5)
 
     def cost(g) -> float:
-        fg = gtsam_backend.factor_graph(g)  # no kernel: the plain weighted squares
-        return fg.error(gtsam_backend.to_values(g, poses))
+        fg = gtsam_solver.factor_graph(g)  # no kernel: the plain weighted squares
+        return fg.error(gtsam_solver.to_values(g, poses))
 
     assert cost(lifted) == pytest.approx(cost(graph), rel=1e-6)
-    flat = gtsam_backend.optimize(graph, GRAPH_SOLVER).poses
-    solved = gtsam_backend.optimize(lifted, GRAPH_SOLVER).poses
+    flat = gtsam_solver.optimize(graph, GRAPH_SOLVER).poses
+    solved = gtsam_solver.optimize(lifted, GRAPH_SOLVER).poses
     np.testing.assert_allclose(se3.to_xy_yaw(solved), se3.to_xy_yaw(flat), atol=1e-4)
     steps = odometry_noise.consecutive_edges(lifted)
     noise = odometry_noise.MeasuredNoise(np.full(6, 0.01), np.zeros(6), len(steps))
@@ -186,9 +186,9 @@ def test_a_corridors_truth_holds_with_the_registrations_own_information():
     stays closer than with isotropic information and the median-range voxel (0.048 m on this half lap)."""
     from optim_cases import frames_of
 
+    from dm2_backend.kernel.planes import cells_from_scans
     from dm2_backend.optim.config import NOISE_WIDTHS, dense_voxel
     from dm2_backend.optim.dense import refine_dense
-    from dm2_backend.optim.planes import cells_from_scans
     from dm2_backend.pipeline.start import PLANAR_HOLD, Start, dense_start, range_noise
     from dm2_backend.plugins.registration_icp import IcpRegistration
     from dm2_backend.plugins.topology_radius import RadiusTopology

@@ -1,5 +1,5 @@
 """Isolated long returns of planar scans (glass, open doors) are dropped, real structure is kept
-(:mod:`dm2_backend.planar_returns`, applied by the CARMEN reader)."""
+(:mod:`dm2_backend.kernel.planar_returns`, applied by the CARMEN reader)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from dm2_backend.formats.carmen import open_carmen_scans, robotlaser1_line
-from dm2_backend.planar_returns import isolated_long_returns
+from dm2_backend.kernel.planar_returns import isolated_long_returns
 
 STEP = math.radians(1.0)
 ANGLES = -math.pi / 2 + STEP * np.arange(181)

@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from dm2_backend.geometry.symmetric3 import smallest_eigen
-from dm2_backend.optim import planes
+from dm2_backend.kernel import planes
+from dm2_backend.kernel.geometry.symmetric3 import smallest_eigen
 
 
 def _eigen(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

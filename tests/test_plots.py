@@ -11,10 +11,10 @@ from matplotlib.collections import LineCollection
 from scipy.spatial.transform import Rotation
 
 from dm2_backend.evaluation import plots
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.stages import Topology
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.pipeline import outputs
-from dm2_backend.stages import Topology
-from dm2_backend.trajectory import Trajectory
 
 
 def tall_loop(n: int = 60, planar: bool = True) -> np.ndarray:

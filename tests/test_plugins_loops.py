@@ -9,7 +9,7 @@ from plugins_scenes import floor_2d
 
 from dm2_backend.algorithms import correlative as cm
 from dm2_backend.algorithms.loop_graph import Closure, between, cycle_error
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 from dm2_backend.plugins.registry import load
 from dm2_backend.plugins.topology_loops import correct
 from dm2_backend.simulate.path import drifting_odometry
@@ -150,7 +150,7 @@ def test_a_closure_measured_again_on_short_submaps_is_not_turned_by_the_drift(fl
 def test_loops_on_a_short_sequence_without_revisits(floor):
     """Fewer frames than a loop needs: no candidates, no loop-closed poses, groups still filled."""
     frames, truth = floor
-    from dm2_backend.stages import Frames
+    from dm2_backend.kernel.stages import Frames
 
     few = Frames(frames.points[:5], None, True, frames.scale)
     topo = load("dm2.place_recognition", "loops")(progress=False, k=3).run(few, truth[:5])
@@ -180,7 +180,7 @@ def test_correct_keeps_keyframes_that_share_a_path_position():
 
 
 def test_loops_rejects_invalid_options(floor):
-    from dm2_backend.errors import InputError
+    from dm2_backend.runtime.errors import InputError
 
     frames, truth = floor
     with pytest.raises(InputError, match="resolution=-1"):

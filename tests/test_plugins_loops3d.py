@@ -8,12 +8,12 @@ import pytest
 from plugins_scenes import room_3d
 
 from dm2_backend.algorithms.loop_graph3d import Closure3, FrameGraph
-from dm2_backend.config_schema import PluginSection
-from dm2_backend.errors import InputError
-from dm2_backend.geometry import se3
+from dm2_backend.config.schema import PluginSection
+from dm2_backend.kernel.geometry import se3
 from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.plugins.registry import load
 from dm2_backend.prepare.steps import resolve_auto
+from dm2_backend.runtime.errors import InputError
 
 AUTO = PluginSection(name="auto")
 

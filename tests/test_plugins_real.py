@@ -11,11 +11,11 @@ import pytest
 
 from dm2_backend.evaluation.relations import load_relations, relations_error
 from dm2_backend.formats import open_scans
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.plugins.registration_icp import IcpRegistration
 from dm2_backend.plugins.topology_radius import RadiusTopology
 from dm2_backend.plugins.warm_start_icp import IcpWarmStart
 from dm2_backend.prepare.frames import load_frames
-from dm2_backend.trajectory import Trajectory
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 ACES = DATA / "carmen" / "aces.clf.bz2"

@@ -9,16 +9,16 @@ from plugins_scenes import floor_2d, room_3d
 
 from dm2_backend.algorithms import scan_context as sc
 from dm2_backend.algorithms.common import temporal_order
-from dm2_backend.errors import InputError
 from dm2_backend.formats.registry import ReadOptions, write_trajectory
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.stages import Frames
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.plugins.topology_descriptor import DescriptorTopology
 from dm2_backend.plugins.topology_external import ExternalTopology
 from dm2_backend.plugins.topology_poses import GpsTopology, PosesTopology
 from dm2_backend.plugins.topology_radius import RadiusTopology
+from dm2_backend.runtime.errors import InputError
 from dm2_backend.simulate.path import drifting_odometry
-from dm2_backend.stages import Frames
-from dm2_backend.trajectory import Trajectory
 
 
 @pytest.fixture(scope="module")

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 from plugins_scenes import floor_2d, room_3d
 
-from dm2_backend.errors import InputError
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.plugins.warm_start_icp import IcpWarmStart
 from dm2_backend.plugins.warm_start_kiss import KissWarmStart
 from dm2_backend.plugins.warm_start_poses import PosesWarmStart
+from dm2_backend.runtime.errors import InputError
 from dm2_backend.simulate.path import drifting_odometry
-from dm2_backend.trajectory import Trajectory
 
 
 @pytest.fixture(scope="module")

@@ -8,8 +8,8 @@ import pytest
 
 from dm2_backend.evaluation import consistency_profile as cp
 from dm2_backend.evaluation import profile_cells
-from dm2_backend.optim.planes import Cells
-from dm2_backend.scans import Scan, ScanSequence
+from dm2_backend.kernel.planes import Cells
+from dm2_backend.kernel.scans import Scan, ScanSequence
 
 
 def _sequence(frames: int) -> ScanSequence:

@@ -10,7 +10,7 @@ import re
 from click.testing import CliRunner
 
 from dm2_backend.cli.main import cli
-from dm2_backend.progress import progress
+from dm2_backend.runtime.progress import progress
 
 
 class Terminal(io.StringIO):
@@ -20,7 +20,7 @@ class Terminal(io.StringIO):
 
 def test_no_terminal_no_bar_and_one_line(caplog):
     stream = io.StringIO()
-    with caplog.at_level(logging.INFO, logger="dm2_backend.progress"):
+    with caplog.at_level(logging.INFO, logger="dm2_backend.runtime.progress"):
         bar = progress(range(50), "loop closure", enabled=True, stream=stream)
         for i in bar:
             bar.set_postfix(closures=i)
@@ -39,7 +39,7 @@ def test_status_updates_do_not_redraw_the_bar():
 
 def test_disabled_is_silent(caplog):
     stream = Terminal()
-    with caplog.at_level(logging.INFO, logger="dm2_backend.progress"):
+    with caplog.at_level(logging.INFO, logger="dm2_backend.runtime.progress"):
         assert list(progress(range(3), "quiet", enabled=False, stream=stream)) == [0, 1, 2]
     assert stream.getvalue() == "" and not caplog.records
 

@@ -17,7 +17,7 @@ from dm2_backend import config
 from dm2_backend.cli.main import cli
 from dm2_backend.formats import read_trajectory
 from dm2_backend.formats.dm2_priors import read_priors
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 from dm2_backend.simulate.sequence import write_sequence
 
 

@@ -6,11 +6,11 @@ import numpy as np
 
 from dm2_backend.algorithms.common import Cloud
 from dm2_backend.algorithms.icp import point_to_plane_hessian, register
-from dm2_backend.baselines import gtsam_backend
-from dm2_backend.baselines.graph import EIGEN_FLOOR, InformationModel, build_graph, hessian_information
-from dm2_backend.config_schema import PluginSection
-from dm2_backend.geometry import se3
-from dm2_backend.stages import Frames, Pairwise, ScanScale, Topology
+from dm2_backend.config.schema import PluginSection
+from dm2_backend.kernel import gtsam_solver
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.graph_edges import EIGEN_FLOOR, InformationModel, build_graph, hessian_information
+from dm2_backend.kernel.stages import Frames, Pairwise, ScanScale, Topology
 
 
 def _exp(xi: np.ndarray) -> np.ndarray:
@@ -90,7 +90,7 @@ def test_hessian_information_keeps_a_slid_corridor_match_from_moving_the_graph()
                         plane_rmse=np.full((n, 1), 0.01) if kind == "hessian" else None)
         graph = build_graph(frames, gt, Topology(groups), pair, InformationModel(use_hessians=True))
         assert graph.meta["hessian_edges"] == (n - 3 if kind == "hessian" else 0)
-        solved = gtsam_backend.optimize(graph).poses
+        solved = gtsam_solver.optimize(graph).poses
         err[kind] = np.abs(solved[:, 0, 3] - gt[:, 0, 3]).max()
     assert err["hessian"] < 0.01 < 0.2 < err["isotropic"]
     # recorded but not asked for (the pose graph's default): isotropic
@@ -177,7 +177,7 @@ def test_planar_registrations_keep_their_own_information():
 def test_the_planar_block_is_the_gauss_newton_system_of_a_right_pose2_perturbation():
     """Rows and columns [x y yaw] of :func:`point_to_plane_hessian` on planar points, normals and pose are J^T J
     of the point-to-line residuals under ``T Exp(x, y, yaw)``: the tangent of a Pose2 between factor."""
-    from dm2_backend.pose_graph import PLANAR_AXES
+    from dm2_backend.kernel.pose_graph import PLANAR_AXES
 
     rng = np.random.default_rng(7)
     p = np.column_stack([rng.uniform(-5, 5, (40, 2)), np.zeros(40)])

@@ -15,10 +15,10 @@ import yaml
 from click.testing import CliRunner
 from optim_cases import one_thread, planar_case, write_planar_sequence
 
-from dm2_backend.atomic import atomic_write
 from dm2_backend.cli.main import cli
-from dm2_backend.errors import InputError
 from dm2_backend.pipeline.run_folder import CHECKPOINT, LOCK, MARKER, adding_to, open_folder, run_folder
+from dm2_backend.runtime.atomic import atomic_write
+from dm2_backend.runtime.errors import InputError
 from dm2_backend.simulate.sequence import write_sequence
 
 SMALL = {"seed": 3, "frames": {"max_points": 128},

@@ -7,11 +7,11 @@ import numpy as np
 from optim_cases import planar_case
 from shared_helpers import DATA, need
 
-from dm2_backend.config_schema import PluginSection
+from dm2_backend.config.schema import PluginSection
 from dm2_backend.formats import ReadOptions, open_scans
+from dm2_backend.kernel.scans import DEPTH_CAMERA, LASER_2D, LIDAR, SensorKind
 from dm2_backend.pipeline.inputs import load_inputs
 from dm2_backend.prepare.steps import resolve_auto
-from dm2_backend.scans import DEPTH_CAMERA, LASER_2D, LIDAR, SensorKind
 from dm2_backend.simulate.sequence import write_sequence
 
 

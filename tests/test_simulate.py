@@ -11,7 +11,7 @@ from click.testing import CliRunner
 
 from dm2_backend.cli.main import cli
 from dm2_backend.formats import ReadOptions, open_scans, read_trajectory
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 from dm2_backend.simulate.lidar import LidarModel
 from dm2_backend.simulate.path import street_path
 from dm2_backend.simulate.sequence import SimSettings, Simulation, generate

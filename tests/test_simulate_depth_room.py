@@ -11,7 +11,7 @@ from click.testing import CliRunner
 
 from dm2_backend.cli.main import cli
 from dm2_backend.formats import open_scans, read_trajectory
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 from dm2_backend.simulate.depth_room import DepthCamera, camera_path, room_mesh, write_depth_room
 
 

@@ -16,8 +16,8 @@ from click.testing import CliRunner
 from dm2_backend.cli.main import cli
 from dm2_backend.evaluation import plots
 from dm2_backend.formats.g2o import write_g2o
-from dm2_backend.geometry import se3
-from dm2_backend.pose_graph import PoseGraph
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.pose_graph import PoseGraph
 
 
 def run(*args, obj=None):

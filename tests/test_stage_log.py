@@ -6,11 +6,11 @@ import sys
 
 import pytest
 
-from dm2_backend.stage_log import StageLog
+from dm2_backend.runtime.stage_log import StageLog
 
 _SCRIPT = """
 import json, time, numpy as np
-from dm2_backend.stage_log import StageLog
+from dm2_backend.runtime.stage_log import StageLog
 log = StageLog()
 with log.stage("small"):
     time.sleep(0.01)

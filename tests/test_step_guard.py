@@ -10,13 +10,13 @@ import pytest
 
 from dm2_backend.algorithms.common import Cloud, assemble
 from dm2_backend.algorithms.gates import plane_residuals, significantly_worse
-from dm2_backend.baselines import gtsam_backend
-from dm2_backend.baselines.options import SolverOptions
 from dm2_backend.evaluation.step_check import ODOMETRY, REGISTRATION, FramePairs, StepJudge
-from dm2_backend.geometry import se3
+from dm2_backend.kernel import gtsam_solver
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.pose_graph import PoseGraph
+from dm2_backend.kernel.solver_options import SolverOptions
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.pipeline import step_guard
-from dm2_backend.pose_graph import PoseGraph
-from dm2_backend.trajectory import Trajectory
 
 ROOM = np.array([[-4.0, -2.5, -1.2], [4.0, 2.5, 1.8]])  # box corners (m)
 
@@ -166,16 +166,16 @@ def chain_graph(wrong_step: float) -> PoseGraph:
 def test_a_held_step_is_an_exact_edge_the_robust_kernel_does_not_give_up():
     cauchy = SolverOptions(robust="cauchy")
     graph = chain_graph(3.0)
-    free = gtsam_backend.optimize(graph, cauchy).poses
+    free = gtsam_solver.optimize(graph, cauchy).poses
     assert abs(se3.relative(free[2], free[3])[0, 3] - 1.0) < 0.01  # the kernel gave up the wrong odometry edge
     held = graph.holding(np.array([2]), se3.from_xyz_euler(np.r_[1.5, 0, 0, 0, 0, 0])[None], np.eye(6)[None] * 1e6)
     assert held.exact.tolist() == [False] * 5 + [True] and len(held.edges) == 6
-    solved = gtsam_backend.optimize(held, cauchy).poses
+    solved = gtsam_solver.optimize(held, cauchy).poses
     assert se3.relative(solved[2], solved[3])[0, 3] == pytest.approx(1.5, abs=1e-3)
     # the same edge under the kernel is given up as the wrong odometry edge was
     from dataclasses import replace
 
-    robust = gtsam_backend.optimize(replace(held, exact=None), cauchy).poses
+    robust = gtsam_solver.optimize(replace(held, exact=None), cauchy).poses
     assert abs(se3.relative(robust[2], robust[3])[0, 3] - 1.0) < 0.05
     none = held.holding(np.zeros(0, int), np.zeros((0, 4, 4)), np.zeros((0, 6, 6)))
     assert none.exact.tolist() == held.exact.tolist()
@@ -249,14 +249,14 @@ def test_no_first_order_epochs_after_a_dense_stage_whose_result_was_not_kept(roo
     the start's and the result's steps fit their frames."""
     from optim_cases import frames_of
 
-    from dm2_backend.config_schema import RunConfig
+    from dm2_backend.config.schema import RunConfig
+    from dm2_backend.kernel.scans import Scan, ScanSequence
+    from dm2_backend.kernel.stages import Pairwise, Topology
     from dm2_backend.optim.config import OptimConfig
     from dm2_backend.optim.dense import DenseResult
     from dm2_backend.pipeline import start as start_module
     from dm2_backend.pipeline.parallel import build
     from dm2_backend.prepare.steps import Prepared
-    from dm2_backend.scans import Scan, ScanSequence
-    from dm2_backend.stages import Pairwise, Topology
 
     scans, truth = room_sequence
     n = len(scans)

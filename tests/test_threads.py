@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from dm2_backend.threads import ordered_map
+from dm2_backend.runtime.threads import ordered_map
 
 
 @pytest.mark.parametrize("workers", [1, 2, 3])

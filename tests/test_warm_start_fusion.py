@@ -9,11 +9,11 @@ from plugins_scenes import floor_2d, frames_from
 
 from dm2_backend.algorithms.common import Cloud
 from dm2_backend.algorithms.icp import information_2d, slide_loss
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.plugins.warm_start_icp import IcpWarmStart, StepReason
 from dm2_backend.simulate.corridor import corridor_sequence
 from dm2_backend.simulate.path import drifting_odometry
-from dm2_backend.trajectory import Trajectory
 
 
 def ate(poses: np.ndarray, truth: np.ndarray) -> float:
@@ -99,7 +99,7 @@ def test_odometry_glitches_are_overruled_by_the_scans():
 
 
 def test_fusion_options_checked(corridor):
-    from dm2_backend.errors import InputError
+    from dm2_backend.runtime.errors import InputError
 
     _, frames, _, odometry = corridor
     with pytest.raises(InputError, match="fuse"):

@@ -10,10 +10,10 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from dm2_backend.errors import InputError
-from dm2_backend.geometry import se3
-from dm2_backend.scan_scale import point_spacing
-from dm2_backend.stages import Frames, ScanScale, Topology
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.scan_scale import point_spacing
+from dm2_backend.kernel.stages import Frames, ScanScale, Topology
+from dm2_backend.runtime.errors import InputError
 
 #: ICP variants; "auto" is GICP for 3D clouds (sparse down-sampled scans suit its covariances better than
 #: point-to-plane's normals) and 2D point-to-line for planar scans

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import distance_transform_edt, maximum_filter
 
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 
 @dataclass

@@ -21,7 +21,7 @@ import numpy as np
 
 from dm2_backend.algorithms.common import Cloud
 from dm2_backend.algorithms.gates import depth_image
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 #: a window's two candidates differ "clearly" when their mean per-point costs differ by this many standard errors of
 #: the paired differences

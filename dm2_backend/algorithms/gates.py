@@ -10,7 +10,7 @@ import numpy as np
 from scipy.ndimage import minimum_filter
 
 from dm2_backend.algorithms.common import Cloud, Match
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 
 class Gate(enum.Enum):

@@ -10,7 +10,7 @@ import numpy as np
 import open3d as o3d
 
 from dm2_backend.algorithms.common import Cloud, Match, planar_pose, project_planar
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 reg = o3d.pipelines.registration
 

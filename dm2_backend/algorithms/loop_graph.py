@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 
 def pose2(v) -> gtsam.Pose2:

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 
 @dataclass(eq=False)

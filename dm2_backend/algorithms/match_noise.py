@@ -25,7 +25,7 @@ import numpy as np
 
 from dm2_backend.algorithms.common import Cloud, project_planar
 from dm2_backend.algorithms.icp import register
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 #: at most this many triples of consecutive frames, spread evenly over the sequence
 TRIPLES = 200

@@ -32,9 +32,9 @@ from dm2_backend.algorithms.common import (
 )
 from dm2_backend.algorithms.gates import Gate, GateFailure, check_alignment
 from dm2_backend.algorithms.icp import register
-from dm2_backend.geometry import se3
-from dm2_backend.progress import progress
-from dm2_backend.stages import Frames, Pairwise, Topology
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.stages import Frames, Pairwise, Topology
+from dm2_backend.runtime.progress import progress
 
 #: the coarse pass's correspondence distance, in fine distances: the farthest a registration reaches for a
 #: correspondence, and so the scale of a step's error where it slid into a wrong local minimum (a tolerance, not a
@@ -83,7 +83,7 @@ class PairwiseRegistration:
     #: is built again when a later chunk needs it; docs/decisions/0009-registration-and-pose-graph-defaults.md)
     chunk: int = 1024
     #: each registration's information for the pose graph: "isotropic" (from its rmse, overlap and points;
-    #: see ``baselines.graph``) or "hessian" (its own point-to-plane, planar: point-to-line, Gauss-Newton Hessian
+    #: see ``kernel.graph_edges``) or "hessian" (its own point-to-plane, planar: point-to-line, Gauss-Newton Hessian
     #: over its correspondences over the variance of those residuals, ``Pairwise.hessian``: a direction the
     #: matched geometry leaves free, along a corridor or across the one wall a camera sees, gets no weight).
     #: Isotropic by default: the pose graphs end no better with the Hessians

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from dm2_backend.algorithms.common import lengths
-from dm2_backend.errors import InputError
-from dm2_backend.stages import Frames
+from dm2_backend.kernel.stages import Frames
+from dm2_backend.runtime.errors import InputError
 
 
 def default_radius(frames: Frames) -> float:

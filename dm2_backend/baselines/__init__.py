@@ -1,2 +1,3 @@
-"""Classical back-ends to compare DeepMapping2 with: pose-graph optimisation (GTSAM, g2o), Open3D multiway
-registration, and the ICP warm start itself."""
+"""The classical back-ends dm2 is compared with, as a table over the kernel's solvers: the pose graph solved by
+GTSAM or g2o (``solvers``), Open3D multiway registration (``multiway``) and the ICP warm start itself; their names in
+``methods``."""

@@ -2,7 +2,7 @@
 loop edges (uncertain, pruned by the line process), information matrices from the point clouds, solved by
 ``global_optimization`` (Levenberg-Marquardt), node 0 as reference.
 
-Edges use the same transforms as :func:`dm2_backend.baselines.graph.build_graph`; an Open3D edge
+Edges use the same transforms as :func:`dm2_backend.kernel.graph_edges.build_graph`; an Open3D edge
 (source j, target i) holds ``T_j^i`` (maps frame j's points into frame i).
 """
 
@@ -16,11 +16,11 @@ import numpy as np
 import open3d as o3d
 
 from dm2_backend.algorithms.common import fine_distance, lengths
-from dm2_backend.baselines.graph import valid_pairs
-from dm2_backend.baselines.options import GraphResult, SolverOptions
-from dm2_backend.errors import InputError
-from dm2_backend.geometry import se3
-from dm2_backend.stages import Frames, Pairwise, Topology
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.graph_edges import valid_pairs
+from dm2_backend.kernel.solver_options import GraphResult, SolverOptions
+from dm2_backend.kernel.stages import Frames, Pairwise, Topology
+from dm2_backend.runtime.errors import InputError
 
 reg = o3d.pipelines.registration
 

@@ -6,11 +6,12 @@ from pathlib import Path
 
 import click
 
-from dm2_backend.baselines.options import GRAPH_METHODS, KERNELS, METHODS, SolverOptions
+from dm2_backend.baselines.methods import GRAPH_METHODS, METHODS
 from dm2_backend.cli.run_setup import command_started, output_folder, prepare_run, run_options
 from dm2_backend.cli.suggest import Choice
 from dm2_backend.cli.summary import print_summary
 from dm2_backend.formats.g2o import INFORMATION_MODES
+from dm2_backend.kernel.solver_options import KERNELS, SolverOptions
 from dm2_backend.pipeline.run_folder import refuse_overlap, run_folder
 
 path_type = click.Path(path_type=Path)

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import click
 
-from dm2_backend.atomic import clean_stale, is_temporary
 from dm2_backend.cli.suggest import SuggestingGroup
-from dm2_backend.errors import InputError
 from dm2_backend.prepare.steps import default_cache_dir
 from dm2_backend.prepare.store import CACHE_MARKER, is_cache, is_entry
+from dm2_backend.runtime.atomic import clean_stale, is_temporary
+from dm2_backend.runtime.errors import InputError
 
 path_type = click.Path(path_type=Path)
 cache_dir_option = click.option("--cache-dir", type=path_type, default=None,

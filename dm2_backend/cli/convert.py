@@ -16,7 +16,7 @@ from dm2_backend.cli.options import (
 from dm2_backend.formats import TRAJECTORY_FORMATS, format_for_output, read_trajectory, write_trajectory
 from dm2_backend.formats.kitti import times_for
 from dm2_backend.formats.registry import ReadOptions
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.trajectory import Trajectory
 
 #: formats whose writer puts the stamps in a file of their own (``--out-times``)
 TIMES_FILE_FORMATS = ("kitti",)

@@ -9,7 +9,6 @@ import numpy as np
 
 from dm2_backend.cli.options import depth_scale_option, duplicate_times_option, intrinsics_option, read_options
 from dm2_backend.cli.suggest import Choice
-from dm2_backend.errors import InputError
 from dm2_backend.evaluation import drawn_alignment, plots
 from dm2_backend.evaluation.ape_rpe import ALIGN_MODES, DELTA_UNITS
 from dm2_backend.evaluation.consistency_profile import (
@@ -26,6 +25,7 @@ from dm2_backend.evaluation.report_writers import safe_name, write_csv, write_ev
 from dm2_backend.evaluation.run_compare import read_run_report
 from dm2_backend.formats import ReadOptions, open_scans, read_trajectory
 from dm2_backend.pipeline.inputs import looks_planar
+from dm2_backend.runtime.errors import InputError
 
 path_type = click.Path(path_type=Path)
 

@@ -15,7 +15,6 @@ from dm2_backend.cli.options import (
     times_option,
     topic_option,
 )
-from dm2_backend.errors import InputError
 from dm2_backend.formats import (
     SCAN_SOURCES,
     TRAJECTORY_FORMATS,
@@ -25,9 +24,10 @@ from dm2_backend.formats import (
     open_scans,
     read_trajectory,
 )
-from dm2_backend.input_files import check_kind
-from dm2_backend.scans import ScanSequence
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.scans import ScanSequence
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.errors import InputError
+from dm2_backend.runtime.input_files import check_kind
 
 
 def _time_rows(stamps: np.ndarray | None) -> list[tuple[str, str]]:

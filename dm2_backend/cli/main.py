@@ -13,8 +13,8 @@ import traceback
 import click
 
 from dm2_backend import __version__
-from dm2_backend.errors import InputError, did_you_mean, one_line
-from dm2_backend.progress import setup_logging
+from dm2_backend.runtime.errors import InputError, did_you_mean, one_line
+from dm2_backend.runtime.progress import setup_logging
 
 #: OS errors on the user's files and folders that are a one-line error, not a traceback
 USER_OS_ERRORS = {errno.ENOENT: None, errno.EISDIR: None, errno.EACCES: None, errno.EPERM: None,
@@ -119,7 +119,7 @@ def cli(ctx: click.Context, debug: bool) -> None:
     ctx.ensure_object(dict)
     ctx.obj["debug"] = debug
     ctx.obj.setdefault("started", time.perf_counter())  # a run's "total": the whole command, reading and writing too
-    setup_logging()  # stage lines and warnings on stderr, one line each (dm2_backend.progress)
+    setup_logging()  # stage lines and warnings on stderr, one line each (dm2_backend.runtime.progress)
 
 
 def main() -> None:

@@ -14,7 +14,7 @@ from dm2_backend.cli.options import (
     times_option,
     topic_option,
 )
-from dm2_backend.errors import InputError
+from dm2_backend.runtime.errors import InputError
 
 path_type = click.Path(path_type=Path)
 
@@ -38,7 +38,7 @@ def run_trajectory(run: Path):
     """The run's final poses (``poses.npy``) with the timestamps of ``poses_tum.txt`` when it has one."""
     from dm2_backend.formats import read_trajectory
     from dm2_backend.formats.poses_npy import read_poses_npy
-    from dm2_backend.trajectory import Trajectory
+    from dm2_backend.kernel.trajectory import Trajectory
 
     if not (run / "poses.npy").exists():
         raise InputError(run, "not a dm2 run folder (no poses.npy)")
@@ -54,8 +54,8 @@ def run_scans(run: Path, kw: dict, required: bool = True):
     """The run's scans, one per pose of the run (matched by time, else by index); None when not ``required``
     and no scan source is given or recorded."""
     from dm2_backend.formats import open_scans
+    from dm2_backend.kernel.scans import associate_scans
     from dm2_backend.maps.run_maps import read_summary
-    from dm2_backend.scans import associate_scans
 
     path, fmt = kw["scans"], kw["scans_format"]
     if path is None:

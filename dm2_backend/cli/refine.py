@@ -7,7 +7,7 @@ import click
 from dm2_backend.cli.run_setup import command_started, output_folder, path_type, prepare_run, run_options
 from dm2_backend.cli.suggest import Choice
 from dm2_backend.cli.summary import print_summary
-from dm2_backend.errors import InputError
+from dm2_backend.runtime.errors import InputError
 
 
 @click.command("refine")

@@ -19,14 +19,14 @@ from dm2_backend.cli.options import (
     times_option,
     topic_option,
 )
-from dm2_backend.config_schema import PluginSection, RunConfig
-from dm2_backend.errors import InputError
+from dm2_backend.config.schema import PluginSection, RunConfig
 from dm2_backend.formats import detect_trajectory_format
 from dm2_backend.formats.kitti import find_calib, looks_camera_frame
-from dm2_backend.input_files import check_kind
 from dm2_backend.pipeline.inputs import load_inputs
 from dm2_backend.pipeline.run_folder import digest, fingerprint, refuse_overlap, run_folder
 from dm2_backend.prepare.steps import default_cache_dir
+from dm2_backend.runtime.errors import InputError
+from dm2_backend.runtime.input_files import check_kind
 
 path_type = click.Path(path_type=Path)
 

@@ -1,5 +1,5 @@
 """The "did you mean" of a mistyped name, the same everywhere: ``dm2 refin``, ``dm2 cache inf`` and
-``dm2 baseline gtsm`` all end with ``(did you mean 'refine'?)`` (:func:`dm2_backend.errors.did_you_mean`).
+``dm2 baseline gtsm`` all end with ``(did you mean 'refine'?)`` (:func:`dm2_backend.runtime.errors.did_you_mean`).
 
 Light on purpose (click only): sub-commands import it at start-up."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import click
 
-from dm2_backend.errors import did_you_mean
+from dm2_backend.runtime.errors import did_you_mean
 
 
 class Choice(click.Choice):

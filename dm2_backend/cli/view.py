@@ -8,7 +8,7 @@ import click
 import numpy as np
 
 from dm2_backend.cli.map import run_scans, run_trajectory, scan_options
-from dm2_backend.errors import InputError
+from dm2_backend.runtime.errors import InputError
 
 path_type = click.Path(path_type=Path)
 
@@ -16,7 +16,7 @@ path_type = click.Path(path_type=Path)
 def ground_truth(path: Path, fmt: str | None, run: Path, max_diff: float):
     """Ground truth with one pose per pose of the run: by timestamp when both have them, else by index."""
     from dm2_backend.formats import ReadOptions, read_trajectory
-    from dm2_backend.trajectory import associate_by_time
+    from dm2_backend.kernel.trajectory import associate_by_time
 
     gt = read_trajectory(path, fmt, ReadOptions())
     traj = run_trajectory(run)

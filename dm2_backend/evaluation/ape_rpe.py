@@ -20,8 +20,8 @@ from evo.core.geometry import accumulated_distances
 from evo.core.result import Result
 from evo.core.trajectory import PosePath3D, PoseTrajectory3D
 
-from dm2_backend.errors import InputError
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.errors import InputError
 
 ALIGN_MODES = ("se3", "sim3", "none")
 DELTA_UNITS = {"f": metrics.Unit.frames, "m": metrics.Unit.meters}

@@ -1,6 +1,6 @@
 """Where a trajectory went wrong, without ground truth: each frame judged by the map the *other* frames make.
 
-Every scan is summed into cells once (``optim.planes``); planes come from many frames in adaptive voxels. A
+Every scan is summed into cells once (``kernel.planes``); planes come from many frames in adaptive voxels. A
 frame's score (m) is the largest of three views of "the others":
 
 - **past** and **future**: the planes of the neighbouring stretch before / after it (blocks of ``window``
@@ -38,14 +38,12 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from dm2_backend.atomic import atomic_write
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.profile_cells import CELLS_PER_FRAME, full_cells
 from dm2_backend.evaluation.report_writers import safe_name
-from dm2_backend.geometry.symmetric3 import smallest_eigen
-from dm2_backend.geometry.voxels import group_rows
-from dm2_backend.memory import release_freed_memory, release_mapped
-from dm2_backend.optim.planes import (
+from dm2_backend.kernel.geometry.symmetric3 import smallest_eigen
+from dm2_backend.kernel.geometry.voxels import group_rows
+from dm2_backend.kernel.planes import (
     FLATNESS,
     MIN_WIDTH,
     Assignment,
@@ -57,11 +55,13 @@ from dm2_backend.optim.planes import (
     fit,
     placed_means,
 )
-from dm2_backend.progress import progress as progress_of
-from dm2_backend.scan_scale import derive_scale
-from dm2_backend.scans import ScanSequence
-from dm2_backend.stages import ScanScale
-from dm2_backend.threads import ordered_map
+from dm2_backend.kernel.scan_scale import derive_scale
+from dm2_backend.kernel.scans import ScanSequence
+from dm2_backend.kernel.stages import ScanScale
+from dm2_backend.runtime.atomic import atomic_write
+from dm2_backend.runtime.memory import release_freed_memory, release_mapped
+from dm2_backend.runtime.progress import progress as progress_of
+from dm2_backend.runtime.threads import ordered_map
 
 #: a frame's points may lie this many noise sigmas from the others' planes before their distance is capped
 #: (a wrong frame scores high, one stray object cannot dominate it)
@@ -238,7 +238,7 @@ def _against(judged: Cells, placed: np.ndarray, a: Assignment, planes: Planes, t
 
 
 def _flat_normals(cells: Cells) -> np.ndarray:
-    """The unit normal (sensor frame) of each flat cell (the voxels' test of ``optim.planes`` on the cell's own points
+    """The unit normal (sensor frame) of each flat cell (the voxels' test of ``kernel.planes`` on the cell's own points
     and size), NaN rows for the others (a line, a corner, too few points)."""
     out = np.full((len(cells), 3), np.nan)
     some = np.flatnonzero(cells.count >= 3)  # (most cells of a far surface hold a point or two)

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 #: a step further from a source than this many times the sequence's median offset from it is not explained by
 #: it. The offset of a step with normal noise is a chi variable of 3 degrees of freedom, whose median is 1.54

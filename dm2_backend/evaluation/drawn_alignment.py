@@ -20,7 +20,7 @@ from evo.core.geometry import umeyama_alignment
 
 from dm2_backend.evaluation.ape_rpe import PoseErrors
 from dm2_backend.evaluation.cautions import rotation_caution
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 #: how a title names each alignment
 NAMES = {"se3": "SE(3)", "sim3": "Sim(3)", "origin": "at the first pose, --align-origin", "none": "none"}

@@ -17,8 +17,8 @@ from dm2_backend.evaluation.map_quality import MapSampler, estimate_map
 from dm2_backend.evaluation.paper_ate import paper_ate
 from dm2_backend.evaluation.relations import MAX_DT, relations_error
 from dm2_backend.evaluation.report import EstimateReport
-from dm2_backend.scans import ScanSequence
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.scans import ScanSequence
+from dm2_backend.kernel.trajectory import Trajectory
 
 
 @dataclass(frozen=True)

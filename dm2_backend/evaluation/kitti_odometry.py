@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 #: the devkit's segment lengths (m) and the step between first frames
 LENGTHS_M = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)

@@ -22,13 +22,13 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from dm2_backend.errors import InputError
-from dm2_backend.geometry.voxels import group_rows
-from dm2_backend.progress import progress as progress_of
-from dm2_backend.scan_scale import point_spacing
-from dm2_backend.scans import ScanSequence
-from dm2_backend.threads import ordered_map
-from dm2_backend.trajectory import Trajectory, associate_by_time, interpolate_gaps
+from dm2_backend.kernel.geometry.voxels import group_rows
+from dm2_backend.kernel.scan_scale import point_spacing
+from dm2_backend.kernel.scans import ScanSequence
+from dm2_backend.kernel.trajectory import Trajectory, associate_by_time, interpolate_gaps
+from dm2_backend.runtime.errors import InputError
+from dm2_backend.runtime.progress import progress as progress_of
+from dm2_backend.runtime.threads import ordered_map
 
 log = logging.getLogger(__name__)
 

@@ -32,7 +32,7 @@ import numpy as np
 from evo.core.geometry import umeyama_alignment
 from scipy.spatial.transform import Rotation
 
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 LABEL = "paper ATE"
 #: the poses' z axes count as not vertical when their median angle from the vertical line exceeds this (closer

@@ -26,7 +26,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 from matplotlib.ticker import MaxNLocator
 
-from dm2_backend.atomic import atomic_write
+from dm2_backend.runtime.atomic import atomic_write
 
 AXES = "xyz"
 #: an axis whose extent is below this fraction of the largest extent (or 1 um) counts as flat: no side view

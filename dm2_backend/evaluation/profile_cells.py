@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.atomic import clean_stale, no_space_error, temp_prefix
-from dm2_backend.optim.planes import Cells, cells_from_scans
-from dm2_backend.progress import progress as progress_of
-from dm2_backend.scans import ScanSequence
+from dm2_backend.kernel.planes import Cells, cells_from_scans
+from dm2_backend.kernel.scans import ScanSequence
+from dm2_backend.runtime.atomic import clean_stale, no_space_error, temp_prefix
+from dm2_backend.runtime.progress import progress as progress_of
 
 #: the cells kept per frame (as the dense stage keeps them at most)
 CELLS_PER_FRAME = 2048

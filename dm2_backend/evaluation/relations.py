@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.errors import InputError
-from dm2_backend.geometry import se3
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.errors import InputError
 
 #: default time tolerance between a relation's stamp and the nearest estimated pose, seconds
 MAX_DT = 0.1

@@ -10,7 +10,6 @@ from pathlib import Path
 
 from evo.tools import file_interface
 
-from dm2_backend.atomic import atomic_write
 from dm2_backend.evaluation.paper_ate import LABEL as PAPER_LABEL
 from dm2_backend.evaluation.report import (
     COLUMNS,
@@ -23,6 +22,7 @@ from dm2_backend.evaluation.report import (
     to_json,
 )
 from dm2_backend.evaluation.text_table import fmt
+from dm2_backend.runtime.atomic import atomic_write
 
 
 def write_json(report: EvalReport, path: str | Path) -> None:

@@ -20,8 +20,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from dm2_backend.errors import InputError
 from dm2_backend.evaluation.text_table import format_table
+from dm2_backend.runtime.errors import InputError
 
 
 def read_run_report(path: str | Path) -> dict:

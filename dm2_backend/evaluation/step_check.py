@@ -26,7 +26,7 @@ import numpy as np
 
 from dm2_backend.algorithms.common import Cloud
 from dm2_backend.algorithms.gates import MIN_MATCHED, plane_residuals, significantly_worse, truncated_squares
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 #: a step whose excess lies more than this many robust sigmas above the sequence's median excess stands out
 SIGMAS = 10.0

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.atomic import atomic_path
 from dm2_backend.optim.mnet_file import MNet
+from dm2_backend.runtime.atomic import atomic_path
 
 
 def sample_grid(mnet: MNet, centers: np.ndarray) -> np.ndarray:

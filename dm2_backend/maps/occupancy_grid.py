@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from dm2_backend.atomic import atomic_write
-from dm2_backend.errors import InputError
+from dm2_backend.runtime.atomic import atomic_write
+from dm2_backend.runtime.errors import InputError
 
 P_HIT, P_MISS = 0.7, 0.4
 CLAMP = (0.12, 0.97)

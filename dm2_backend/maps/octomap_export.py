@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.atomic import atomic_path
-from dm2_backend.memory import release_freed_memory
+from dm2_backend.runtime.atomic import atomic_path
+from dm2_backend.runtime.memory import release_freed_memory
 
 INSTALL_HINT = "pip install 'dm2[maps]' (or: pip install pyoctomap)"
 

@@ -23,13 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.atomic import atomic_path
-from dm2_backend.errors import InputError
 from dm2_backend.formats.poses_npy import read_poses_npy
+from dm2_backend.kernel.scans import ScanSequence
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.maps import occupancy_grid, run_maps
 from dm2_backend.maps.octomap_export import MissingExtra
-from dm2_backend.scans import ScanSequence
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.runtime.atomic import atomic_path
+from dm2_backend.runtime.errors import InputError
 
 VIEW_HINT = "pip install 'dm2[view]' (or: pip install rerun-sdk)"
 MAX_LOGGED_FRAMES = 1000

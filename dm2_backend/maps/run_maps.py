@@ -28,12 +28,12 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.atomic import atomic_write
+from dm2_backend.kernel.scans import ScanSequence
+from dm2_backend.kernel.stages import ScanScale
 from dm2_backend.maps import mnet_export, occupancy_grid
 from dm2_backend.maps.octomap_export import MissingExtra, write_octomap
 from dm2_backend.optim import mnet_file
-from dm2_backend.scans import ScanSequence
-from dm2_backend.stages import ScanScale
+from dm2_backend.runtime.atomic import atomic_write
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +78,7 @@ def resolution(scale: ScanScale, planar: bool) -> tuple[float, str]:
 def gather(scans: ScanSequence, poses: np.ndarray, planar: bool, max_frames: int = MAX_FRAMES,
            max_points: int | None = None) -> MapData:
     """Load the scans (a subset for huge runs) and put them at ``poses`` (the sensor's poses)."""
-    from dm2_backend.scan_scale import derive_scale
+    from dm2_backend.kernel.scan_scale import derive_scale
 
     if len(scans) != len(poses):
         raise ValueError(f"{len(scans)} scans for {len(poses)} poses")

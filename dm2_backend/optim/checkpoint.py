@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dm2_backend.atomic import atomic_write
-from dm2_backend.errors import InputError, one_line
+from dm2_backend.runtime.atomic import atomic_write
+from dm2_backend.runtime.errors import InputError, one_line
 
 CHECKPOINT = "checkpoint.pt"
 

@@ -1,12 +1,12 @@
 """What the optimiser derives from the data, the start and its settings (the frozen :class:`OptimConfig`, the
-``optimiser:`` section of the run configuration, defined in :mod:`dm2_backend.config_optimiser`)."""
+``optimiser:`` section of the run configuration, defined in :mod:`dm2_backend.config.optimiser`)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dm2_backend.config_optimiser import OptimConfig
-from dm2_backend.stages import ScanScale
+from dm2_backend.config.optimiser import OptimConfig
+from dm2_backend.kernel.stages import ScanScale
 
 __all__ = ["Derived", "Lengths", "LossRegime", "OptimConfig", "PoseRegime", "dense_voxel", "derive", "loss_regime",
            "pose_regime", "sampled_points"]

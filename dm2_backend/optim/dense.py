@@ -1,7 +1,7 @@
 """Second-order steps over all poses at once: the dense plane term jointly with the pose graph's factors.
 
 The objective is DeepMapping2's geometric part in second-order form: the dense multi-frame term
-(:mod:`dm2_backend.optim.planes`, every scan point against planes shared by many frames) plus the
+(:mod:`dm2_backend.kernel.planes`, every scan point against planes shared by many frames) plus the
 local-to-global consistency with the pairwise registrations and the front end's odometry, which are the pose
 graph's between factors (``dm2 baseline gtsam``'s graph, Cauchy kernel, the first pose held). Each round
 assigns the cells to planes at the current poses (with their robust weights, as in iteratively reweighted least
@@ -28,15 +28,15 @@ import numpy as np
 from scipy.sparse import bsr_matrix, coo_matrix, csr_matrix
 from scipy.sparse.linalg import LinearOperator, cg, splu
 
-from dm2_backend.baselines import gtsam_backend
-from dm2_backend.baselines.options import SolverOptions
-from dm2_backend.geometry import se3
-from dm2_backend.memory import release_freed_memory
+from dm2_backend.kernel import gtsam_solver
+from dm2_backend.kernel import planes as plane_term
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.planes import Cells
+from dm2_backend.kernel.pose_graph import PoseGraph
+from dm2_backend.kernel.solver_options import SolverOptions
 from dm2_backend.optim import dense_checkpoint, odometry_noise
-from dm2_backend.optim import planes as plane_term
-from dm2_backend.optim.planes import Cells
-from dm2_backend.pose_graph import PoseGraph
-from dm2_backend.progress import progress as progress_of
+from dm2_backend.runtime.memory import release_freed_memory
+from dm2_backend.runtime.progress import progress as progress_of
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +78,7 @@ class _Objective:
         self.fg, self.graph = fg, graph
 
     def __call__(self, assignment: plane_term.Assignment, values: gtsam.Values) -> tuple[float, float, np.ndarray]:
-        poses = gtsam_backend.from_values(self.graph, values)
+        poses = gtsam_solver.from_values(self.graph, values)
         plane = 0.5 * plane_term.cost(assignment, poses)
         return plane + self.fg.error(values), plane, poses
 
@@ -162,10 +162,10 @@ def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float
     steps = odometry_noise.consecutive_edges(graph) if measure_odometry or odometry is not None else None
     if odometry is not None:
         graph = odometry_noise.reweighted(graph, steps, odometry)
-    fg = gtsam_backend.factor_graph(graph, GRAPH_SOLVER)
+    fg = gtsam_solver.factor_graph(graph, GRAPH_SOLVER)
     objective = _Objective(fg, graph)
     poses, history, lam = state.poses, state.history, state.damping
-    values = gtsam_backend.to_values(graph, poses)
+    values = gtsam_solver.to_values(graph, poses)
     stopped = f"{rounds} rounds"
 
     def keep(rounds_done: int, end: str = "") -> None:
@@ -271,5 +271,5 @@ def _reweighed(graph: PoseGraph, steps: np.ndarray, noise: odometry_noise.Measur
              " ".join(f"{v:.2g}" for v in noise.sigma),
              " ".join(f"{v:.2g}" for v in 1.0 / np.sqrt(np.diag(graph.information[steps[0]]))))
     graph = odometry_noise.reweighted(graph, steps, noise)
-    fg = gtsam_backend.factor_graph(graph, GRAPH_SOLVER)
-    return graph, fg, _Objective(fg, graph), gtsam_backend.to_values(graph, poses)
+    fg = gtsam_solver.factor_graph(graph, GRAPH_SOLVER)
+    return graph, fg, _Objective(fg, graph), gtsam_solver.to_values(graph, poses)

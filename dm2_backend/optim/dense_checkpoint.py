@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.atomic import atomic_write
-from dm2_backend.errors import InputError
 from dm2_backend.optim.odometry_noise import MAX_SIGMA, MIN_SIGMA, MeasuredNoise
+from dm2_backend.runtime.atomic import atomic_write
+from dm2_backend.runtime.errors import InputError
 
 DENSE_CHECKPOINT = "checkpoint-dense.npz"
 #: per frame two 4x4 poses of float64 plus the file's own overhead; anything larger is not a checkpoint of ours

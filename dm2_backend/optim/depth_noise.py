@@ -21,9 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import nnls
 
-from dm2_backend.optim import planes
-from dm2_backend.optim.planes import Cells
-from dm2_backend.scans import ScanSequence
+from dm2_backend.kernel import planes
+from dm2_backend.kernel.planes import Cells
+from dm2_backend.kernel.scans import ScanSequence
 
 #: frames sampled (evenly over the sequence) to measure the noise on
 SAMPLE = 20

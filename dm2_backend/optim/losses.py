@@ -7,7 +7,7 @@ import torch
 import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
-from dm2_backend.geometry import se3_torch
+from dm2_backend.kernel.geometry import se3_torch
 
 
 def free_space_samples(

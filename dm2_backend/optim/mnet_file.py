@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dm2_backend.atomic import atomic_write
-from dm2_backend.errors import InputError
 from dm2_backend.optim.occupancy import GridOccupancy
+from dm2_backend.runtime.atomic import atomic_write
+from dm2_backend.runtime.errors import InputError
 
 MNET = "mnet.pt"
 FORMAT = "dm2-mnet/1"

@@ -1,6 +1,6 @@
 """The front end's odometry noise, measured against a solution the scans pin (the dense stage's first pass).
 
-The pose graph gives every odometry edge one guessed weight (:mod:`dm2_backend.baselines.graph`: the median
+The pose graph gives every odometry edge one guessed weight (:mod:`dm2_backend.kernel.graph_edges`: the median
 registration information); on a dense sequence that is far weaker than the odometry is, and the plane term's
 per-frame jitter then shows between consecutive frames. The odometry's own noise can be read off the data.
 Against a solution ``P``, edge ``i`` (frame i to i+1, measured ``Z_i``) has the discrepancy
@@ -20,8 +20,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from dm2_backend.geometry import se3
-from dm2_backend.pose_graph import PoseGraph
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.pose_graph import PoseGraph
 
 #: the longest run of steps summed (k = 1 .. WINDOW): long enough to tell the slope from the intercept, short
 #: enough that a drifting solution's error still looks constant over it
@@ -94,7 +94,7 @@ def consecutive_edges(graph: PoseGraph) -> np.ndarray:
 
 def reweighted(graph: PoseGraph, edges: np.ndarray, noise: MeasuredNoise) -> PoseGraph:
     """A copy of ``graph`` whose ``edges`` carry the information of ``noise``; the axes a lifted planar graph holds
-    (``meta["held"]``, :meth:`~dm2_backend.pose_graph.PoseGraph.lifted_to_se3`) keep their hold."""
+    (``meta["held"]``, :meth:`~dm2_backend.kernel.pose_graph.PoseGraph.lifted_to_se3`) keep their hold."""
     information = graph.information.copy()
     measured = noise.information()
     held = graph.meta.get("held")

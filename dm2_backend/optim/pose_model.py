@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from dm2_backend.geometry import se3_torch
+from dm2_backend.kernel.geometry import se3_torch
 
 PLANAR_MASK = (1.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 

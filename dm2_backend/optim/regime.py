@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 
 def disagreement(poses: np.ndarray, groups: np.ndarray, relative: np.ndarray, valid: np.ndarray,

@@ -14,8 +14,8 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from dm2_backend.errors import InputError, one_line
-from dm2_backend.geometry import se3_torch
+from dm2_backend.kernel.geometry import se3_torch
+from dm2_backend.kernel.stages import Frames, Pairwise, Topology
 from dm2_backend.optim import distributed, losses
 from dm2_backend.optim.batching import make_groups
 from dm2_backend.optim.checkpoint import CHECKPOINT, load_checkpoint, plain_state, save_checkpoint
@@ -25,9 +25,9 @@ from dm2_backend.optim.occupancy import GridOccupancy
 from dm2_backend.optim.pose_model import PoseModel
 from dm2_backend.optim.regime import disagreement, locally_accurate
 from dm2_backend.optim.selection import first_candidate, offer, selection
-from dm2_backend.progress import progress
-from dm2_backend.stages import Frames, Pairwise, Topology
-from dm2_backend.threads import ordered_map
+from dm2_backend.runtime.errors import InputError, one_line
+from dm2_backend.runtime.progress import progress
+from dm2_backend.runtime.threads import ordered_map
 
 
 @dataclass

@@ -9,36 +9,26 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.atomic import atomic_write
-from dm2_backend.baselines import g2o_backend, gtsam_backend
-from dm2_backend.baselines.graph import InformationModel, build_graph
+from dm2_backend.baselines.methods import METHODS
 from dm2_backend.baselines.multiway import multiway
-from dm2_backend.baselines.options import GRAPH_METHODS, METHODS, GraphResult, SolverOptions
-from dm2_backend.config_schema import RunConfig
-from dm2_backend.errors import InputError
+from dm2_backend.baselines.solvers import solve
+from dm2_backend.config.schema import RunConfig
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.evaluate import EvalOptions, evaluate
 from dm2_backend.evaluation.report import estimate_cautions, run_metrics
 from dm2_backend.formats import write_trajectory
 from dm2_backend.formats.g2o import read_g2o, write_g2o
-from dm2_backend.memory import peak_rss_mb
+from dm2_backend.kernel.graph_edges import InformationModel, build_graph
+from dm2_backend.kernel.solver_options import SolverOptions
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.pipeline import outputs
 from dm2_backend.pipeline.inputs import RunInputs
 from dm2_backend.pipeline.run_report import RunReport
 from dm2_backend.pipeline.run_writer import write_run
-from dm2_backend.pose_graph import PoseGraph
 from dm2_backend.prepare.steps import Prepared, prepare
-from dm2_backend.trajectory import Trajectory
-
-GRAPH_SOLVERS = {"gtsam": gtsam_backend.optimize, "g2o": g2o_backend.optimize}
-assert set(GRAPH_SOLVERS) == set(GRAPH_METHODS)
-
-
-def solve(method: str, graph: PoseGraph, options: SolverOptions) -> GraphResult:
-    if method not in GRAPH_SOLVERS:
-        choices = " or ".join(GRAPH_SOLVERS)
-        raise InputError(None, f"method {method!r} does not solve g2o graphs; use {choices}")
-    return GRAPH_SOLVERS[method](graph, options)
+from dm2_backend.runtime.atomic import atomic_write
+from dm2_backend.runtime.errors import InputError
+from dm2_backend.runtime.memory import peak_rss_mb
 
 
 def baseline(method: str, inputs: RunInputs, cfg: RunConfig, out: Path, cache_dir: Path | None,

@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dm2_backend.geometry import se3
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 

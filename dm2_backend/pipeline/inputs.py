@@ -8,12 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.errors import InputError
 from dm2_backend.evaluation.relations import load_relations
 from dm2_backend.formats import ReadOptions, open_scans, read_trajectory
-from dm2_backend.geometry import se3
-from dm2_backend.scans import ScanSequence, SensorKind, associate_scans
-from dm2_backend.trajectory import Trajectory, associate_by_time
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.scans import ScanSequence, SensorKind, associate_scans
+from dm2_backend.kernel.trajectory import Trajectory, associate_by_time
+from dm2_backend.runtime.errors import InputError
 
 log = logging.getLogger(__name__)
 

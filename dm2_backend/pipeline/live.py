@@ -11,7 +11,7 @@ import numpy as np
 from evo.core.geometry import umeyama_alignment
 
 from dm2_backend.evaluation.relations import relations_error
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.trajectory import Trajectory
 
 if TYPE_CHECKING:
     from dm2_backend.pipeline.inputs import RunInputs

@@ -27,9 +27,7 @@ import torch.distributed as td
 import torch.multiprocessing as mp
 from torch.multiprocessing.spawn import ProcessException
 
-from dm2_backend.config_schema import RunConfig
-from dm2_backend.errors import InputError
-from dm2_backend.memory import peak_rss_mb
+from dm2_backend.config.schema import RunConfig
 from dm2_backend.optim.config import OptimConfig, sampled_points
 from dm2_backend.optim.distributed import Dist, init, rank_device, wait_group
 from dm2_backend.optim.trainer import Optimiser, OptimResult, sample_points
@@ -37,6 +35,8 @@ from dm2_backend.pipeline.start import Start
 from dm2_backend.prepare import store
 from dm2_backend.prepare.cache_keys import code_fingerprint, step_key
 from dm2_backend.prepare.steps import Prepared, load_prepared, prepare
+from dm2_backend.runtime.errors import InputError
+from dm2_backend.runtime.memory import peak_rss_mb
 
 
 class Mode(enum.Enum):

@@ -7,8 +7,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-from dm2_backend.config_schema import RunConfig
-from dm2_backend.memory import release_mapped
+from dm2_backend.config.schema import RunConfig
 from dm2_backend.optim import dense_checkpoint, distributed
 from dm2_backend.optim.checkpoint import CHECKPOINT, load_checkpoint
 from dm2_backend.pipeline import parallel
@@ -17,6 +16,7 @@ from dm2_backend.pipeline.live import live_metric
 from dm2_backend.pipeline.run_report import RunReport
 from dm2_backend.pipeline.run_writer import map_entropy, map_sampler, output_timestamps, write_run
 from dm2_backend.pipeline.start import DenseCells, choose_start, dense_start
+from dm2_backend.runtime.memory import release_mapped
 
 log = logging.getLogger(__name__)
 

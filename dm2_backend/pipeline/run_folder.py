@@ -6,7 +6,7 @@
   size and digest of every file, recorded as each is put in place). The marker is input: it may list only plain
   names of entries inside the folder (no ``/``, ``..``, absolute paths); one that lists anything else is refused
   whole, and nothing is removed.
-- The marker lists each output before it is written (through :mod:`dm2_backend.atomic`), so a run killed at
+- The marker lists each output before it is written (through :mod:`dm2_backend.runtime.atomic`), so a run killed at
   any point leaves a marker that names everything it wrote, and records its identity once it is in place. What
   other programs write into the folder meanwhile is not the run's: never listed, never removed.
 - A file that no dm2 run listed (yours), or that changed since a run wrote it, is never replaced, even with
@@ -35,11 +35,11 @@ from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from dm2_backend.atomic import is_temporary, watching_writes
-from dm2_backend.config_schema import RunConfig
-from dm2_backend.errors import InputError
+from dm2_backend.config.schema import RunConfig
 from dm2_backend.optim.dense_checkpoint import DENSE_CHECKPOINT
 from dm2_backend.pipeline.ownership import Written, identity, relative_in, still_ours
+from dm2_backend.runtime.atomic import is_temporary, watching_writes
+from dm2_backend.runtime.errors import InputError
 
 MARKER = ".dm2-run.json"
 LOCK = ".dm2-lock"
@@ -107,16 +107,16 @@ class RunFolder:
                                   "identity": {name: known[name] for name in files if name in known}})
 
     def placed(self, path: Path, temporary: Path) -> None:
-        """Called by :mod:`dm2_backend.atomic` just before ``temporary`` is renamed to ``path``: what the name will
-        hold is recorded, in the marker at once for a top-level entry; a folder written file by file is recorded
-        whole with the next name listed and when the run ends (killed in between, its writing was cut short: left
-        for you to remove)."""
+        """Called by :mod:`dm2_backend.runtime.atomic` just before ``temporary`` is renamed to ``path``: what the
+        name will hold is recorded, in the marker at once for a top-level entry; a folder written file by file is
+        recorded whole with the next name listed and when the run ends (killed in between, its writing was cut
+        short: left for you to remove)."""
         name = self.content.placed(path, temporary)
         if name is not None and name in self.content.whole:
             self.record()
 
     def announce(self, path: Path) -> None:
-        """Called by :mod:`dm2_backend.atomic` before it writes ``path``: a path inside this folder is listed in
+        """Called by :mod:`dm2_backend.runtime.atomic` before it writes ``path``: a path inside this folder is listed in
         the marker first (a run killed while writing still names it); one that would replace a file of the
         user's, or one another program put there meanwhile, is refused."""
         rel = relative_in(self.path, path)

@@ -11,8 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from dm2_backend import config
-from dm2_backend.config_schema import RunConfig
-from dm2_backend.errors import InputError
+from dm2_backend.config.schema import RunConfig
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.consistency_profile import consistency_profiles, write_profiles
 from dm2_backend.evaluation.evaluate import EvalOptions, evaluate
@@ -21,15 +20,16 @@ from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.evaluation.paper_ate import paper_ate
 from dm2_backend.evaluation.report import estimate_cautions, run_metrics
 from dm2_backend.formats.kitti import read_calib_tr
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.maps.run_maps import write_run_maps
-from dm2_backend.memory import peak_rss_mb, release_mapped
 from dm2_backend.pipeline import outputs
 from dm2_backend.pipeline.full_rate import corrected_full_rate
 from dm2_backend.pipeline.inputs import RunInputs, depth_sensor
 from dm2_backend.pipeline.run_report import PrepareSummary, RunReport
 from dm2_backend.prepare.steps import Prepared
-from dm2_backend.stage_log import StageLog
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.runtime.errors import InputError
+from dm2_backend.runtime.memory import peak_rss_mb, release_mapped
+from dm2_backend.runtime.stage_log import StageLog
 
 log = logging.getLogger(__name__)
 

@@ -26,23 +26,23 @@ import numpy as np
 
 from dm2_backend.algorithms.common import lengths, project_planar
 from dm2_backend.algorithms.pairwise import COARSE
-from dm2_backend.baselines import gtsam_backend
-from dm2_backend.baselines.graph import InformationModel, build_graph, valid_pairs
-from dm2_backend.baselines.options import SolverOptions
-from dm2_backend.errors import InputError
 from dm2_backend.evaluation import continuity
 from dm2_backend.evaluation.map_quality import MapSampler
-from dm2_backend.memory import release_mapped
+from dm2_backend.kernel import gtsam_solver
+from dm2_backend.kernel.graph_edges import InformationModel, build_graph, valid_pairs
+from dm2_backend.kernel.planes import Cells, agreement_score, cells_from_scans
+from dm2_backend.kernel.pose_graph import lift_planar_information
+from dm2_backend.kernel.scans import DEPTH_CAMERA, ScanSequence
+from dm2_backend.kernel.solver_options import SolverOptions
 from dm2_backend.optim import depth_noise
 from dm2_backend.optim.config import OptimConfig, dense_voxel
 from dm2_backend.optim.dense import refine_dense
 from dm2_backend.optim.dense_checkpoint import DENSE_CHECKPOINT
 from dm2_backend.optim.depth_noise import RangeNoise
-from dm2_backend.optim.planes import Cells, agreement_score, cells_from_scans
 from dm2_backend.pipeline import step_guard
-from dm2_backend.pose_graph import lift_planar_information
 from dm2_backend.prepare.steps import Prepared
-from dm2_backend.scans import DEPTH_CAMERA, ScanSequence
+from dm2_backend.runtime.errors import InputError
+from dm2_backend.runtime.memory import release_mapped
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +122,7 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None,
     if graph.meta["loop_edges"] == 0:  # the odometry edges are the prepared poses' own steps
         return Start(prepared, StartKind.PREPARED, "no registration edges beyond the odometry: the graph is the start")
     try:
-        solved = gtsam_backend.optimize(graph, GRAPH_SOLVER).poses
+        solved = gtsam_solver.optimize(graph, GRAPH_SOLVER).poses
     except InputError as exc:
         log.warning("pose-graph start failed (%s); starting from the prepared poses", exc.message)
         return Start(prepared, StartKind.PREPARED, f"the pose graph could not be solved: {exc.message}")
@@ -200,7 +200,7 @@ class DenseCells:
 
     def agreement(self, candidates: dict[str, np.ndarray]) -> dict[str, float]:
         """How far each candidate's frames lie from the planes the other frames make (m^2, lower is better;
-        :func:`~dm2_backend.optim.planes.agreement_score`, judged on each candidate's planes in turn)."""
+        :func:`~dm2_backend.kernel.planes.agreement_score`, judged on each candidate's planes in turn)."""
         return agreement_score(self.cells, candidates, self.voxel)
 
 
@@ -213,7 +213,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     ``checkpoint_dir``, continued with ``resume``; ``dense_cells``: the cells already built (else built here).
     Planar scans (2D lasers) see walls as lines: their cells are extruded into vertical walls a voxel tall, the
     planar graph is solved as an SE(3) one that holds z, roll and pitch
-    (:meth:`~dm2_backend.pose_graph.PoseGraph.lifted_to_se3`), and the result is projected back to x, y, yaw."""
+    (:meth:`~dm2_backend.kernel.pose_graph.PoseGraph.lifted_to_se3`), and the result is projected back to x, y, yaw."""
     if cfg.dense is False:
         return start
     planar = prep.frames.planar

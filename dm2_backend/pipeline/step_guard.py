@@ -3,7 +3,7 @@
 After the dense stage every consecutive step of its result is judged against the pair's valid registration and
 the front end's odometry step (:mod:`dm2_backend.evaluation.step_check`). Each contradicted step, and its
 neighbours in a stretch twice as wide each round, is held (:func:`hold_of`: an exact edge,
-:meth:`~dm2_backend.pose_graph.PoseGraph.holding`) where its two frames fit best, with the information they give
+:meth:`~dm2_backend.kernel.pose_graph.PoseGraph.holding`) where its two frames fit best, with the information they give
 (a direction they leave free, along a corridor or across one wall, is not held), and the dense stage solves again
 from its result; this repeats while steps are contradicted, at most :data:`ROUNDS` times. :func:`guard` returns the
 poses and the final verdicts; ``pipeline.start.dense_start`` does not return a result with a contradicted step left.
@@ -20,9 +20,9 @@ import numpy as np
 
 from dm2_backend.algorithms.common import fine_distance, lengths
 from dm2_backend.algorithms.icp import register
-from dm2_backend.baselines.graph import InformationModel, hessian_information, rmse_floor, valid_pairs
 from dm2_backend.evaluation.step_check import ODOMETRY, REGISTRATION, FramePairs, StepCheck, StepJudge
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.graph_edges import InformationModel, hessian_information, rmse_floor, valid_pairs
 from dm2_backend.prepare.steps import Prepared
 
 log = logging.getLogger(__name__)
@@ -87,7 +87,7 @@ def judge_of(prep: Prepared) -> StepJudge:
 def hold_of(judge: StepJudge, i: int) -> Hold | None:
     """Step ``i`` where its two frames fit best: its best reference polished by point-to-plane (planar:
     point-to-line) ICP, with their point-to-plane Hessian over the variance of its residuals as the information
-    (:func:`~dm2_backend.baselines.graph.hessian_information`); None where no reference matches enough points to
+    (:func:`~dm2_backend.kernel.graph_edges.hessian_information`); None where no reference matches enough points to
     say where (the step is not held)."""
     best = judge.best_reference(i)
     if best is None:

@@ -21,7 +21,7 @@ import types
 from pathlib import Path
 
 from dm2_backend import __version__
-from dm2_backend.scans import ScanSequence
+from dm2_backend.kernel.scans import ScanSequence
 
 #: read-spec entries that name files whose content the reading depends on
 FILE_OPTIONS = ("path", "times", "calib")

@@ -21,15 +21,15 @@ from typing import Any
 import numpy as np
 
 from dm2_backend.algorithms.common import path_length
-from dm2_backend.config_schema import PluginSection, RunConfig
-from dm2_backend.errors import InputError
+from dm2_backend.config.schema import PluginSection, RunConfig
+from dm2_backend.kernel.scans import DEPTH_CAMERA, ScanSequence
+from dm2_backend.kernel.stages import Frames, Pairwise, Topology
+from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.plugins.registry import load as load_plugin
 from dm2_backend.prepare import store
 from dm2_backend.prepare.cache_keys import code_fingerprint, source_key, step_key
-from dm2_backend.scans import DEPTH_CAMERA, ScanSequence
-from dm2_backend.stage_log import StageLog
-from dm2_backend.stages import Frames, Pairwise, Topology
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.runtime.errors import InputError
+from dm2_backend.runtime.stage_log import StageLog
 
 log = logging.getLogger(__name__)
 

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.atomic import atomic_path
-from dm2_backend.errors import InputError
-from dm2_backend.stages import Frames, Pairwise, ScanScale, Topology
+from dm2_backend.kernel.stages import Frames, Pairwise, ScanScale, Topology
+from dm2_backend.runtime.atomic import atomic_path
+from dm2_backend.runtime.errors import InputError
 
 log = logging.getLogger(__name__)
 

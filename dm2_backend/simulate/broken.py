@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from dm2_backend.baselines.gtsam_backend import optimize
-from dm2_backend.geometry import se3
-from dm2_backend.pose_graph import PoseGraph
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.gtsam_solver import optimize
+from dm2_backend.kernel.pose_graph import PoseGraph
+from dm2_backend.kernel.trajectory import Trajectory
 
 
 def bump(metres: float = 0.3, degrees: float = 2.0) -> np.ndarray:

@@ -18,8 +18,8 @@ import numpy as np
 import open3d as o3d
 
 from dm2_backend import __version__
-from dm2_backend.atomic import atomic_write
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.runtime.atomic import atomic_write
 from dm2_backend.simulate.lidar import LidarModel, Raycaster
 from dm2_backend.simulate.path import drifting_odometry
 from dm2_backend.simulate.sequence import write_sequence

@@ -30,15 +30,15 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from dm2_backend import __version__
-from dm2_backend.atomic import atomic_write
 from dm2_backend.formats.registry import ReadOptions
 from dm2_backend.formats.tum import write_tum
-from dm2_backend.geometry import se3
-from dm2_backend.progress import progress as progress_of
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.atomic import atomic_write
+from dm2_backend.runtime.progress import progress as progress_of
 from dm2_backend.simulate.path import drifting_odometry
 from dm2_backend.simulate.scene import _box
 from dm2_backend.simulate.sequence import _ate
-from dm2_backend.trajectory import Trajectory
 
 PATHS = ("walk", "rpy", "across")
 ROOM = (6.0, 5.0, 2.8)  # x, y, height (m); the floor at z = 0, the room centred on x = y = 0

@@ -16,14 +16,14 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from dm2_backend.atomic import atomic_write
 from dm2_backend.formats.carmen import robotlaser1_line
 from dm2_backend.formats.registry import ReadOptions
 from dm2_backend.formats.tum import write_tum
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.atomic import atomic_write
 from dm2_backend.simulate.corridor import _boxes, corridor_walls, ring_path
 from dm2_backend.simulate.path import drifting_odometry
-from dm2_backend.trajectory import Trajectory
 
 #: the SICK LMS's "no return" code (m): 8191 cm
 MAX_RANGE_CODE = 81.91

@@ -12,16 +12,16 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.atomic import atomic_write
 from dm2_backend.formats.carmen import load, max_range, robotlaser1_line
 from dm2_backend.formats.carmen_parser import SCAN_ORDER
-from dm2_backend.planar_returns import SAME_SURFACE
+from dm2_backend.kernel.planar_returns import SAME_SURFACE
+from dm2_backend.runtime.atomic import atomic_write
 from dm2_backend.simulate.hospital import MAX_RANGE_CODE, HospitalTraits, pauses, returns_with_traits
 
 
 def resample(r: np.ndarray, fraction: float, resolution: float) -> np.ndarray:
     """Ranges at the angles ``fraction`` (0 <= f < 1) of a beam step (``resolution``, rad) past each of ``r``'s
-    beams: linear between two valid beams on one surface (:data:`~dm2_backend.planar_returns.SAME_SURFACE`), else
+    beams: linear between two valid beams on one surface (:data:`~dm2_backend.kernel.planar_returns.SAME_SURFACE`), else
     the nearer beam's reading, the shorter at exactly half a step (never a phantom point between a wall and what is
     behind it); the last beam has no right neighbour and returns nothing (inf) unless ``fraction`` is 0.
     ``r``: invalid readings are inf."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
 
 PATHS = ("loop", "eight")
 

@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from dm2_backend.atomic import atomic_write
 from dm2_backend.formats.scan_folder import write_bin
-from dm2_backend.geometry import se3
-from dm2_backend.scans import ScanSequence
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.scans import ScanSequence
+from dm2_backend.runtime.atomic import atomic_write
 from dm2_backend.simulate.lidar import LidarModel, Raycaster
 from dm2_backend.simulate.path import drifting_odometry
 from dm2_backend.simulate.sequence import _ate, _write_trajectories

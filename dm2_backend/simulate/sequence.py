@@ -13,15 +13,15 @@ import numpy as np
 from evo.core.geometry import umeyama_alignment
 
 from dm2_backend import __version__
-from dm2_backend.atomic import atomic_write
 from dm2_backend.formats.kitti import write_kitti
 from dm2_backend.formats.registry import ReadOptions
 from dm2_backend.formats.scan_folder import write_bin
-from dm2_backend.progress import progress as progress_of
+from dm2_backend.kernel.trajectory import Trajectory
+from dm2_backend.runtime.atomic import atomic_write
+from dm2_backend.runtime.progress import progress as progress_of
 from dm2_backend.simulate.lidar import LidarModel, Raycaster
 from dm2_backend.simulate.path import centerline, drifting_odometry, street_path
 from dm2_backend.simulate.scene import make_scene
-from dm2_backend.trajectory import Trajectory
 
 
 @dataclass

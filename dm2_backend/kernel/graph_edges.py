@@ -32,10 +32,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dm2_backend.errors import InputError
-from dm2_backend.geometry import se3
-from dm2_backend.pose_graph import PoseGraph
-from dm2_backend.stages import Frames, Pairwise, Topology
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.pose_graph import PoseGraph
+from dm2_backend.kernel.stages import Frames, Pairwise, Topology
+from dm2_backend.runtime.errors import InputError
 
 MODEL_TEXT = "sigma_t = max(rmse, floor) / sqrt(fitness * points), sigma_r = sigma_t / lever arm"
 HESSIAN_TEXT = "registration Hessian J^T J (point-to-plane) / max(plane rmse, floor)^2; odometry: " + MODEL_TEXT

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import yaml
 
-from dm2_backend import config_schema
-from dm2_backend.atomic import atomic_write
-from dm2_backend.config_schema import RunConfig
-from dm2_backend.errors import InputError, did_you_mean
-from dm2_backend.input_files import CONFIG_MAX_BYTES, read_text_bounded
+from dm2_backend.config import schema as config_schema
+from dm2_backend.config.schema import RunConfig
+from dm2_backend.runtime.atomic import atomic_write
+from dm2_backend.runtime.errors import InputError, did_you_mean
+from dm2_backend.runtime.input_files import CONFIG_MAX_BYTES, read_text_bounded
 
 
 def merge(base: dict, override: dict) -> dict:

@@ -7,8 +7,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from dm2_backend.geometry import se3
-from dm2_backend.trajectory import Trajectory
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.trajectory import Trajectory
 
 #: g2o SE3 ordering [x y z qx qy qz] -> rotation-first [qx qy qz x y z] (GTSAM Pose3 tangent order)
 ROTATION_FIRST = np.array([3, 4, 5, 0, 1, 2])
@@ -113,3 +113,11 @@ def _ids_of(traj: Trajectory) -> np.ndarray:
         if np.all(np.diff(values) > 0):
             return values
     return np.arange(len(traj))
+
+
+def indefinite(info: np.ndarray) -> np.ndarray:
+    """Which of the (E, d, d) information matrices are not positive semi-definite (beyond rounding)."""
+    if len(info) == 0:
+        return np.zeros(0, bool)
+    w = np.linalg.eigvalsh(info)
+    return w[:, 0] < -1e-9 * np.maximum(np.abs(w).max(axis=1), 1.0)

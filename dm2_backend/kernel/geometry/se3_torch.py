@@ -1,4 +1,4 @@
-"""Differentiable twin of :mod:`dm2_backend.geometry.se3` for the optimiser (torch)."""
+"""Differentiable twin of :mod:`dm2_backend.kernel.geometry.se3` for the optimiser (torch)."""
 
 from __future__ import annotations
 

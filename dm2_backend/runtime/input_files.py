@@ -10,7 +10,7 @@ import os
 import stat
 from pathlib import Path
 
-from dm2_backend.errors import InputError
+from dm2_backend.runtime.errors import InputError
 
 #: bounds per kind of file (bytes): a config is a few lines; a trajectory of 10 million poses fits in 1 GiB
 CONFIG_MAX_BYTES = 4 << 20

@@ -1,7 +1,7 @@
 """Progress of the long stages, by one rule: a tqdm bar only when stderr is a terminal.
 
 Anywhere else (a file, a pipe, CI) no bar is drawn, so a log holds no carriage-return redraws; instead each
-stage ends with one ``logging`` line (INFO, logger ``dm2_backend.progress``) with its count, its time and
+stage ends with one ``logging`` line (INFO, logger ``dm2_backend.runtime.progress``) with its count, its time and
 its last status, e.g. ``loop closure: 120/120 in 4.2 s (closures=7)``. On a terminal the bar disappears
 when the stage ends and the same line stays. Status updates (:meth:`Progress.set_postfix`) never force a
 redraw: the bar shows them at its next regular refresh (at most every :data:`MININTERVAL` seconds).

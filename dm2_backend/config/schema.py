@@ -25,8 +25,8 @@ from pydantic import (
     ValidationError,
 )
 
-from dm2_backend.config_optimiser import OptimConfig
-from dm2_backend.errors import did_you_mean
+from dm2_backend.config.optimiser import OptimConfig
+from dm2_backend.runtime.errors import did_you_mean
 
 #: config section -> entry-point group of its plugins
 PLUGIN_GROUPS = {"warm_start": "dm2.warm_start", "place_recognition": "dm2.place_recognition",

@@ -1,4 +1,4 @@
-"""Baseline names and solver options (no heavy imports: the CLI reads these at start-up)."""
+"""The pose-graph solvers' options and result (no heavy imports: the CLI reads these at start-up)."""
 
 from __future__ import annotations
 
@@ -6,17 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dm2_backend.errors import InputError
+from dm2_backend.runtime.errors import InputError
 
-#: method -> description (``dm2 baseline --help``)
-METHODS = {
-    "gtsam": "pose graph (odometry + loop registrations) solved by GTSAM Levenberg-Marquardt",
-    "g2o": "the same pose graph solved by g2o (needs dm2[g2o])",
-    "multiway": "Open3D multiway registration (global_optimization with line-process loop pruning)",
-    "icp": "the incremental ICP warm start itself",
-}
-#: methods that solve a g2o pose graph (``--graph``)
-GRAPH_METHODS = ("gtsam", "g2o")
 #: robust kernel -> default threshold on the whitened residual (95 % asymptotic efficiency where defined)
 KERNELS = {"huber": 1.345, "cauchy": 2.3849, "tukey": 4.6851, "welsch": 2.9846, "geman-mcclure": 1.0,
            "fair": 1.3998, "dcs": 1.0}

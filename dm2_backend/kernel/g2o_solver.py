@@ -15,11 +15,11 @@ import time
 
 import numpy as np
 
-from dm2_backend.baselines.gtsam_backend import anchors
-from dm2_backend.baselines.options import KERNELS, GraphResult, SolverOptions
-from dm2_backend.errors import InputError
-from dm2_backend.geometry import se3
-from dm2_backend.pose_graph import PoseGraph
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.gtsam_solver import anchors
+from dm2_backend.kernel.pose_graph import PoseGraph
+from dm2_backend.kernel.solver_options import KERNELS, GraphResult, SolverOptions
+from dm2_backend.runtime.errors import InputError
 
 _KERNEL_CLASSES = {"huber": "RobustKernelHuber", "cauchy": "RobustKernelCauchy", "tukey": "RobustKernelTukey",
                    "welsch": "RobustKernelWelsch", "geman-mcclure": "RobustKernelGemanMcClure",

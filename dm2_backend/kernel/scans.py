@@ -10,8 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dm2_backend.errors import InputError
-from dm2_backend.trajectory import Trajectory, associate_by_time, interpolate_gaps
+from dm2_backend.kernel.trajectory import Trajectory, associate_by_time, interpolate_gaps
+from dm2_backend.runtime.errors import InputError
 
 log = logging.getLogger(__name__)
 

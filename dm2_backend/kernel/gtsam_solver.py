@@ -11,11 +11,10 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from dm2_backend.baselines.options import KERNELS, GraphResult, SolverOptions
-from dm2_backend.errors import InputError
-from dm2_backend.formats.g2o import indefinite
-from dm2_backend.geometry import se3
-from dm2_backend.pose_graph import PoseGraph
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.pose_graph import PoseGraph, indefinite
+from dm2_backend.kernel.solver_options import KERNELS, GraphResult, SolverOptions
+from dm2_backend.runtime.errors import InputError
 
 #: robust kernel name -> GTSAM m-estimator
 ESTIMATORS = {

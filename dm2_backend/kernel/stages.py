@@ -1,5 +1,5 @@
 """The types the preparation hands on (to its own steps, the optimiser, the baselines and the writers): the data
-model beside :mod:`dm2_backend.scans` and :mod:`dm2_backend.trajectory`."""
+model beside :mod:`dm2_backend.kernel.scans` and :mod:`dm2_backend.kernel.trajectory`."""
 
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ class Frames:
     """Down-sampled scans held in memory for preparation and optimisation.
 
     ``points[i]`` is (M_i, 3) float32 in the sensor frame of frame i. ``scale`` holds the lengths derived
-    from the data (:class:`ScanScale`, from :func:`dm2_backend.scan_scale.derive_scale`).
+    from the data (:class:`ScanScale`, from :func:`dm2_backend.kernel.scan_scale.derive_scale`).
     """
 
     points: list[np.ndarray]

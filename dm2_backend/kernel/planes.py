@@ -31,11 +31,11 @@ from typing import Literal
 import numpy as np
 from scipy.sparse import bsr_matrix, csr_matrix
 
-from dm2_backend.geometry.symmetric3 import smallest_eigen
-from dm2_backend.geometry.voxels import flat_keys, group_rows
-from dm2_backend.progress import progress as progress_of
-from dm2_backend.scans import ScanSequence
-from dm2_backend.threads import ordered_map
+from dm2_backend.kernel.geometry.symmetric3 import smallest_eigen
+from dm2_backend.kernel.geometry.voxels import flat_keys, group_rows
+from dm2_backend.kernel.scans import ScanSequence
+from dm2_backend.runtime.progress import progress as progress_of
+from dm2_backend.runtime.threads import ordered_map
 
 #: a voxel is flat when its smallest covariance eigenvalue is below this fraction of the middle one
 #: (thickness under a quarter of its width) ...

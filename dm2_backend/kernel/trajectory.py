@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.errors import InputError
-from dm2_backend.geometry import se3
+from dm2_backend.kernel.geometry import se3
+from dm2_backend.runtime.errors import InputError
 
 
 @dataclass

@@ -7,7 +7,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
-from dm2_backend.memory import peak_rss_mb
+from dm2_backend.runtime.memory import peak_rss_mb
 
 
 @dataclass

@@ -22,7 +22,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO
 
-from dm2_backend.errors import InputError
+from dm2_backend.runtime.errors import InputError
 
 _TEMP = re.compile(r"\.tmp-(\d+)-")
 #: called with each target path before it is written (see :func:`watching_writes`)
