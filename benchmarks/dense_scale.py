@@ -82,7 +82,7 @@ def main(sim: str, out: str, rounds: int = 30) -> None:
     profiles = consistency_profiles(scans, {"warm": warm, "dense": result.poses})
     stages.end("profiles")
     report = {"frames": n, "cells_cap": 1_500_000, "voxel": voxel, "rounds": len(result.history),
-              "stopped": result.stopped, "stages": stages.rows, "agreement": agreement,
+              "stopped": result.stopped.detail, "stages": stages.rows, "agreement": agreement,
               "poses_sum": float(result.poses.sum()),
               "profiles": {k: {"level_m": p.level_m, "flagged": int(p.flagged.sum()),
                                "score_sum": float(np.nansum(p.score_m))} for k, p in profiles.items()}}

@@ -264,7 +264,7 @@ def test_a_crafted_checkpoint_is_refused_before_the_preparation(seq, tmp_path, m
     else:
         _dense_checkpoint(out / which, {"poses.npy": _npy(poses), "start.npy": _npy(np.tile(np.eye(4), (12, 1, 1))),
                                         "meta.npy": _npy(np.array('{"rounds_done": 1, "damping": 1e-4, '
-                                                                  '"history": [], "stopped": ""}'))})
+                                                                  '"history": [], "stopped": null}'))})
 
     def never(*args, **kwargs):
         raise AssertionError("the preparation started")

@@ -20,6 +20,7 @@ from dm2_backend.kernel.pose_graph import PoseGraph
 from dm2_backend.kernel.scans import Scan, ScanSequence
 from dm2_backend.optim.config import OptimConfig
 from dm2_backend.optim.dense import refine_dense
+from dm2_backend.optim.stop import StopReason
 from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.runtime.memory import release_mapped
 from dm2_backend.simulate.broken import bump, closure_graph, wrong_closure
@@ -171,7 +172,7 @@ def test_the_truth_is_a_fixed_point():
     graph, _ = odometry_graph(gt, 0.01, 0.001)
     result = refine_dense(cells, graph, gt, VOXEL)
     assert ate_rmse(gt, result.poses) < 0.002  # the range noise is 0.02 m
-    assert result.history and "converged" in result.stopped
+    assert result.history and result.stopped.reason is StopReason.CONVERGED
 
 
 def test_a_drifted_start_reaches_the_noise_floor():
@@ -182,7 +183,7 @@ def test_a_drifted_start_reaches_the_noise_floor():
     result = refine_dense(cells, graph, dead, VOXEL)
     end = ate_rmse(gt, result.poses)
     # a dead-reckoned chain without loop edges (its soft bending modes follow the planes: held planes crept)
-    assert start > 0.05 and end < 2 * floor and "converged" in result.stopped
+    assert start > 0.05 and end < 2 * floor and result.stopped.reason is StopReason.CONVERGED
     assert result.history[-1]["sigma"] < 0.5 * result.history[0]["sigma"]  # the map's noise scale: sharper
 
 
@@ -249,11 +250,12 @@ def test_a_dense_result_that_agrees_worse_is_not_kept(monkeypatch, scores):
     given = start_module.Start(gt, start_module.StartKind.GRAPH, "the pose-graph solution")
     moved = gt.copy()
     moved[:, 0, 3] += 0.5
-    monkeypatch.setattr(start_module, "refine_dense", lambda *a, **k: DenseResult(moved, [], 0.0, "test"))
+    monkeypatch.setattr(start_module, "refine_dense", lambda *a, **k: DenseResult(moved, [], 0.0))
     monkeypatch.setattr(start_module, "agreement_score", lambda *a, **k: dict(scores))
     out = start_module.dense_start(seq, prep, given, OptimConfig())
     np.testing.assert_array_equal(out.poses, gt)  # the start (graph) agreed best, or nothing could be judged
-    assert out.name is start_module.StartKind.GRAPH and not out.refined and out.dense["returned"] == "graph"
+    assert out.name is start_module.StartKind.GRAPH and not out.refined
+    assert out.dense.returned is start_module.Kept.GRAPH
 
 
 def test_a_dense_result_that_cuts_the_sequence_is_not_kept(monkeypatch):
@@ -269,13 +271,14 @@ def test_a_dense_result_that_cuts_the_sequence_is_not_kept(monkeypatch):
     prep.resolved = {"registration": PluginSection(name="icp", options={"max_distance": 0.3})}
     cut = gt.copy()
     cut[16:] = se3.make_poses(Rotation.from_rotvec([0, 0, 0.5]).as_matrix(), np.array([5.0, 0, 0])) @ gt[16:]
-    monkeypatch.setattr(start_module, "refine_dense", lambda *a, **k: DenseResult(cut, [], 0.0, "test"))
+    monkeypatch.setattr(start_module, "refine_dense", lambda *a, **k: DenseResult(cut, [], 0.0))
     scores = {"warm start": 1.0, "prepared": 0.5, "dense": 0.1}
     monkeypatch.setattr(start_module, "agreement_score", lambda *a, **k: dict(scores))
     given = start_module.Start(prep.warm_start, start_module.StartKind.PREPARED, "the prepared poses")
     out = start_module.dense_start(seq, prep, given, OptimConfig())
     np.testing.assert_array_equal(out.poses, prep.warm_start)
-    assert not out.refined and out.dense["returned"] == "prepared" and out.dense["cuts"]["steps"] == [15]
+    assert not out.refined and out.dense.returned is start_module.Kept.PREPARED
+    assert out.dense.cuts.steps.tolist() == [15]
     assert "cuts the sequence at step 15 (" in out.why
 
 
@@ -286,8 +289,8 @@ def test_the_dense_stage_is_kept_when_it_agrees_best():
     noisy = gt.copy()
     noisy[:, :3, 3] += np.random.default_rng(0).normal(0, 0.05, (len(gt), 3))
     out = dense_start(seq, prep, Start(noisy, StartKind.GRAPH, "test"), OptimConfig())
-    assert out.refined and out.locally_accurate and out.dense["rounds"] >= 1
-    assert out.dense["agreement_m2"]["dense"] < out.dense["agreement_m2"]["graph"]
+    assert out.refined and out.locally_accurate and len(out.dense.history) >= 1
+    assert out.dense.agreement_m2["dense"] < out.dense.agreement_m2["graph"]
 
 
 def test_eliminating_the_planes_gives_the_curvature_of_the_refitted_cost():

@@ -19,6 +19,7 @@ from dm2_backend.kernel.pose_graph import ROTATION_FIRST, PoseGraph
 from dm2_backend.kernel.scans import Scan, ScanSequence
 from dm2_backend.optim import dense_checkpoint, odometry_noise
 from dm2_backend.optim.dense import refine_dense
+from dm2_backend.optim.stop import Stop, StopReason
 from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.runtime.errors import InputError
 from dm2_backend.simulate.sequence import SimSettings, simulate
@@ -144,7 +145,7 @@ def test_the_dense_stage_measures_the_odometry_it_was_given_with_a_guessed_weigh
     start[:, :3, 3] += np.random.default_rng(4).normal(0, 0.005, (len(gt), 3))
     ckpt = tmp_path / dense_checkpoint.DENSE_CHECKPOINT
     result = refine_dense(cells, graph, start, VOXEL, measure_odometry=True, checkpoint=ckpt)
-    assert result.odometry is not None and "odometry weighed" in result.stopped
+    assert result.odometry is not None and result.stopped.reason is StopReason.CONVERGED
     truth = np.array([5e-4] * 3 + [5e-5] * 3)
     assert np.all(result.odometry.sigma > truth / 2) and np.all(result.odometry.sigma < 2 * truth)
     assert ate_rmse(gt, result.poses) < 0.002  # from 0.0087; the range noise is 0.02 m
@@ -177,20 +178,20 @@ def test_a_checkpoint_with_a_damaged_odometry_record_is_refused(tmp_path):
     ckpt = tmp_path / dense_checkpoint.DENSE_CHECKPOINT
     row = {"graph": 1.0, "sigma": 0.01, "step_rms_m": 0.001}
     good = odometry_noise.MeasuredNoise(SIGMA.copy(), SOLUTION.copy(), 99)
-    dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row], "", good), poses)
+    dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row], None, good), poses)
     np.testing.assert_array_equal(dense_checkpoint.load(ckpt, poses, 30).odometry.sigma, SIGMA)
     for bad, match in ((odometry_noise.MeasuredNoise(-SIGMA, SOLUTION, 99), "odometry noise"),
                        (odometry_noise.MeasuredNoise(SIGMA * 1e-200, SOLUTION, 99), "odometry noise"),
                        (odometry_noise.MeasuredNoise(SIGMA * 1e200, SOLUTION, 99), "odometry noise"),
                        (odometry_noise.MeasuredNoise(SIGMA, SOLUTION, 100), "odometry edges")):
-        dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row], "", bad), poses)
+        dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row], None, bad), poses)
         with pytest.raises(InputError, match=match):
             dense_checkpoint.load(ckpt, poses, 30)
-    dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [{"sigma": 0.01}], "", good), poses)
+    dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [{"sigma": 0.01}], None, good), poses)
     with pytest.raises(InputError, match="round records lack"):
         dense_checkpoint.load(ckpt, poses, 30)
     huge = odometry_noise.MeasuredNoise(SIGMA, SOLUTION, 99)
-    dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row], "", huge), poses)
+    dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row], None, huge), poses)
     text = ckpt.read_bytes()
     with np.load(ckpt) as data:  # a sigma written as a 400-digit integer: too large for a float
         meta = json.loads(str(data["meta"]))
@@ -200,4 +201,21 @@ def test_a_checkpoint_with_a_damaged_odometry_record_is_refused(tmp_path):
     ckpt.with_suffix(".tmp.npz").replace(ckpt)
     assert ckpt.read_bytes() != text
     with pytest.raises(InputError, match="does not fit"):
+        dense_checkpoint.load(ckpt, poses, 30)
+
+
+def test_a_checkpoint_records_why_the_stage_ended_and_refuses_an_unknown_reason(tmp_path):
+    poses = se3.identity(10)
+    ckpt = tmp_path / dense_checkpoint.DENSE_CHECKPOINT
+    row = {"graph": 1.0, "sigma": 0.01, "step_rms_m": 0.001}
+    ended = Stop(StopReason.CONVERGED, "converged in round 0")
+    dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row], ended), poses)
+    assert dense_checkpoint.load(ckpt, poses, 30).stopped == ended
+    with np.load(ckpt) as data:
+        meta = json.loads(str(data["meta"]))
+        meta["stopped"]["reason"] = "bored"
+        np.savez(ckpt.with_suffix(".tmp.npz"), poses=data["poses"], start=data["start"],
+                 meta=np.array(json.dumps(meta)))
+    ckpt.with_suffix(".tmp.npz").replace(ckpt)
+    with pytest.raises(InputError, match="end record"):
         dense_checkpoint.load(ckpt, poses, 30)

@@ -26,6 +26,7 @@ from dm2_backend.optim.config import (
     sampled_points,
 )
 from dm2_backend.optim.regime import disagreement, locally_accurate
+from dm2_backend.optim.stop import StopReason
 from dm2_backend.optim.trainer import Optimiser, OptimResult
 from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.plugins.topology_radius import RadiusTopology
@@ -82,7 +83,7 @@ def test_refine_lowers_ate_with_icp_pairwise(case, full_run):
     result, rec, folder = full_run
     before, after = ate_rmse(case.gt, case.warm), ate_rmse(case.gt, result.poses)
     assert after <= 0.7 * before, (before, after)
-    assert len(result.history) == EPOCHS and result.stopped is None
+    assert len(result.history) == EPOCHS and result.stopped.reason is StopReason.BUDGET
     assert [row["epoch"] for row in result.history] == list(range(EPOCHS))
     assert all({"loss", "bce", "chamfer", "consistency", "ate"} <= set(row) for row in result.history)
     assert result.history[-1]["ate"] == pytest.approx(ate_rmse(case.gt, rec.poses[-1]))
@@ -119,7 +120,7 @@ def test_refine_lowers_ate_with_ground_truth_pairwise(case):
 ], ids=["no-consistency", "no-bce", "no-chamfer", "temporal", "random", "lnet", "no-drift"])
 def test_ablation_switches_run(case, switches, absent):
     result = optimiser(case, epochs=2, **switches).run()
-    assert len(result.history) == 2 and result.stopped is None
+    assert len(result.history) == 2 and result.stopped.reason is StopReason.BUDGET
     assert np.isfinite(result.poses).all() and result.poses.shape == case.warm.shape
     # every variant still does the job in two epochs: measured 0.30-0.67 of the warm start's error against the
     # truth (no drift terms 0.67, the full objective 0.30)
@@ -194,7 +195,7 @@ def test_non_finite_loss_stops_and_keeps_best(case, monkeypatch, nan_at_step):
     opt = optimiser(case, metric=rec)
     result = opt.run()
     epoch, step = divmod(nan_at_step, opt.steps_per_epoch)
-    assert result.stopped is not None and f"epoch {epoch} step {step}" in result.stopped
+    assert result.stopped.reason is StopReason.NON_FINITE and f"epoch {epoch} step {step}" in result.stopped.detail
     assert len(result.history) == epoch and np.isfinite(result.poses).all()
     if epoch == 0:
         assert result.best_epoch == -1
@@ -269,7 +270,7 @@ def test_3d_sequence_runs():
                     progress=False)
     assert opt.field.dim == 3 and not opt.planar
     result = opt.run()
-    assert np.isfinite(result.poses).all() and result.stopped is None
+    assert np.isfinite(result.poses).all() and not result.stopped.failed
     assert np.abs(result.poses[:, 2, 3] - warm[:, 2, 3]).max() > 0  # z is free in 3D
     # one epoch from a drifting start towards the truth (measured 0.309 -> 0.216 m)
     assert ate_rmse(c.gt, result.poses) < 0.85 * ate_rmse(c.gt, warm)
@@ -372,7 +373,7 @@ def test_a_diverging_run_returns_its_start_not_a_scattered_map(case, select):
     result = opt.run()
     assert all("rejected" in row for row in result.history)
     assert min(row["disagreement"] for row in result.history) > 10 * opt.derived.start_disagreement
-    assert result.best_epoch == -1 and "diverged" in result.stopped
+    assert result.best_epoch == -1 and result.stopped.reason is StopReason.DIVERGED
     np.testing.assert_allclose(result.poses, case.warm, atol=1e-9)
 
 
@@ -395,7 +396,7 @@ def test_converged_run_stops_early_and_traces(case):
                     small_config(epochs=6, converge_tol=1.0), device="cpu", map_metric=flat_map, progress=False,
                     trace_metric=lambda poses: ate_rmse(case.gt, poses)).run()
     assert [row["epoch"] for row in run.history] == [0, 1, 2] and "converged" in run.history[-1]
-    assert run.stopped is None and run.best_epoch == -1  # the start: no epoch made a sharper map
+    assert not run.stopped.failed and run.best_epoch == -1  # the start: no epoch made a sharper map
     trace = [p for row in run.history for p in row["trace"]]
     assert [p["step"] for p in trace] == sorted({p["step"] for p in trace}) and all("ate" in p for p in trace)
     assert run.history[-1]["steps"] == trace[-1]["step"]

@@ -17,7 +17,7 @@ from dm2_backend.kernel.solver_options import GraphResult
 from dm2_backend.optim.config import OptimConfig
 from dm2_backend.pipeline import start as start_module
 from dm2_backend.pipeline.live import ate_rmse
-from dm2_backend.pipeline.start import GRAPH_SOLVER, StartKind, choose_start
+from dm2_backend.pipeline.start import GRAPH_SOLVER, Kept, StartKind, choose_start
 from dm2_backend.prepare.steps import Prepared
 
 
@@ -68,13 +68,12 @@ def test_a_graph_solution_that_cuts_the_sequence_is_not_taken(prepared, sampler,
     monkeypatch.setattr(start_module.gtsam_solver, "optimize", cut)
     start = choose_start(prepared, OptimConfig(start="graph"), sampler)
     assert start.name is StartKind.PREPARED and "cuts the sequence at step 30 (" in start.why
-    assert start.cuts["graph"]["steps"] == [30] and start.summary()["cuts"] == start.cuts
+    assert start.graph_cuts.steps.tolist() == [30] and start.summary()["cuts"] == {"graph": start.graph_cuts.summary()}
     np.testing.assert_array_equal(start.poses, prepared.initial)
     # the unbroken graph solution is judged and kept
     monkeypatch.undo()
     kept = choose_start(prepared, OptimConfig(start="graph"), sampler)
-    assert kept.name is StartKind.GRAPH and kept.cuts["graph"] == {"judged": True, "steps": [], "offset_m": [],
-                                                                    "offset_deg": []}
+    assert kept.name is StartKind.GRAPH and kept.graph_cuts.judged and not kept.graph_cuts
 
 
 def test_the_dense_stages_cells_judge_the_graph_start(prepared, monkeypatch):
@@ -144,11 +143,11 @@ def test_the_dense_stage_on_planar_scans_stays_planar_and_lowers_the_error():
     floor = ate_rmse(case.gt, truth.poses)
     start = perturb(case.gt, 0.05, 0.01, seed=1)
     out = dense_start(seq, prep, Start(start, StartKind.PREPARED, "test"), OptimConfig())
-    assert out.refined and out.dense["rounds"] >= 1
+    assert out.refined and len(out.dense.history) >= 1
     assert all(se3.is_planar(p) for p in out.poses)  # projected; before that the graph held them (test below)
     assert floor < 0.01  # the truth stands (its steps fit their frames best) or moves within the noise
     assert ate_rmse(case.gt, out.poses) < min(0.01, 0.2 * ate_rmse(case.gt, start))
-    assert out.dense["step_guard"]["contradicted"] == 0 and truth.dense["step_guard"]["contradicted"] == 0
+    assert out.dense.step_guard.clean and truth.dense.step_guard.clean
 
 
 def test_a_planar_graph_lifted_to_se3_has_the_planar_costs_and_optimum(prepared):
@@ -204,9 +203,9 @@ def test_a_corridors_truth_holds_with_the_registrations_own_information():
     assert 0.005 < noise < 0.02  # the point-to-line spread of 2 cm range noise seen at an angle
     seq = ScanSequence(lambda i: Scan(scans[i]), len(scans), planar=True)
     out = dense_start(seq, prep, Start(gt, StartKind.PREPARED, "truth"), OptimConfig())
-    assert out.dense["returned"] == "dense" and out.dense["hessian_edges"] > 0
+    assert out.dense.returned is Kept.DENSE and out.dense.hessian_edges > 0
     voxel = dense_voxel(OptimConfig(), frames.scale)  # without the noise bound
-    assert out.dense["voxel_m"] == pytest.approx(NOISE_WIDTHS * noise) and out.dense["voxel_m"] > voxel
+    assert out.dense.voxel_m == pytest.approx(NOISE_WIDTHS * noise) and out.dense.voxel_m > voxel
     cells = cells_from_scans(seq, voxel / 4, 2048, 10**6, keep_scatter="thin", along_beams=False).extruded(voxel)
     isotropic = build_graph(frames, gt, topology, pairwise).lifted_to_se3(PLANAR_HOLD)
     before = refine_dense(cells, isotropic, gt, voxel, measure_odometry=True).poses

@@ -265,14 +265,14 @@ def test_no_first_order_epochs_after_a_dense_stage_whose_result_was_not_kept(roo
     seq = ScanSequence(lambda i: Scan(scans[i]), n, planar=False)
     wobble = np.random.default_rng(3).normal(0, 0.01, (n, 3))
     wobbly = truth @ se3.from_xyz_euler(np.column_stack([wobble, np.zeros((n, 3))]))
-    monkeypatch.setattr(start_module, "refine_dense", lambda *a, **k: DenseResult(wobbly, [], 0.0, "test"))
+    monkeypatch.setattr(start_module, "refine_dense", lambda *a, **k: DenseResult(wobbly, [], 0.0))
     monkeypatch.setattr(start_module, "agreement_score",
                         lambda *a, **k: {"warm start": 1.0, "prepared": 0.5, "dense": 0.9})
     given = start_module.Start(truth, start_module.StartKind.PREPARED, "the prepared poses")
     out = start_module.dense_start(seq, prep, given, OptimConfig())
     np.testing.assert_array_equal(out.poses, truth)
-    assert out.dense["returned"] == "prepared" and out.dense_ran and not out.refined
-    assert out.dense["step_guard"]["check"]["fit_m"] > out.dense["start_fit_m"]  # the wobbly steps fit worse
+    assert out.dense.returned is start_module.Kept.PREPARED and out.dense_ran and not out.refined
+    assert out.dense.step_guard.check.fit_m > out.dense.start_fit_m  # the wobbly steps fit worse
     assert build(prep, out, RunConfig(), progress=False).epochs == 0
     assert build(prep, start_module.Start(truth, start_module.StartKind.PREPARED, "no dense stage"), RunConfig(),
                  progress=False).epochs > 0

@@ -35,6 +35,7 @@ from dm2_backend.kernel.planes import Cells
 from dm2_backend.kernel.pose_graph import PoseGraph
 from dm2_backend.kernel.solver_options import SolverOptions
 from dm2_backend.optim import dense_checkpoint, odometry_noise
+from dm2_backend.optim.stop import Stop, StopReason
 from dm2_backend.runtime.memory import release_freed_memory
 from dm2_backend.runtime.progress import progress as progress_of
 
@@ -50,13 +51,15 @@ SCALES = (1.0, 2.0, 4.0)
 SETTLED = 0.01
 
 
-@dataclass
+@dataclass(frozen=True)
 class DenseResult:
+    """The dense stage's poses, its rounds and why they ended."""
+
     poses: np.ndarray
     #: one row per round: objective (plane, graph, total), noise sigma (m), planes, step (m, rad), step scale
     history: list[dict] = field(default_factory=list)
     seconds: float = 0.0
-    stopped: str = ""
+    stopped: Stop = Stop(StopReason.BUDGET, "")
     #: rounds a checkpoint had done before this run continued it (0: started afresh)
     resumed_after: int = 0
     #: the odometry noise measured once the planes settled and weighed from then on (None: not measured)
@@ -155,8 +158,8 @@ def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float
     if resume and checkpoint is not None and checkpoint.is_file():
         state = dense_checkpoint.load(checkpoint, start, rounds)
         log.info("dense stage: resumed after round %d of %d%s", state.rounds_done, rounds,
-                 f" ({state.stopped})" if state.stopped else "")
-        if state.stopped:
+                 f" ({state.stopped})" if state.stopped is not None else "")
+        if state.stopped is not None:
             return DenseResult(state.poses, state.history, 0.0, state.stopped, state.rounds_done, state.odometry)
     odometry = state.odometry
     steps = odometry_noise.consecutive_edges(graph) if measure_odometry or odometry is not None else None
@@ -166,9 +169,9 @@ def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float
     objective = _Objective(fg, graph)
     poses, history, lam = state.poses, state.history, state.damping
     values = gtsam_solver.to_values(graph, poses)
-    stopped = f"{rounds} rounds"
+    stopped = Stop(StopReason.BUDGET, f"{rounds} rounds")
 
-    def keep(rounds_done: int, end: str = "") -> None:
+    def keep(rounds_done: int, end: Stop | None = None) -> None:
         if checkpoint is not None:
             dense_checkpoint.save(checkpoint, dense_checkpoint.DenseState(poses, rounds_done, lam, history, end,
                                                                           odometry), start)
@@ -213,7 +216,7 @@ def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float
         if best is None:
             if reweigh(r + 1):
                 continue
-            stopped = f"round {r}: no step lowered the objective"
+            stopped = Stop(StopReason.NO_DESCENT, f"round {r}: no step lowered the objective")
             keep(r + 1, stopped)
             break
         value, plane_value, values, new_poses, scale = best
@@ -232,11 +235,11 @@ def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float
             assignment = plane = None
             continue
         if done:
-            stopped = f"converged in round {r} (rms step {step_rms:.2g} m" + (
-                ", odometry weighed by its measured noise)" if odometry is not None else ")")
+            stopped = Stop(StopReason.CONVERGED, f"converged in round {r} (rms step {step_rms:.2g} m" + (
+                ", odometry weighed by its measured noise)" if odometry is not None else ")"))
             keep(r + 1, stopped)
             break
-        keep(r + 1, stopped if r + 1 == rounds else "")
+        keep(r + 1, stopped if r + 1 == rounds else None)
         assignment = plane = None  # released before the next round builds its own
     log.debug("dense stage: %s, %.1f s", stopped, time.perf_counter() - t0)
     return DenseResult(poses, history, time.perf_counter() - t0, stopped, state.rounds_done, odometry)

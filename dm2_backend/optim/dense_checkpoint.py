@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from dm2_backend.optim.odometry_noise import MAX_SIGMA, MIN_SIGMA, MeasuredNoise
+from dm2_backend.optim.stop import Stop, StopReason
 from dm2_backend.runtime.atomic import atomic_write
 from dm2_backend.runtime.errors import InputError
 
@@ -37,21 +38,22 @@ ROW_NUMBERS = ("graph", "sigma", "step_rms_m")
 @dataclass
 class DenseState:
     """Where the dense stage stands: the poses after ``rounds_done`` rounds, the damping for the next round,
-    the rows of the rounds done, ``stopped`` once the stage ended (empty while it runs), and the odometry noise
+    the rows of the rounds done, ``stopped`` once the stage ended (None while it runs), and the odometry noise
     weighed since the planes settled (None: not measured yet)."""
 
     poses: np.ndarray
     rounds_done: int
     damping: float
     history: list[dict]
-    stopped: str = ""
+    stopped: Stop | None = None
     odometry: MeasuredNoise | None = None
 
 
 def save(path: Path, state: DenseState, start: np.ndarray) -> None:
     """Write ``state`` to ``path`` under a temporary name and rename it."""
     buf = io.BytesIO()
-    meta = {"rounds_done": state.rounds_done, "damping": state.damping, "stopped": state.stopped,
+    stopped = None if state.stopped is None else {"reason": state.stopped.reason.value, "detail": state.stopped.detail}
+    meta = {"rounds_done": state.rounds_done, "damping": state.damping, "stopped": stopped,
             "history": state.history, "odometry": state.odometry.summary() if state.odometry else None}
     np.savez(buf, poses=np.asarray(state.poses, dtype=np.float64), start=np.asarray(start, dtype=np.float64),
              meta=np.array(json.dumps(meta, default=float)))
@@ -144,9 +146,18 @@ def _checked(poses: np.ndarray, made_from: np.ndarray, meta: dict, start: np.nda
         raise ValueError("its round records do not match its rounds")
     if not all(isinstance(r.get(k), float | int) and np.isfinite(r[k]) for r in history for k in ROW_NUMBERS):
         raise ValueError(f"its round records lack one of {', '.join(ROW_NUMBERS)}")
-    if not isinstance(stopped, str) or len(stopped) > 500:
-        raise ValueError("its end record is not a short text")
-    return DenseState(poses, done, float(damping), history, stopped, _odometry(meta.get("odometry"), len(start)))
+    return DenseState(poses, done, float(damping), history, _stop(stopped), _odometry(meta.get("odometry"), len(start)))
+
+
+def _stop(record: object) -> Stop | None:
+    """The end a checkpoint recorded: None (still running) or a known reason with a short text."""
+    if record is None:
+        return None
+    reasons = {r.value: r for r in StopReason}
+    if (not isinstance(record, dict) or record.get("reason") not in reasons or not isinstance(record.get("detail"), str)
+            or len(record["detail"]) > 500):
+        raise ValueError("its end record is not a known reason with a short text")
+    return Stop(reasons[record["reason"]], record["detail"])
 
 
 def _odometry(record: object, frames: int) -> MeasuredNoise | None:

@@ -25,18 +25,21 @@ from dm2_backend.optim.occupancy import GridOccupancy
 from dm2_backend.optim.pose_model import PoseModel
 from dm2_backend.optim.regime import disagreement, locally_accurate
 from dm2_backend.optim.selection import first_candidate, offer, selection
+from dm2_backend.optim.stop import Stop, StopReason
 from dm2_backend.runtime.errors import InputError, one_line
 from dm2_backend.runtime.progress import progress
 from dm2_backend.runtime.threads import ordered_map
 
 
-@dataclass
+@dataclass(frozen=True)
 class OptimResult:
+    """The first-order stage's returned poses, its epochs and why they ended."""
+
     poses: np.ndarray
     best_epoch: int
     history: list[dict] = field(default_factory=list)
     derived: Derived | None = None
-    stopped: str | None = None
+    stopped: Stop = Stop(StopReason.BUDGET, "")
     #: which poses were returned and why (``best_epoch`` -1: the start itself)
     selection: str = ""
 
@@ -329,7 +332,7 @@ class Optimiser:
                 raise InputError(ckpt, "--resume: this checkpoint is of another kind of run and does not fit this "
                                        f"one ({one_line(str(exc))[:160]}); run without --resume") from None
         ddp = distributed.data_parallel(self) if dist.enabled else None
-        stopped = None
+        stopped: Stop | None = None
         # convergence (loss and, with a metric, accuracy against the steps): a few points per epoch
         trace_every = max(1, self.steps_per_epoch // 8)
         warmup_epochs = math.ceil(self.derived.pose_warmup_steps / self.steps_per_epoch)
@@ -359,7 +362,8 @@ class Optimiser:
                     values = distributed.reduce_parts(parts, weight)
                     loss = parts["loss"] * (weight * dist.world)
                 if not torch.isfinite(values["loss"]):  # the reduced loss: every rank stops together
-                    stopped = f"non-finite loss at epoch {epoch} step {s}; kept the best epoch"
+                    stopped = Stop(StopReason.NON_FINITE, f"non-finite loss at epoch {epoch} step {s}; kept the best "
+                                                          "epoch")
                     break
                 self.optim.zero_grad(set_to_none=True)
                 loss.backward()
@@ -403,17 +407,19 @@ class Optimiser:
             if dist.enabled and early:
                 flat = distributed.broadcast(flat)
             if flat >= 2 and epoch + 1 < self.epochs:
-                row["converged"] = (f"stopped after epoch {epoch} of {self.epochs}: the loss changed by less than "
-                                    f"{self.cfg.converge_tol:g} of itself and the map did not improve, twice")
+                stopped = Stop(StopReason.CONVERGED, f"stopped after epoch {epoch} of {self.epochs}: the loss changed "
+                               f"by less than {self.cfg.converge_tol:g} of itself and the map did not improve, twice")
+                row["converged"] = stopped.detail
             if ckpt is not None and lead:
                 save_checkpoint(ckpt, self._state(epoch, best, history))
-            if "converged" in row:
+            if stopped is not None:
                 break
         rejected = sum("rejected" in row for row in history)
-        if rejected and best["epoch"] < 0:
-            stopped = stopped or (f"diverged: all {rejected} epochs disagreed with the registrations "
-                                  f"(limit {self.derived.max_disagreement:.3g} m); returned the start")
+        if rejected and best["epoch"] < 0 and (stopped is None or not stopped.failed):
+            stopped = Stop(StopReason.DIVERGED, f"diverged: all {rejected} epochs disagreed with the registrations "
+                                                f"(limit {self.derived.max_disagreement:.3g} m); returned the start")
         if ckpt is not None and lead:
             self._save_mnet(checkpoint_dir / MNET)
+        stopped = stopped or Stop(StopReason.BUDGET, f"{len(history)} epochs")
         return OptimResult(best["poses"], best["epoch"], history, self.derived, stopped,
                            selection(best, by_map, rejected, self.epochs))

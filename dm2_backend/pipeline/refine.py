@@ -81,6 +81,8 @@ def refine(inputs: RunInputs, cfg: RunConfig, out: Path, cache_dir: Path | None,
         if not lead:
             return None
         extra.update(best_epoch=result.best_epoch, selection=result.selection, start=start.summary(),
-                     stopped=result.stopped, derived=asdict(result.derived), device=device, processes=sess.dist.world)
+                     stopped=result.stopped.detail if result.stopped.failed else None,
+                     stop_reason=result.stopped.reason.value, derived=asdict(result.derived), device=device,
+                     processes=sess.dist.world)
         return write_run(out, cfg, inputs, prep, result.poses, "dm2 refine", stages, extra, result.history,
                          sampler=sampler, start=start.poses, started=t_start if started is None else started)

@@ -19,7 +19,7 @@ import enum
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +39,8 @@ from dm2_backend.optim.config import OptimConfig, dense_voxel
 from dm2_backend.optim.dense import refine_dense
 from dm2_backend.optim.dense_checkpoint import DENSE_CHECKPOINT
 from dm2_backend.optim.depth_noise import RangeNoise
+from dm2_backend.optim.odometry_noise import MeasuredNoise
+from dm2_backend.optim.stop import Stop
 from dm2_backend.pipeline import step_guard
 from dm2_backend.prepare.steps import Prepared
 from dm2_backend.runtime.errors import InputError
@@ -54,36 +56,83 @@ PLANAR_HOLD = 1e6
 
 
 class StartKind(str, enum.Enum):
-    """Where the optimiser starts: the pose-graph solution or the prepared (loop-closed or warm-start) poses."""
+    """Which poses the optimiser starts from: the pose-graph solution, the prepared (loop-closed or warm-start)
+    poses, or the front end's warm start where the dense stage's judge found it agrees best."""
 
     GRAPH = "graph"
     PREPARED = "prepared"
+    WARM_START = "warm start"
 
 
-@dataclass
+class Kept(str, enum.Enum):
+    """The poses the dense stage's judge kept: its own result or one of the poses it was measured against."""
+
+    DENSE = "dense"
+    GRAPH = "graph"
+    PREPARED = "prepared"
+    WARM_START = "warm start"
+
+
+@dataclass(frozen=True)
+class DenseSummary:
+    """What the dense stage did from a start: its cells, its rounds and why they ended, the step guard's verdict,
+    how each candidate's frames agree with the others' planes, and which poses were kept."""
+
+    voxel_m: float
+    range_noise_m: float | None
+    hessian_edges: int
+    depth_noise: RangeNoise | None
+    cell_m: float
+    cells: int
+    cells_seconds: float
+    seconds: float
+    history: list[dict]  # one row per round (``optim.dense.DenseResult.history``)
+    stopped: Stop
+    resumed_after_round: int
+    odometry_noise: MeasuredNoise | None
+    agreement_m2: dict[str, float]  # candidate -> disagreement with the others' planes (m^2)
+    cuts: continuity.Cuts
+    step_guard: step_guard.Guarded
+    start_fit_m: float  # the start's steps against the registrations (``step_guard.check.fit_m``)
+    returned: Kept
+
+    def summary(self) -> dict:
+        """The record ``report.json`` keeps under ``start.dense``."""
+        return {"voxel_m": self.voxel_m, "range_noise_m": self.range_noise_m, "hessian_edges": self.hessian_edges,
+                "depth_noise": self.depth_noise.summary() if self.depth_noise is not None else None,
+                "cell_m": self.cell_m, "cells": self.cells, "cells_seconds": self.cells_seconds,
+                "seconds": self.seconds, "rounds": len(self.history), "stopped": self.stopped.detail,
+                "stop_reason": self.stopped.reason.value, "history": self.history,
+                "resumed_after_round": self.resumed_after_round,
+                "odometry_noise": self.odometry_noise.summary() if self.odometry_noise else None,
+                "agreement_m2": self.agreement_m2, "cuts": self.cuts.summary(), "step_guard": self.step_guard.summary(),
+                "start_fit_m": self.start_fit_m, "returned": self.returned.value}
+
+
+@dataclass(frozen=True)
 class Start:
-    """The optimiser's start: its :class:`StartKind` ``name`` and why; ``dense`` what the dense stage did from
-    there (empty when it did not run; ``poses`` are then its result)."""
+    """The optimiser's start: its :class:`StartKind` ``name``, why, and the evidence the choice was made on;
+    ``dense`` what the dense stage did from there (None when it did not run; ``poses`` are then its result)."""
 
     poses: np.ndarray
     name: StartKind
     why: str
     map_entropy: dict[str, float] = field(default_factory=dict)  # candidate -> mean map entropy
-    dense: dict = field(default_factory=dict)
-    cuts: dict[str, dict] = field(default_factory=dict)  # "graph" -> its cut steps (``continuity.Cuts.summary``)
+    dense: DenseSummary | None = None
+    graph_cuts: continuity.Cuts | None = None  # the pose-graph solution's cut steps, where it was solved
     #: candidate ("prepared", "graph") -> :meth:`DenseCells.agreement`, judged on those two's planes (the dense
-    #: stage's own ``agreement_m2``, in ``dense``, judges its start and result on theirs)
+    #: stage's own ``agreement_m2`` judges its start and result on theirs)
     agreement_m2: dict[str, float] = field(default_factory=dict)
 
     @property
     def refined(self) -> bool:
         """``poses`` are the dense stage's result."""
-        return self.dense.get("returned") == "dense"
+        return self.dense is not None and self.dense.returned is Kept.DENSE
 
     @property
     def dense_ran(self) -> bool:
         """The dense stage ran from this start (``poses`` are its result, or the start it did not improve on)."""
-        return bool(self.dense)
+        return self.dense is not None
 
     @property
     def locally_accurate(self) -> bool:
@@ -92,7 +141,8 @@ class Start:
 
     def summary(self) -> dict:
         return {"name": self.name.value, "why": self.why, "map_entropy": self.map_entropy,
-                "agreement_m2": self.agreement_m2, "dense": self.dense, "cuts": self.cuts}
+                "agreement_m2": self.agreement_m2, "dense": self.dense.summary() if self.dense else {},
+                "cuts": {"graph": self.graph_cuts.summary()} if self.graph_cuts is not None else {}}
 
 
 def sequence_cuts(prep: Prepared, poses: np.ndarray) -> continuity.Cuts:
@@ -127,12 +177,11 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None,
         log.warning("pose-graph start failed (%s); starting from the prepared poses", exc.message)
         return Start(prepared, StartKind.PREPARED, f"the pose graph could not be solved: {exc.message}")
     cut = sequence_cuts(prep, solved)
-    cuts = {"graph": cut.summary()}
     if cut:
         log.warning("pose-graph start not taken: it cuts the sequence at %s", cut.describe())
         why = (f"the pose-graph solution cuts the sequence at {cut.describe()}, which neither the odometry nor the "
                "registration of those frames says")
-        return Start(prepared, StartKind.PREPARED, why, cuts=cuts)
+        return Start(prepared, StartKind.PREPARED, why, graph_cuts=cut)
     agreement = judge.agreement({"prepared": prepared, "graph": solved}) if judge is not None else {}
     if agreement and all(np.isfinite(v) for v in agreement.values()):  # each frame against the others' planes
         graph_agrees = agreement["graph"] <= agreement["prepared"]
@@ -140,19 +189,19 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None,
                  "graph" if graph_agrees else "prepared", agreement["prepared"], agreement["graph"])
         if graph_agrees:
             return Start(solved, StartKind.GRAPH, "the pose-graph solution's frames agree better with the planes the "
-                         "others see", cuts=cuts, agreement_m2=agreement)
+                         "others see", graph_cuts=cut, agreement_m2=agreement)
         return Start(prepared, StartKind.PREPARED, "the pose-graph solution's frames agree worse with the planes the "
-                     "others see", cuts=cuts, agreement_m2=agreement)
+                     "others see", graph_cuts=cut, agreement_m2=agreement)
     # no judge, or no plane seen by two frames to judge by: the maps' sharpness
     if sampler is None:
-        return Start(solved, StartKind.GRAPH, "pose-graph solution (no map to compare)", cuts=cuts,
+        return Start(solved, StartKind.GRAPH, "pose-graph solution (no map to compare)", graph_cuts=cut,
                      agreement_m2=agreement)
     scores = {"prepared": sampler.evaluate(prepared).entropy, "graph": sampler.evaluate(solved).entropy}
     if scores["graph"] <= scores["prepared"]:
-        return Start(solved, StartKind.GRAPH, "the pose-graph solution makes the sharper map", scores, cuts=cuts,
-                     agreement_m2=agreement)
-    return Start(prepared, StartKind.PREPARED, "the pose-graph solution makes a blurrier map", scores, cuts=cuts,
-                 agreement_m2=agreement)
+        return Start(solved, StartKind.GRAPH, "the pose-graph solution makes the sharper map", scores,
+                     graph_cuts=cut, agreement_m2=agreement)
+    return Start(prepared, StartKind.PREPARED, "the pose-graph solution makes a blurrier map", scores,
+                 graph_cuts=cut, agreement_m2=agreement)
 
 
 def range_noise(prep: Prepared) -> float | None:
@@ -227,8 +276,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     checkpoint = checkpoint_dir / DENSE_CHECKPOINT if checkpoint_dir is not None else None
     result = refine_dense(cells, graph, start.poses, voxel, cfg.dense_rounds, progress=progress, trace=trace,
                           checkpoint=checkpoint, resume=resume, measure_odometry=cfg.dense_odometry_noise)
-    if planar:
-        result.poses = project_planar(result.poses)
+    poses = project_planar(result.poses) if planar else result.poses
 
     def resolve(poses: np.ndarray, held: dict[int, step_guard.Hold]) -> np.ndarray:
         steps = np.array(sorted(held))
@@ -241,41 +289,35 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
         return project_planar(again) if planar else again
 
     judge = step_guard.judge_of(prep)
-    guarded = step_guard.guard(judge, result.poses, resolve)
-    result.poses = guarded.poses
+    guarded = step_guard.guard(judge, poses, resolve)
+    poses = guarded.poses
     start_fit = judge.fit(start.poses)  # reported beside the result's (``step_guard.check.fit_m``)
     # never worse than where it started, judged without ground truth: each frame against the map the others make
-    candidates = {"warm start": prep.warm_start, start.name.value: start.poses, "dense": result.poses}
-    agreement = agreement_score(cells, candidates, voxel, judges=(start.name.value, "dense"))
-    finite = {name: score for name, score in agreement.items() if np.isfinite(score)}
+    candidates = {Kept.WARM_START: prep.warm_start, Kept(start.name.value): start.poses, Kept.DENSE: poses}
+    agreement = agreement_score(cells, {k.value: v for k, v in candidates.items()}, voxel,
+                                judges=(start.name.value, Kept.DENSE.value))
+    finite = {Kept(name): score for name, score in agreement.items() if np.isfinite(score)}
     # no plane seen by two frames (too few or too sparse scans): nothing to judge by, the start stands
     judged = len(finite) == len(agreement)
-    chosen = min(finite, key=finite.get) if judged else start.name.value
-    reason = f"{chosen} agrees better" if judged else "no plane seen by two frames to judge by"
-    cut = sequence_cuts(prep, result.poses)
-    if chosen == "dense" and cut:  # its frames agree, its steps do not: the start stands
+    chosen = min(finite, key=finite.get) if judged else Kept(start.name.value)
+    reason = f"{chosen.value} agrees better" if judged else "no plane seen by two frames to judge by"
+    cut = sequence_cuts(prep, poses)
+    if chosen is Kept.DENSE and cut:  # its frames agree, its steps do not: the start stands
         log.warning("dense stage's result not kept: it cuts the sequence at %s", cut.describe())
-        chosen, reason = start.name.value, f"it cuts the sequence at {cut.describe()}"
-    if chosen == "dense" and not guarded.clean:  # held and solved again, a step is still contradicted
+        chosen, reason = Kept(start.name.value), f"it cuts the sequence at {cut.describe()}"
+    if chosen is Kept.DENSE and not guarded.clean:  # held and solved again, a step is still contradicted
         log.warning("dense stage's result not kept: its frames contradict %s", guarded.check.describe())
-        chosen, reason = start.name.value, f"its frames contradict {guarded.check.describe()}"
-    summary = {"voxel_m": voxel, "range_noise_m": noise, "hessian_edges": graph.meta["hessian_edges"],
-               "depth_noise": built.depth_noise.summary() if built.depth_noise is not None else None,
-               "cell_m": cells.size, "cells": len(cells), "cells_seconds": built.seconds, "seconds": result.seconds,
-               "rounds": len(result.history), "stopped": result.stopped,
-               "history": result.history, "resumed_after_round": result.resumed_after,
-               "odometry_noise": result.odometry.summary() if result.odometry else None,
-               "agreement_m2": agreement, "cuts": cut.summary(), "step_guard": guarded.summary(),
-               "start_fit_m": start_fit,
-               "returned": chosen}
+        chosen, reason = Kept(start.name.value), f"its frames contradict {guarded.check.describe()}"
+    dense = DenseSummary(voxel, noise, graph.meta["hessian_edges"], built.depth_noise, cells.size, len(cells),
+                         built.seconds, result.seconds, result.history, result.stopped, result.resumed_after,
+                         result.odometry, agreement, cut, guarded, start_fit, chosen)
     log.info("dense: %d cells of %.3g m and up, %s; %s; returned %s (frames' disagreement with the others' "
-             "planes: %s)", len(cells), cells.size, result.stopped, _guard_text(guarded), chosen,
+             "planes: %s)", len(cells), cells.size, result.stopped, _guard_text(guarded), chosen.value,
              ", ".join(f"{k} {v:.3g} m2" for k, v in agreement.items()))
-    if chosen != "dense":
-        return Start(candidates[chosen], start.name if chosen == start.name.value else StartKind.PREPARED,
-                     f"{start.why}; the dense stage's result was not kept ({reason})",
-                     start.map_entropy, summary, start.cuts, start.agreement_m2)
-    return Start(result.poses, start.name, start.why, start.map_entropy, summary, start.cuts, start.agreement_m2)
+    if chosen is not Kept.DENSE:
+        return replace(start, poses=candidates[chosen], name=StartKind(chosen.value), dense=dense,
+                       why=f"{start.why}; the dense stage's result was not kept ({reason})")
+    return replace(start, poses=poses, dense=dense)
 
 
 def _guard_text(guarded: step_guard.Guarded) -> str:
