@@ -21,6 +21,7 @@ from dm2_backend import config
 from dm2_backend.cli.options import read_options
 from dm2_backend.optim.checkpoint import CHECKPOINT
 from dm2_backend.optim.distributed import Dist, shard
+from dm2_backend.optim.problem import Watch
 from dm2_backend.optim.trainer import sample_points
 from dm2_backend.pipeline import parallel
 from dm2_backend.pipeline.inputs import load_inputs
@@ -137,7 +138,7 @@ def job(seq: Path, cache: Path, out: Path, scratch: Path, resume: bool, metric, 
     assert all(prep.cached.values())
     sampler = map_sampler(inputs)
     start = choose_start(prep, cfg.optimiser, sampler)
-    watch = parallel.Watch(metric, map_entropy(sampler))
+    watch = Watch(metric, map_entropy(sampler))
     return parallel.Job(cache, prep.keys, start, samples, cfg, out, resume, False, watch, 2, scratch)
 
 

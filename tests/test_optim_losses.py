@@ -13,8 +13,12 @@ from dm2_backend.kernel.stages import Topology
 from dm2_backend.optim import losses
 from dm2_backend.optim.occupancy import GridOccupancy
 from dm2_backend.optim.pose_model import PoseModel
+from dm2_backend.optim.problem import Execution, Problem
 from dm2_backend.optim.trainer import Optimiser, sample_points
 from dm2_backend.plugins.topology_radius import RadiusTopology
+
+#: the optimiser on the CPU without a progress bar
+CPU = Execution(device="cpu", progress=False)
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -146,8 +150,7 @@ def case() -> Case:
 def gt_opt(case) -> Optimiser:
     """An optimiser whose warm start, topology and pairwise relatives are the ground truth."""
     topo = RadiusTopology().run(case.frames, case.gt)
-    return Optimiser(case.frames, case.gt, topo, case.pairwise_from(case.gt, topo), small_config(),
-                     seed=0, device="cpu", progress=False)
+    return Optimiser(Problem(case.frames, topo, case.pairwise_from(case.gt, topo), case.gt), small_config(), CPU)
 
 
 def chamfer_at(opt: Optimiser, poses: np.ndarray) -> float:
@@ -174,8 +177,8 @@ def test_trainer_consistency_zero_at_consistent_poses(case, gt_opt):
     parts = gt_opt._step_loss(anchors, torch.Generator().manual_seed(0))
     assert float(parts["consistency"].detach()) < 1e-4  # float32 world points
     topo = Topology(gt_opt.topo_groups)
-    moved = Optimiser(case.frames, perturb(case.gt, 0.2, 0.01), topo, case.pairwise_from(case.gt, topo),
-                      small_config(), seed=0, device="cpu", progress=False)
+    moved = Optimiser(Problem(case.frames, topo, case.pairwise_from(case.gt, topo), perturb(case.gt, 0.2, 0.01)),
+                      small_config(), CPU)
     assert float(moved._step_loss(anchors, torch.Generator().manual_seed(0))["consistency"].detach()) > 0.1
 
 

@@ -11,6 +11,7 @@ import pytest
 import torch
 from optim_cases import Case, frames_of, one_thread, planar_case, small_config
 
+from dm2_backend.config.optimiser import switch
 from dm2_backend.kernel.geometry import se3, se3_torch
 from dm2_backend.kernel.stages import ScanScale
 from dm2_backend.optim import losses
@@ -25,6 +26,7 @@ from dm2_backend.optim.config import (
     pose_regime,
     sampled_points,
 )
+from dm2_backend.optim.problem import Execution, Problem, Watch
 from dm2_backend.optim.regime import disagreement, locally_accurate
 from dm2_backend.optim.stop import StopReason
 from dm2_backend.optim.trainer import Optimiser, OptimResult
@@ -32,6 +34,9 @@ from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.plugins.topology_radius import RadiusTopology
 from dm2_backend.simulate.lidar import LidarModel
 from dm2_backend.simulate.sequence import SimSettings, simulate
+
+#: the optimiser on the CPU without a progress bar
+CPU = Execution(device="cpu", progress=False)
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -48,9 +53,9 @@ def case() -> Case:
 
 
 def optimiser(case: Case, seed: int = 0, metric=None, pairwise=None, **cfg) -> Optimiser:
-    return Optimiser(case.frames, case.warm, case.topology, pairwise or case.pairwise,
-                     small_config(**{"epochs": EPOCHS, **cfg}), seed=seed, device="cpu", metric=metric,
-                     progress=False)
+    return Optimiser(Problem(case.frames, case.topology, pairwise or case.pairwise, case.warm),
+                     small_config(**{"epochs": EPOCHS, **cfg}), Execution(seed, "cpu", progress=False),
+                     Watch(metric=metric))
 
 
 class Recorder:
@@ -266,8 +271,7 @@ def test_3d_sequence_runs():
     """A short 3D LiDAR sequence: 3D occupancy grid, all six pose dimensions free."""
     c = lidar_case(16)
     warm = c.warm
-    opt = Optimiser(c.frames, warm, c.topology, c.pairwise, small_config(epochs=1), seed=0, device="cpu",
-                    progress=False)
+    opt = Optimiser(Problem(c.frames, c.topology, c.pairwise, warm), small_config(epochs=1), CPU)
     assert opt.field.dim == 3 and not opt.planar
     result = opt.run()
     assert np.isfinite(result.poses).all() and not result.stopped.failed
@@ -289,8 +293,8 @@ class MapScores:
 
 def test_select_by_map_returns_the_sharpest_epoch(case):
     scores = MapScores([5.0, 4.0, 2.0, 3.0, 6.0])  # start, epochs 0..3
-    opt = Optimiser(case.frames, case.warm, case.topology, case.pairwise, small_config(epochs=4), seed=0,
-                    device="cpu", map_metric=scores, progress=False)
+    opt = Optimiser(Problem(case.frames, case.topology, case.pairwise, case.warm), small_config(epochs=4),
+                    CPU, Watch(map_metric=scores))
     result = opt.run()
     assert result.best_epoch == 1
     np.testing.assert_array_equal(result.poses, scores.poses[2])
@@ -300,15 +304,15 @@ def test_select_by_map_returns_the_sharpest_epoch(case):
 
 def test_select_by_map_never_returns_a_blurrier_map_than_the_start(case):
     scores = MapScores([1.0, 2.0, 3.0])
-    opt = Optimiser(case.frames, case.warm, case.topology, case.pairwise, small_config(epochs=2), seed=0,
-                    device="cpu", map_metric=scores, progress=False)
+    opt = Optimiser(Problem(case.frames, case.topology, case.pairwise, case.warm), small_config(epochs=2),
+                    CPU, Watch(map_metric=scores))
     result = opt.run()
     assert result.best_epoch == -1 and result.selection.startswith("the start")
     np.testing.assert_allclose(result.poses, case.warm, atol=1e-9)
     # with select "loss" the map metric is only recorded
-    loss_run = Optimiser(case.frames, case.warm, case.topology, case.pairwise,
-                         small_config(epochs=2, select="loss"), seed=0, device="cpu",
-                         map_metric=MapScores([1.0, 2.0, 3.0]), progress=False).run()
+    loss_run = Optimiser(Problem(case.frames, case.topology, case.pairwise, case.warm),
+                         small_config(epochs=2, select="loss"), CPU,
+                         Watch(map_metric=MapScores([1.0, 2.0, 3.0]))).run()
     assert loss_run.best_epoch >= 0 and "map_entropy" in loss_run.history[0]
 
 
@@ -334,8 +338,8 @@ def test_loss_regime_from_the_pose_graph_start():
 def test_plane_chamfer_is_lowest_at_ground_truth():
     c = lidar_case(12, start_at_gt=True)
     gt = c.gt
-    opt = Optimiser(c.frames, gt, c.topology, c.pairwise, small_config(chamfer_metric="plane", points_per_frame=256),
-                    seed=0, device="cpu", progress=False)
+    opt = Optimiser(Problem(c.frames, c.topology, c.pairwise, gt),
+                    small_config(chamfer_metric="plane", points_per_frame=256), CPU)
     assert opt.normals is not None
     # a locally accurate 3D start is polished: Chamfer along the normals only, truncated at one unit
     d = opt.derived
@@ -367,9 +371,9 @@ def test_a_diverging_run_returns_its_start_not_a_scattered_map(case, select):
 
     voxel = case.frames.scale.spacing
     sampler = MapSampler(list(case.frames.points), True, voxel, 3 * voxel, MapSettings()) if select == "map" else None
-    opt = Optimiser(case.frames, case.warm, case.topology, case.pairwise,
-                    small_config(epochs=2, lr_pose=1e6, select=select), seed=0, device="cpu", progress=False,
-                    map_metric=None if sampler is None else sampler.entropy)
+    opt = Optimiser(Problem(case.frames, case.topology, case.pairwise, case.warm),
+                    small_config(epochs=2, lr_pose=1e6, select=select), CPU,
+                    Watch(map_metric=None if sampler is None else sampler.entropy))
     result = opt.run()
     assert all("rejected" in row for row in result.history)
     assert min(row["disagreement"] for row in result.history) > 10 * opt.derived.start_disagreement
@@ -392,16 +396,16 @@ def test_converged_run_stops_early_and_traces(case):
     than ``converge_tol`` nor make a sharper map stop the run; each epoch row traces loss and accuracy against
     the steps."""
     flat_map = lambda poses: 0.0  # noqa: E731  (never sharper than the start)
-    run = Optimiser(case.frames, case.warm, case.topology, case.pairwise,
-                    small_config(epochs=6, converge_tol=1.0), device="cpu", map_metric=flat_map, progress=False,
-                    trace_metric=lambda poses: ate_rmse(case.gt, poses)).run()
+    run = Optimiser(Problem(case.frames, case.topology, case.pairwise, case.warm),
+                    small_config(epochs=6, converge_tol=1.0), CPU,
+                    Watch(map_metric=flat_map, trace=lambda poses: ate_rmse(case.gt, poses))).run()
     assert [row["epoch"] for row in run.history] == [0, 1, 2] and "converged" in run.history[-1]
     assert not run.stopped.failed and run.best_epoch == -1  # the start: no epoch made a sharper map
     trace = [p for row in run.history for p in row["trace"]]
     assert [p["step"] for p in trace] == sorted({p["step"] for p in trace}) and all("ate" in p for p in trace)
     assert run.history[-1]["steps"] == trace[-1]["step"]
-    full = Optimiser(case.frames, case.warm, case.topology, case.pairwise, small_config(epochs=6, converge_tol=0.0),
-                     device="cpu", map_metric=flat_map, progress=False).run()
+    full = Optimiser(Problem(case.frames, case.topology, case.pairwise, case.warm),
+                     small_config(epochs=6, converge_tol=0.0), CPU, Watch(map_metric=flat_map)).run()
     assert len(full.history) == 6 and not any("converged" in row for row in full.history)
 
 
@@ -422,3 +426,14 @@ def test_chamfer_matches_brute_force_nearest_points(case):
             total[1].append(d.min(0).values.clamp(max=cut))
     want = float(torch.cat(total[0]).mean() + torch.cat(total[1]).mean())
     assert got == pytest.approx(want, rel=1e-5)
+
+
+@pytest.mark.parametrize("given,read", [(True, "on"), (False, "off"), (None, "auto"), ("off", "off")])
+def test_a_switch_reads_yamls_booleans_and_null_as_words(given, read):
+    """YAML 1.1 reads ``on``/``off`` as booleans, and older dumped configs say null for auto."""
+    assert OptimConfig(use_bce=given).use_bce == read == OptimConfig(first_order=given).first_order
+
+
+def test_an_auto_switch_is_decided_and_an_explicit_one_holds():
+    assert switch("auto", True) and not switch("auto", False) and switch("on", False) and not switch("off", True)
+    assert OptimConfig(dense=None).dense is True and OptimConfig().dense is True

@@ -25,7 +25,7 @@ def default_folder() -> Path:
 @click.option("--frames", type=int, default=300, show_default=True, help="Frames to simulate.")
 @click.option("--epochs", type=click.IntRange(min=1), default=None,
               help="First-order epochs (default: the config; after the dense stage only with "
-                   "optimiser.first_order: true)")
+                   "optimiser.first_order: on)")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--force", is_flag=True, help="Write into a non-empty --out (a previous demo's files are replaced).")
 @click.option("--quiet", "-q", is_flag=True)

@@ -14,7 +14,7 @@ from dm2_backend.runtime.errors import InputError
 @run_options
 @click.option("--epochs", type=click.IntRange(min=1), default=None,
               help="First-order epochs (at least 1); they run after the dense stage only with "
-                   "optimiser.first_order: true, or without it (optimiser.dense: false).")
+                   "optimiser.first_order: on, or without it (optimiser.dense: false).")
 @click.option("--device", type=Choice(["auto", "cpu", "cuda"]), default=None, help="Torch device.")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run in --out from its checkpoint.")
 @click.option("--nproc", type=click.IntRange(min=1), default=None,

@@ -7,7 +7,17 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+#: a switch the optimiser can decide from the data and the start ("auto"; each field says how) or be told
+Switch = Literal["auto", "on", "off"]
+#: what a YAML file or an older dumped config may say for a switch: YAML 1.1 reads on/off as booleans
+_SWITCH_WORDS = {True: "on", False: "off", None: "auto"}
+
+
+def switch(value: Switch, auto: bool) -> bool:
+    """A switch's effect: ``auto`` where it is "auto", else whether it is "on"."""
+    return auto if value == "auto" else value == "on"
 
 
 class OptimConfig(BaseModel):
@@ -40,10 +50,10 @@ class OptimConfig(BaseModel):
     batching: Literal["topology", "temporal", "random"] = "topology"
     #: "direct" per-frame corrections or "lnet" (PointNet, the paper's L-Net)
     pose_model: Literal["direct", "lnet"] = "direct"
-    #: drift parameters: corrections that carry over to all later frames (see pose_model.py); None: on for a
+    #: drift parameters: corrections that carry over to all later frames (see pose_model.py); auto: on for a
     #: drifting start, off for a locally accurate one (see :func:`derive`): there noisy drift steps bend a
     #: good trajectory (docs/decisions/0014-first-order-optimiser-defaults.md)
-    drift: bool | None = None
+    drift: Switch = "auto"
     #: step of each drift parameter relative to the direct ones (None: 1/sqrt(frames))
     drift_factor: float | None = None
     #: points per frame the losses see (None: 256 on planar data and from the prepared start; 512 of the
@@ -64,12 +74,13 @@ class OptimConfig(BaseModel):
     #: loss weights: total = bce + alpha * chamfer + beta * consistency (lengths in units of ``unit``)
     alpha: float = 1.0
     beta: float = 1.0
-    #: None: on, except when polishing a locally accurate 3D start (see :func:`loss_regime`)
-    use_bce: bool | None = None
+    #: auto: on, except when polishing a locally accurate 3D start (see :func:`loss_regime`)
+    use_bce: Switch = "auto"
     #: the Chamfer term between each anchor and its neighbours
     use_chamfer: bool = True
-    #: the consistency term against the pairwise registrations; None: on, off from the pose-graph start
-    use_consistency: bool | None = None
+    #: the consistency term against the pairwise registrations; auto: on, off when polishing a locally accurate
+    #: 3D start (see :func:`loss_regime`)
+    use_consistency: Switch = "auto"
     #: robust kernel on each (anchor, neighbour) consistency distance d: "cauchy" uses c*log(1 + d/c) with c = unit,
     #: so a wrong pairwise registration pulls with a bounded force; "none" is the paper's plain mean
     consistency_kernel: Literal["cauchy", "none"] = "cauchy"
@@ -96,8 +107,8 @@ class OptimConfig(BaseModel):
     start: Literal["auto", "graph", "prepared"] = "auto"
     #: the dense multi-frame plane term, minimised by second-order steps over all poses jointly with the pose
     #: graph's factors before the first-order epochs (``dm2_backend.optim.dense``; a 2D scan's lines as walls);
-    #: None or True: on, False: off (docs/decisions/0005-dense-stage-on-by-default.md)
-    dense: bool | None = None
+    #: on by default (docs/decisions/0005-dense-stage-on-by-default.md)
+    dense: bool = True
     #: largest voxel of the plane term (m; non-flat voxels are split down to a quarter); None:
     #: max(median range / 8, 4 x the raw scans' point spacing, 28 x the range noise where the registrations
     #: measured it: every planar one, ``optim.config.dense_voxel``;
@@ -127,9 +138,9 @@ class OptimConfig(BaseModel):
     #: docs/decisions/0017-depth-cells-weighed-by-range-noise.md)
     dense_depth_noise: bool = False
     #: the first-order DeepMapping2 epochs (Adam on the M-Net BCE, Chamfer and consistency losses over anchor
-    #: groups); None: on only when the dense stage did not run (after it, kept or not, they trade the steps the
+    #: groups); auto: on only when the dense stage did not run (after it, kept or not, they trade the steps the
     #: frames support for a sharper map; docs/decisions/0006-first-order-off-after-dense.md)
-    first_order: bool | None = None
+    first_order: Switch = "auto"
     #: epochs at the start in which the poses hold still while the occupancy field learns the map (an
     #: untrained field pulls them anywhere); None: 1 when polishing a locally accurate 3D start, else 0
     pose_warmup: float | None = None
@@ -152,3 +163,15 @@ class OptimConfig(BaseModel):
     chamfer_truncate: float | None = None  # m: 10 x unit
     step_translation: float | None = None  # Adam step on translation (m): unit / 10
     step_rotation: float | None = None  # Adam step on rotation (rad): step_translation / range_median
+
+    @field_validator("drift", "use_bce", "use_consistency", "first_order", mode="before")
+    @classmethod
+    def _switch_words(cls, value: object) -> object:
+        """true/false/null (YAML's on/off among them) as "on"/"off"/"auto"."""
+        return _SWITCH_WORDS.get(value, value) if value is None or isinstance(value, bool) else value
+
+    @field_validator("dense", mode="before")
+    @classmethod
+    def _dense_null_is_on(cls, value: object) -> object:
+        """A config dumped before the dense stage's switch became a plain bool says null for on."""
+        return True if value is None else value

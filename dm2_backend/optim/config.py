@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dm2_backend.config.optimiser import OptimConfig
+from dm2_backend.config.optimiser import OptimConfig, switch
 from dm2_backend.kernel.stages import ScanScale
 
 __all__ = ["Derived", "Lengths", "LossRegime", "OptimConfig", "PoseRegime", "dense_voxel", "derive", "loss_regime",
@@ -86,8 +86,8 @@ def loss_regime(cfg: OptimConfig, planar: bool, polish: bool) -> LossRegime:
     (memory-bound) is coarser than the corrections left, so its BCE blurs them; the Chamfer distance along the
     surface normals sharpens the map (docs/decisions/0014-first-order-optimiser-defaults.md)."""
     return LossRegime(
-        use_bce=cfg.use_bce if cfg.use_bce is not None else not polish,
-        use_consistency=cfg.use_consistency if cfg.use_consistency is not None else not polish,
+        use_bce=switch(cfg.use_bce, not polish),
+        use_consistency=switch(cfg.use_consistency, not polish),
         chamfer_metric=cfg.chamfer_metric or ("point" if planar else "plane"),
         pose_warmup=cfg.pose_warmup if cfg.pose_warmup is not None else (1.0 if polish else 0.0),
     )
@@ -137,6 +137,6 @@ def pose_regime(cfg: OptimConfig, accurate: bool, polish: bool = False) -> PoseR
     (docs/decisions/0014-first-order-optimiser-defaults.md)."""
     lr = 1.0 if not accurate else (0.02 if polish else 0.05)
     return PoseRegime(
-        drift=cfg.drift if cfg.drift is not None else not accurate,
+        drift=switch(cfg.drift, not accurate),
         lr_pose=cfg.lr_pose if cfg.lr_pose is not None else lr,
     )

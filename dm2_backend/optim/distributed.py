@@ -98,8 +98,9 @@ def data_parallel(opt) -> DistributedDataParallel:
     """DDP over the optimiser's pose model and occupancy field; it averages their gradients in backward.
     Buffers (warm start, L-Net's points) are the same on every rank and never broadcast."""
     ids = [opt.device.index] if opt.device.type == "cuda" else None
+    # unless the BCE is forced on, the occupancy field may take no part in a step
     return DistributedDataParallel(_StepLoss(opt), device_ids=ids, forward_sync_buffers=False,
-                                   find_unused_parameters=not opt.cfg.use_bce)  # without BCE the field is unused
+                                   find_unused_parameters=opt.cfg.use_bce != "on")
 
 
 def reduce_parts(parts: dict[str, torch.Tensor], weight: float) -> dict[str, torch.Tensor]:

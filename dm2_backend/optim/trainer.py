@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -14,8 +13,9 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from dm2_backend.config.optimiser import switch
 from dm2_backend.kernel.geometry import se3_torch
-from dm2_backend.kernel.stages import Frames, Pairwise, Topology
+from dm2_backend.kernel.stages import Frames
 from dm2_backend.optim import distributed, losses
 from dm2_backend.optim.batching import make_groups
 from dm2_backend.optim.checkpoint import CHECKPOINT, load_checkpoint, plain_state, save_checkpoint
@@ -23,6 +23,7 @@ from dm2_backend.optim.config import Derived, OptimConfig, derive, loss_regime, 
 from dm2_backend.optim.mnet_file import MNET, save_mnet
 from dm2_backend.optim.occupancy import GridOccupancy
 from dm2_backend.optim.pose_model import PoseModel
+from dm2_backend.optim.problem import Execution, Problem, Watch
 from dm2_backend.optim.regime import disagreement, locally_accurate
 from dm2_backend.optim.selection import first_candidate, offer, selection
 from dm2_backend.optim.stop import Stop, StopReason
@@ -83,41 +84,21 @@ def sample_normals(frames: Frames, samples: np.ndarray, k: int = 12) -> np.ndarr
 class Optimiser:
     """Refines warm-start poses by minimising BCE + alpha Chamfer + beta consistency over anchor groups."""
 
-    def __init__(
-        self,
-        frames: Frames,
-        warm_start: np.ndarray,
-        topology: Topology,
-        pairwise: Pairwise,
-        cfg: OptimConfig,
-        seed: int = 0,
-        device: str = "auto",
-        metric: Callable[[np.ndarray], float] | None = None,
-        map_metric: Callable[[np.ndarray], float] | None = None,
-        progress: bool = True,
-        samples: np.ndarray | None = None,
-        dist: distributed.Dist | None = None,
-        from_graph: bool = False,
-        trace_metric: Callable[[np.ndarray], float] | None = None,
-        dense: bool = False,
-    ) -> None:
-        """``metric``: accuracy against ground truth, shown and recorded per epoch, never used to choose;
-        ``map_metric``: the map entropy of poses (lower = sharper), recorded per epoch and, with
-        ``cfg.select == "map"``, what chooses the returned poses among the start and the epochs;
-        ``from_graph``: ``warm_start`` is the pose-graph solution (locally accurate by construction);
-        ``dense``: the dense stage ran (``warm_start`` is its result, or the start whose steps its result did
-        not keep; then the first-order epochs run only when ``cfg.first_order`` asks for them);
-        ``trace_metric``: the accuracy recorded a few times per epoch with the loss (each epoch row's ``trace``);
-        ``samples``: the points of :func:`sample_points` computed ahead (a memory-mapped array shared by the
-        ranks); ``dist``: this process's rank when several optimise together (see ``distributed``)."""
+    def __init__(self, problem: Problem, cfg: OptimConfig, execution: Execution | None = None,
+                 watch: Watch | None = None) -> None:
+        """``problem``: the frames, registrations and start (:class:`~dm2_backend.optim.problem.Problem`);
+        ``watch``: what rank 0 evaluates per epoch (``map_metric``, with ``cfg.select == "map"``, chooses the
+        returned poses among the start and the epochs; the others are recorded, never used to choose);
+        ``execution``: seed, device, progress, points sampled ahead and this process's rank."""
+        frames, topology, pairwise, warm_start = problem.frames, problem.topology, problem.pairwise, problem.start
+        execution, watch = execution or Execution(), watch or Watch()
+        seed, samples = execution.seed, execution.samples
         self.cfg = cfg
-        self.dist = dist or distributed.Dist()
+        self.dist = execution.dist or distributed.Dist()
         self.seed = seed
-        self.metric = metric
-        self.map_metric = map_metric
-        self.trace_metric = trace_metric
-        self.progress = progress
-        self.device = resolve_device(device)
+        self.metric, self.map_metric, self.trace_metric = watch.metric, watch.map_metric, watch.trace
+        self.progress = execution.progress
+        self.device = resolve_device(execution.device)
         if cfg.threads > 0 and self.device.type == "cpu":
             torch.set_num_threads(cfg.threads)
         lengths = derive(cfg, frames.scale, frames.planar)
@@ -126,7 +107,7 @@ class Optimiser:
         # loop-closed poses need no drift terms (they would undo the closures;
         # docs/decisions/0014-first-order-optimiser-defaults.md); the pose-graph solution agrees with the
         # registrations by construction; other starts are judged by the measured disagreement
-        accurate = (from_graph or topology.loop_closed
+        accurate = (problem.locally_accurate or topology.loop_closed
                     or locally_accurate(spread, lengths.unit, cfg.accurate_below))
         polish = accurate and not frames.planar
         pose, loss = pose_regime(cfg, accurate, polish), loss_regime(cfg, frames.planar, polish)
@@ -136,7 +117,7 @@ class Optimiser:
         epochs = cfg.epochs
         if cfg.max_steps > 0:  # long sequences: fewer passes, the same step budget, but at least min_epochs
             epochs = max(min(cfg.epochs, cfg.min_epochs), min(cfg.epochs, cfg.max_steps // self.steps_per_epoch))
-        first_order = cfg.first_order if cfg.first_order is not None else not dense
+        first_order = switch(cfg.first_order, not problem.after_dense)
         self.epochs = epochs if first_order else 0
         warmup = int(round(loss.pose_warmup * self.steps_per_epoch)) if pose.drift is False else 0
         torch.manual_seed(seed)

@@ -30,6 +30,7 @@ from torch.multiprocessing.spawn import ProcessException
 from dm2_backend.config.schema import RunConfig
 from dm2_backend.optim.config import OptimConfig, sampled_points
 from dm2_backend.optim.distributed import Dist, init, rank_device, wait_group
+from dm2_backend.optim.problem import Execution, Problem, Watch
 from dm2_backend.optim.trainer import Optimiser, OptimResult, sample_points
 from dm2_backend.pipeline.start import Start
 from dm2_backend.prepare import store
@@ -111,28 +112,16 @@ def samples_entry(cache: Path, prep: Prepared, cfg: OptimConfig, seed: int) -> s
     return name
 
 
-@dataclass
-class Watch:
-    """What rank 0 evaluates per epoch: ``metric`` accuracy against ground truth (shown, never used to
-    choose), ``map_metric`` the map entropy (chooses the returned poses, see ``OptimConfig.select``), ``trace``
-    the accuracy recorded a few times per epoch with the loss (the convergence, see ``Optimiser``)."""
-
-    metric: Callable | None = None
-    map_metric: Callable | None = None
-    trace: Callable | None = None
-
-
 def build(prep: Prepared, start: Start, cfg: RunConfig, watch: Watch | None = None,
           progress: bool = True, samples: np.ndarray | None = None, dist: Dist | None = None) -> Optimiser:
     """The optimiser of a run (one construction for every launch mode), starting from ``start``."""
     dist = dist or Dist()
     watch = watch if dist.rank == 0 and watch is not None else Watch()
     device = str(rank_device(cfg.device, dist)) if dist.enabled else cfg.device
-    return Optimiser(prep.frames, start.poses, prep.topology, prep.pairwise, cfg.optimiser, seed=cfg.seed,
-                     device=device, metric=watch.metric, map_metric=watch.map_metric,
-                     progress=progress and dist.rank == 0, samples=samples, dist=dist,
-                     from_graph=start.locally_accurate, trace_metric=watch.trace,
-                     dense=start.dense_ran)
+    problem = Problem(prep.frames, prep.topology, prep.pairwise, start.poses, start.locally_accurate,
+                      start.dense_ran)
+    return Optimiser(problem, cfg.optimiser, Execution(cfg.seed, device, progress and dist.rank == 0, samples, dist),
+                     watch)
 
 
 def optimise_rank(prep: Prepared, start: Start, samples: str, cfg: RunConfig, sess: Session,

@@ -10,6 +10,7 @@ from pathlib import Path
 from dm2_backend.config.schema import RunConfig
 from dm2_backend.optim import dense_checkpoint, distributed
 from dm2_backend.optim.checkpoint import CHECKPOINT, load_checkpoint
+from dm2_backend.optim.problem import Watch
 from dm2_backend.pipeline import parallel
 from dm2_backend.pipeline.inputs import RunInputs
 from dm2_backend.pipeline.live import live_metric
@@ -50,7 +51,7 @@ def refine(inputs: RunInputs, cfg: RunConfig, out: Path, cache_dir: Path | None,
             sampler = map_sampler(inputs, progress) if lead else None
         cells = None
         with stages.stage("start"):  # with the dense stage's cells, which judge the graph start
-            if lead and cfg.optimiser.dense is not False:
+            if lead and cfg.optimiser.dense:
                 release_mapped(prep.frames.points)  # the cells are read from the scans; the graph needs no points
                 cells = DenseCells.of(inputs.scans, prep, cfg.optimiser, cfg.seed, progress)
             start = choose_start(prep, cfg.optimiser, sampler, cells) if lead else None
@@ -62,7 +63,7 @@ def refine(inputs: RunInputs, cfg: RunConfig, out: Path, cache_dir: Path | None,
             cells = None  # the epochs and the outputs do not read them
             if sess.mode is parallel.Mode.TORCHRUN:
                 start = distributed.broadcast(start)
-        watch = parallel.Watch(metric, map_entropy(sampler), metric) if lead else None
+        watch = Watch(metric, map_entropy(sampler), metric) if lead else None
         extra = {}
         if sess.mode is parallel.Mode.SINGLE:
             with stages.stage("optimise"):  # with building the optimiser, as the other modes

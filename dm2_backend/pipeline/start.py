@@ -263,7 +263,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     Planar scans (2D lasers) see walls as lines: their cells are extruded into vertical walls a voxel tall, the
     planar graph is solved as an SE(3) one that holds z, roll and pitch
     (:meth:`~dm2_backend.kernel.pose_graph.PoseGraph.lifted_to_se3`), and the result is projected back to x, y, yaw."""
-    if cfg.dense is False:
+    if not cfg.dense:
         return start
     planar = prep.frames.planar
     built = DenseCells.of(scans, prep, cfg, seed, progress) if dense_cells is None else dense_cells
