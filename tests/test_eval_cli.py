@@ -247,3 +247,26 @@ def test_each_estimate_takes_its_own_bag_topic(tmp_path):
     assert estimates[0]["metrics"]["ape_trans"] != estimates[1]["metrics"]["ape_trans"]
     wrong = CliRunner().invoke(cli, args + ["--est", str(bag)] * 3 + ["--est-topic", "a", "--est-topic", "b"], obj={})
     assert wrong.exit_code == 2 and "2 --est-topic for 3 estimates" in wrong.output
+
+
+def test_the_evaluation_is_a_library_call_the_command_only_prints(files, tmp_path):
+    """``evaluate_request`` gives the numbers ``dm2 eval --json`` writes; a shifted copy of the truth has an
+    aligned APE of zero and, unaligned, exactly its shift."""
+    from dm2_backend.evaluation.evaluate import EvalOptions
+    from dm2_backend.evaluation.request import Estimate, EvalRequest, evaluate_request
+
+    shifted = tmp_path / "shifted.txt"
+    data = np.loadtxt(files["gt"])
+    data[:, 1] += 0.5
+    np.savetxt(shifted, data, fmt="%.9f")
+    request = EvalRequest((Estimate(files["est"], "slam"), Estimate(shifted, "shifted")), gt_path=files["gt"])
+    evaluation = evaluate_request(request)
+    ape = {e.label: e.poses.metrics["ape_trans"].stats["rmse"] for e in evaluation.report.estimates}
+    assert ape["shifted"] < 1e-6 and evaluation.at_scans == {} and evaluation.gt is not None
+    raw = evaluate_request(EvalRequest((Estimate(shifted, "shifted"),), EvalOptions(align="none"), files["gt"]))
+    assert raw.report.estimates[0].poses.metrics["ape_trans"].stats["rmse"] == pytest.approx(0.5)
+    out = tmp_path / "eval.json"
+    result = CliRunner().invoke(cli, ["eval", str(files["gt"]), str(files["est"]), str(shifted), "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    written = {e["label"]: e for e in json.loads(out.read_text())["estimates"]}
+    assert written["slam"]["metrics"]["ape_trans"]["rmse"] == pytest.approx(ape["slam"], rel=1e-12)

@@ -319,7 +319,7 @@ def test_default_warm_start_fuses_a_logs_odometry(tmp_path):
     a trajectory given with --poses, or 3D scans with carried odometry: poses."""
     from types import SimpleNamespace
 
-    from dm2_backend.cli.run_setup import default_to_icp
+    from dm2_backend.pipeline.inputs import default_to_icp
 
     cfg = config.load(None, {})
     planar, lidar = SimpleNamespace(planar=True), SimpleNamespace(planar=False)

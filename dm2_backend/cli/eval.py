@@ -17,13 +17,13 @@ from dm2_backend.evaluation.consistency_profile import (
     flag_text,
     write_profiles,
 )
-from dm2_backend.evaluation.evaluate import EvalOptions, evaluate
-from dm2_backend.evaluation.map_quality import MapSampler, poses_of_scans
-from dm2_backend.evaluation.relations import MAX_DT, load_relations
+from dm2_backend.evaluation.evaluate import EvalOptions
+from dm2_backend.evaluation.relations import MAX_DT
 from dm2_backend.evaluation.report import EvalReport, terminal_text
 from dm2_backend.evaluation.report_writers import safe_name, write_csv, write_evo_results, write_json, write_markdown
+from dm2_backend.evaluation.request import Estimate, EvalRequest, evaluate_request
 from dm2_backend.evaluation.run_compare import read_run_report
-from dm2_backend.formats import ReadOptions, open_scans, read_trajectory
+from dm2_backend.formats import ReadOptions
 from dm2_backend.pipeline.inputs import looks_planar
 from dm2_backend.runtime.errors import InputError
 
@@ -225,34 +225,15 @@ def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topi
     # the scans are read as refine reads them (the same options, parsed by the same function)
     scan_options = read_options(scans_topic, scans_times, None, intrinsics, depth_scale, duplicate_times)
 
-    gt_options = ReadOptions(topic=gt_topic, times=gt_times, duplicate_times=duplicate_times)
-    gt = read_trajectory(gt_path, gt_format, gt_options) if gt_path else None
-    if gt is not None and len(gt) == 0:
-        raise InputError(gt_path, "no poses")
-    relations = load_relations(relations_path) if relations_path else None
-    scans = open_scans(scans_path, scans_format, scan_options) if scans_path else None
-    sampler = MapSampler.from_scans(scans) if scans is not None else None
-    report = EvalReport(
-        ground_truth=str(gt_path) if gt_path else None,
-        relations_file=str(relations_path) if relations_path else None,
-        settings={"align": align, "align_origin": align_origin, "max_diff": max_diff, "by_index": by_index,
-                  "delta": delta,
-                  "delta_unit": delta_unit, "relations_max_dt": relations_max_dt},
-        map=None if sampler is None else {"scans_path": str(scans_path), **sampler.settings_summary()},
-    )
     options = EvalOptions(align=align, align_origin=align_origin, max_diff=max_diff, by_index=by_index,
                           delta=delta, delta_unit=delta_unit, relations_max_dt=relations_max_dt)
-    at_scans = {}
-    for path, label, topic in zip(est_paths, est_labels, topics, strict=True):
-        est = read_trajectory(path, est_format, ReadOptions(topic=topic, times=est_times,
-                                                            duplicate_times=duplicate_times))
-        if len(est) == 0:
-            raise InputError(path, "no poses")
-        if profile_dir is not None:
-            at_scans[label] = poses_of_scans(scans, est, max_diff, path)
-        report.estimates.append(evaluate(est, label, path, gt=gt, relations=relations, sampler=sampler, scans=scans,
-                                         options=options))
-
+    estimates = tuple(Estimate(path, label, ReadOptions(topic=topic, times=est_times, duplicate_times=duplicate_times),
+                               est_format) for path, label, topic in zip(est_paths, est_labels, topics, strict=True))
+    request = EvalRequest(estimates, options, gt_path, gt_format,
+                          ReadOptions(topic=gt_topic, times=gt_times, duplicate_times=duplicate_times),
+                          relations_path, scans_path, scans_format, scan_options, profile=profile_dir is not None)
+    evaluation = evaluate_request(request)
+    report, gt = evaluation.report, evaluation.gt
     click.echo(f"alignment: {ALIGN_TEXT[align] if not align_origin else 'first poses only (--align-origin)'}")
     click.echo(terminal_text(report))
     written = []
@@ -270,6 +251,6 @@ def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topi
     if evo_dir:
         written += write_evo_results(report, evo_dir)
     if profile_dir:
-        written += _profiles(profile_dir, scans, at_scans)
+        written += _profiles(profile_dir, evaluation.scans, evaluation.at_scans)
     for p in written:
         click.echo(f"wrote {p}")

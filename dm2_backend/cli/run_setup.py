@@ -19,10 +19,10 @@ from dm2_backend.cli.options import (
     times_option,
     topic_option,
 )
-from dm2_backend.config.schema import PluginSection, RunConfig
+from dm2_backend.config.schema import RunConfig
 from dm2_backend.formats import detect_trajectory_format
 from dm2_backend.formats.kitti import find_calib, looks_camera_frame
-from dm2_backend.pipeline.inputs import load_inputs
+from dm2_backend.pipeline.inputs import load_inputs, with_warm_start
 from dm2_backend.pipeline.run_folder import digest, fingerprint, refuse_overlap, run_folder
 from dm2_backend.prepare.steps import default_cache_dir
 from dm2_backend.runtime.errors import InputError
@@ -72,16 +72,6 @@ def run_options(f=None, *, scans_required: bool = True):
     return f
 
 
-def default_to_icp(cfg: RunConfig, inputs, asked: bool) -> bool:
-    """Whether the run starts from the ``icp`` warm start instead of the default ``poses``: when there is no
-    trajectory to refine, or (unless a warm start was ``asked`` for on the command line or in the config) only
-    the wheel odometry a 2D laser log carries, which the icp warm start fuses with scan matching."""
-    if cfg.warm_start.name != "poses":
-        return False
-    carried_odometry = inputs.given is not None and inputs.given_path is None and inputs.scans.planar
-    return inputs.given is None or (carried_odometry and not asked)
-
-
 def prepare_run(kw: dict, overrides: dict):
     """Read the inputs and the effective config of a run from the shared options."""
     for name in ("scans", "poses", "gt", "relations", "times", "calib", "config_path"):
@@ -105,14 +95,9 @@ def prepare_run(kw: dict, overrides: dict):
     if kw["seed"] is not None:
         overrides["seed"] = kw["seed"]
     cfg = config.load(kw["config_path"], overrides)
-    asked = bool(kw["warm_start"]) or config.sets(kw["config_path"], "warm_start")
-    if asked and cfg.warm_start.name == "poses" and inputs.given is None:
-        source, what = (None, "--warm-start poses") if kw["warm_start"] else (kw["config_path"], "warm_start poses")
-        raise InputError(source, f"{what} starts from a given trajectory and there is none: give --poses FILE "
-                                 "(or --warm-start icp to compute one from the scans)")
-    if default_to_icp(cfg, inputs, asked):  # a validated plugin section (icp takes no options here)
-        cfg = cfg.model_copy(update={"warm_start": PluginSection(name="icp")})
-    return inputs, cfg, cache
+    asked = None if not kw["warm_start"] and not config.sets(kw["config_path"], "warm_start") else (
+        "--warm-start" if kw["warm_start"] else kw["config_path"])
+    return inputs, with_warm_start(cfg, inputs, asked), cache
 
 
 def output_folder(kw: dict, command: str, cfg: RunConfig, inputs, resume: bool = False):

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dm2_backend.config.schema import PluginSection, RunConfig
 from dm2_backend.evaluation.relations import load_relations
 from dm2_backend.formats import ReadOptions, open_scans, read_trajectory
 from dm2_backend.kernel.geometry import se3
@@ -150,3 +151,26 @@ def gt_for_scans(gt: Trajectory, scans: ScanSequence, path: Path, max_diff: floa
         raise InputError(path, f"ground truth has {len(gt)} poses for {len(scans)} scans and no stamps to match "
                                "them by")
     return gt, None
+
+
+def default_to_icp(cfg: RunConfig, inputs: RunInputs, asked: bool) -> bool:
+    """Whether the run starts from the ``icp`` warm start instead of the default ``poses``: when there is no
+    trajectory to refine, or (unless a warm start was ``asked`` for on the command line or in the config) only
+    the wheel odometry a 2D laser log carries, which the icp warm start fuses with scan matching."""
+    if cfg.warm_start.name != "poses":
+        return False
+    carried_odometry = inputs.given is not None and inputs.given_path is None and inputs.scans.planar
+    return inputs.given is None or (carried_odometry and not asked)
+
+
+def with_warm_start(cfg: RunConfig, inputs: RunInputs, asked_by: str | Path | None) -> RunConfig:
+    """``cfg`` with the warm start this run takes (:func:`default_to_icp`); ``asked_by``: where a warm start was
+    asked for (``"--warm-start"`` or the config file; None: nowhere). Asking for ``poses`` without any is an
+    error naming where it was asked."""
+    if asked_by is not None and cfg.warm_start.name == "poses" and inputs.given is None:
+        source, what = (None, "--warm-start poses") if asked_by == "--warm-start" else (asked_by, "warm_start poses")
+        raise InputError(source, f"{what} starts from a given trajectory and there is none: give --poses FILE "
+                                 "(or --warm-start icp to compute one from the scans)")
+    if default_to_icp(cfg, inputs, asked_by is not None):  # a validated plugin section (icp takes no options here)
+        return cfg.model_copy(update={"warm_start": PluginSection(name="icp")})
+    return cfg
