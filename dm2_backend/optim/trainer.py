@@ -289,107 +289,32 @@ class Optimiser:
 
     def run(self, checkpoint_dir: Path | None = None, resume: bool = False) -> OptimResult:
         """Train; with several ranks only rank 0 reads and writes the checkpoint, shows progress and
-        evaluates ``metric``, and every rank resumes from rank 0's checkpoint."""
-        dist, lead = self.dist, self.dist.rank == 0
-        history: list[dict] = []
+        evaluates ``metric``, and every rank resumes from rank 0's checkpoint. Each epoch: :meth:`_epoch` (the
+        steps), :meth:`_judge` (its row, and whether its poses are the best so far), :meth:`_converged` (the
+        early stop)."""
+        lead = self.dist.rank == 0
         by_map = self.cfg.select == "map" and self.map_metric is not None
         first = self.poses()  # the start is a candidate: refine never returns a blurrier map than it was given
         best = first_candidate(first, float(self.map_metric(first)) if by_map and lead else None)
-        start = 0
         ckpt = checkpoint_dir / CHECKPOINT if checkpoint_dir else None
-        state = None
-        if resume and lead and ckpt is not None and ckpt.exists():
-            state = load_checkpoint(ckpt, "cpu" if dist.enabled else self.device, len(first))
-        if resume and dist.enabled:
-            state = distributed.broadcast(state)
-        if state is not None:
-            try:
-                self.model.load_state_dict(state["model"])
-                self.field.load_state_dict(state["field"])
-                self.optim.load_state_dict(state["optim"])
-                self.sched.load_state_dict(state["sched"])
-                best, history, start = state["best"], state["history"], state["epoch"] + 1
-            except (KeyError, RuntimeError, ValueError, TypeError) as exc:  # e.g. a 3D run's state into a 2D one
-                raise InputError(ckpt, "--resume: this checkpoint is of another kind of run and does not fit this "
-                                       f"one ({one_line(str(exc))[:160]}); run without --resume") from None
-        ddp = distributed.data_parallel(self) if dist.enabled else None
+        best, history, start = self._resume(ckpt, resume, len(first), best)
+        ddp = distributed.data_parallel(self) if self.dist.enabled else None
         stopped: Stop | None = None
-        # convergence (loss and, with a metric, accuracy against the steps): a few points per epoch
-        trace_every = max(1, self.steps_per_epoch // 8)
-        warmup_epochs = math.ceil(self.derived.pose_warmup_steps / self.steps_per_epoch)
-        # an early stop at convergence only under the step budget (explicit epochs run them all) and with the map
-        # selection (it needs a map that no longer improves, judged on rank 0); every rank takes rank 0's decision
-        early = self.cfg.converge_tol > 0 and self.cfg.max_steps > 0 and self.cfg.select == "map"
         flat = 0
-        shown = self.progress and lead and self.epochs > start
-        bar = progress(range(start, self.epochs), "refine", unit="epoch", enabled=shown)
+        bar = progress(range(start, self.epochs), "refine", unit="epoch",
+                       enabled=self.progress and lead and self.epochs > start)
         for epoch in bar:
             t0 = time.perf_counter()
-            rng = np.random.default_rng([self.seed, epoch])
-            gen = torch.Generator(device="cpu").manual_seed(distributed.generator_seed(int(rng.integers(2**31)), dist))
-            order = rng.permutation(self.n)  # the same on every rank
-            sums: dict[str, float] = {}
-            trace, window = [], []
-            for s in range(self.steps_per_epoch):
-                anchors = order[s * self.cfg.batch_groups : (s + 1) * self.cfg.batch_groups]
-                if len(anchors) == 0:
-                    continue
-                if ddp is None:
-                    parts = values = self._step_loss(anchors, gen)
-                    loss = parts["loss"]
-                else:  # this rank's share; DDP averages the gradients, so weight by the share times the ranks
-                    mine, weight = distributed.shard(anchors, dist)
-                    parts = ddp(mine, gen)
-                    values = distributed.reduce_parts(parts, weight)
-                    loss = parts["loss"] * (weight * dist.world)
-                if not torch.isfinite(values["loss"]):  # the reduced loss: every rank stops together
-                    stopped = Stop(StopReason.NON_FINITE, f"non-finite loss at epoch {epoch} step {s}; kept the best "
-                                                          "epoch")
-                    break
-                self.optim.zero_grad(set_to_none=True)
-                loss.backward()
-                self.optim.step()
-                self.sched.step()
-                for key, val in values.items():
-                    sums[key] = sums.get(key, 0.0) + float(val.detach())
-                window.append(float(values["loss"].detach()))
-                if (s + 1) % trace_every == 0 or s + 1 == self.steps_per_epoch:
-                    point = {"step": epoch * self.steps_per_epoch + s + 1, "loss": float(np.mean(window))}
-                    if self.trace_metric is not None and lead:
-                        point["ate"] = float(self.trace_metric(self.poses()))
-                    trace.append(point)
-                    window = []
-            if stopped:
+            sums, trace, stopped = self._epoch(epoch, ddp)
+            if stopped is not None:
                 break
             row = {k: v / self.steps_per_epoch for k, v in sums.items()}
             row.update(epoch=epoch, seconds=time.perf_counter() - t0, steps=(epoch + 1) * self.steps_per_epoch,
                        trace=trace)
-            poses = self.poses()
-            if self.metric is not None and lead:
-                row["ate"] = float(self.metric(poses))
-                if getattr(self.metric, "name", None):  # which metric "ate" is (pipeline.live.LiveMetric)
-                    row["ate_metric"] = self.metric.name
-            spread, limit = disagreement(poses, *self._pairs), self.derived.max_disagreement
-            row["disagreement"] = spread
-            diverged = spread is not None and limit is not None and spread > limit
-            if diverged:
-                row["rejected"] = f"disagrees with the registrations ({spread:.3g} m > {limit:.3g} m)"
-            elif self.map_metric is not None and lead:
-                row["map_entropy"] = float(self.map_metric(poses))
-            history.append(row)
-            if not diverged:
-                best = offer(best, row, poses, by_map and lead)
+            best = self._judge(row, history, best, by_map)
             bar.set_postfix(**{k: f"{row[k]:.4g}" for k in ("loss", "ate", "map_entropy") if k in row})
-            if early and by_map and lead and epoch >= warmup_epochs + 1:
-                previous = history[-2]["loss"]
-                better_map = best["epoch"] == epoch
-                small = abs(previous - row["loss"]) <= self.cfg.converge_tol * max(abs(previous), 1e-12)
-                flat = flat + 1 if small and not better_map else 0
-            if dist.enabled and early:
-                flat = distributed.broadcast(flat)
-            if flat >= 2 and epoch + 1 < self.epochs:
-                stopped = Stop(StopReason.CONVERGED, f"stopped after epoch {epoch} of {self.epochs}: the loss changed "
-                               f"by less than {self.cfg.converge_tol:g} of itself and the map did not improve, twice")
+            flat, stopped = self._converged(epoch, history, best, by_map, flat)
+            if stopped is not None:
                 row["converged"] = stopped.detail
             if ckpt is not None and lead:
                 save_checkpoint(ckpt, self._state(epoch, best, history))
@@ -404,3 +329,105 @@ class Optimiser:
         stopped = stopped or Stop(StopReason.BUDGET, f"{len(history)} epochs")
         return OptimResult(best["poses"], best["epoch"], history, self.derived, stopped,
                            selection(best, by_map, rejected, self.epochs))
+
+    def _resume(self, ckpt: Path | None, resume: bool, frames: int, best: dict) -> tuple[dict, list[dict], int]:
+        """With ``resume``, the model, optimiser and schedule of rank 0's checkpoint (on every rank), and the best
+        poses, the epoch rows and the next epoch it records; else ``best``, no rows and epoch 0."""
+        dist = self.dist
+        state = None
+        if resume and dist.rank == 0 and ckpt is not None and ckpt.exists():
+            state = load_checkpoint(ckpt, "cpu" if dist.enabled else self.device, frames)
+        if resume and dist.enabled:
+            state = distributed.broadcast(state)
+        if state is None:
+            return best, [], 0
+        try:
+            self.model.load_state_dict(state["model"])
+            self.field.load_state_dict(state["field"])
+            self.optim.load_state_dict(state["optim"])
+            self.sched.load_state_dict(state["sched"])
+            return state["best"], state["history"], state["epoch"] + 1
+        except (KeyError, RuntimeError, ValueError, TypeError) as exc:  # e.g. a 3D run's state into a 2D one
+            raise InputError(ckpt, "--resume: this checkpoint is of another kind of run and does not fit this "
+                                   f"one ({one_line(str(exc))[:160]}); run without --resume") from None
+
+    def _epoch(self, epoch: int, ddp) -> tuple[dict[str, float], list[dict], Stop | None]:
+        """One pass over the anchor groups in this epoch's seeded order: the summed loss terms, the convergence
+        trace (a few points: the loss and, with a metric, accuracy) and a :class:`Stop` on a non-finite loss."""
+        dist, lead = self.dist, self.dist.rank == 0
+        rng = np.random.default_rng([self.seed, epoch])
+        gen = torch.Generator(device="cpu").manual_seed(distributed.generator_seed(int(rng.integers(2**31)), dist))
+        order = rng.permutation(self.n)  # the same on every rank
+        trace_every = max(1, self.steps_per_epoch // 8)
+        sums: dict[str, float] = {}
+        trace, window = [], []
+        for s in range(self.steps_per_epoch):
+            anchors = order[s * self.cfg.batch_groups : (s + 1) * self.cfg.batch_groups]
+            if len(anchors) == 0:
+                continue
+            if ddp is None:
+                parts = values = self._step_loss(anchors, gen)
+                loss = parts["loss"]
+            else:  # this rank's share; DDP averages the gradients, so weight by the share times the ranks
+                mine, weight = distributed.shard(anchors, dist)
+                parts = ddp(mine, gen)
+                values = distributed.reduce_parts(parts, weight)
+                loss = parts["loss"] * (weight * dist.world)
+            if not torch.isfinite(values["loss"]):  # the reduced loss: every rank stops together
+                return sums, trace, Stop(StopReason.NON_FINITE, f"non-finite loss at epoch {epoch} step {s}; kept "
+                                                                "the best epoch")
+            self.optim.zero_grad(set_to_none=True)
+            loss.backward()
+            self.optim.step()
+            self.sched.step()
+            for key, val in values.items():
+                sums[key] = sums.get(key, 0.0) + float(val.detach())
+            window.append(float(values["loss"].detach()))
+            if (s + 1) % trace_every == 0 or s + 1 == self.steps_per_epoch:
+                point = {"step": epoch * self.steps_per_epoch + s + 1, "loss": float(np.mean(window))}
+                if self.trace_metric is not None and lead:
+                    point["ate"] = float(self.trace_metric(self.poses()))
+                trace.append(point)
+                window = []
+        return sums, trace, None
+
+    def _judge(self, row: dict, history: list[dict], best: dict, by_map: bool) -> dict:
+        """Record the epoch's poses in ``row`` (accuracy, disagreement with the registrations, map entropy),
+        append it to ``history`` and return the best candidate so far: an epoch that disagrees far more than
+        the start did has diverged and is never one."""
+        lead = self.dist.rank == 0
+        poses = self.poses()
+        if self.metric is not None and lead:
+            row["ate"] = float(self.metric(poses))
+            if getattr(self.metric, "name", None):  # which metric "ate" is (pipeline.live.LiveMetric)
+                row["ate_metric"] = self.metric.name
+        spread, limit = disagreement(poses, *self._pairs), self.derived.max_disagreement
+        row["disagreement"] = spread
+        diverged = spread is not None and limit is not None and spread > limit
+        if diverged:
+            row["rejected"] = f"disagrees with the registrations ({spread:.3g} m > {limit:.3g} m)"
+        elif self.map_metric is not None and lead:
+            row["map_entropy"] = float(self.map_metric(poses))
+        history.append(row)
+        return best if diverged else offer(best, row, poses, by_map and lead)
+
+    def _converged(self, epoch: int, history: list[dict], best: dict, by_map: bool, flat: int
+                   ) -> tuple[int, Stop | None]:
+        """The early stop: after two epochs in a row whose loss changed by less than ``converge_tol`` of itself
+        and whose map did not improve (past the pose warm-up; only under the step budget, explicit epochs run
+        them all, and with the map selection, judged on rank 0: every rank takes its decision). Returns the
+        count of such epochs and the :class:`Stop`, if it is time."""
+        lead = self.dist.rank == 0
+        early = self.cfg.converge_tol > 0 and self.cfg.max_steps > 0 and self.cfg.select == "map"
+        warmup_epochs = math.ceil(self.derived.pose_warmup_steps / self.steps_per_epoch)
+        if early and by_map and lead and epoch >= warmup_epochs + 1:
+            previous, loss = history[-2]["loss"], history[-1]["loss"]
+            better_map = best["epoch"] == epoch
+            small = abs(previous - loss) <= self.cfg.converge_tol * max(abs(previous), 1e-12)
+            flat = flat + 1 if small and not better_map else 0
+        if self.dist.enabled and early:
+            flat = distributed.broadcast(flat)
+        if flat >= 2 and epoch + 1 < self.epochs:
+            return flat, Stop(StopReason.CONVERGED, f"stopped after epoch {epoch} of {self.epochs}: the loss changed "
+                              f"by less than {self.cfg.converge_tol:g} of itself and the map did not improve, twice")
+        return flat, None
