@@ -244,7 +244,7 @@ def _prepared_3d(frames: int = 12):
                                     {"warm start": np.nan, "graph": np.nan, "dense": np.nan}])
 def test_a_dense_result_that_agrees_worse_is_not_kept(monkeypatch, scores):
     from dm2_backend.optim.dense import DenseResult
-    from dm2_backend.pipeline import start as start_module
+    from dm2_backend.pipeline import dense_start as start_module
 
     prep, seq, gt = _prepared_3d()
     given = start_module.Start(gt, start_module.StartKind.GRAPH, "the pose-graph solution")
@@ -263,7 +263,7 @@ def test_a_dense_result_that_cuts_the_sequence_is_not_kept(monkeypatch):
     the start stands, and the report says why."""
     from dm2_backend.config.schema import PluginSection
     from dm2_backend.optim.dense import DenseResult
-    from dm2_backend.pipeline import start as start_module
+    from dm2_backend.pipeline import dense_start as start_module
 
     prep, seq, gt = _prepared_3d(30)
     # the registration's correspondence distance as configured (0.3 m: a 1.2 m slide, 13 deg at the 5.4 m median
@@ -284,7 +284,8 @@ def test_a_dense_result_that_cuts_the_sequence_is_not_kept(monkeypatch):
 
 def test_the_dense_stage_is_kept_when_it_agrees_best():
     prep, seq, gt = _prepared_3d()
-    from dm2_backend.pipeline.start import Start, StartKind, dense_start
+    from dm2_backend.pipeline.dense_start import dense_start
+    from dm2_backend.pipeline.start import Start, StartKind
 
     noisy = gt.copy()
     noisy[:, :3, 3] += np.random.default_rng(0).normal(0, 0.05, (len(gt), 3))

@@ -80,7 +80,7 @@ def test_the_dense_stages_cells_judge_the_graph_start(prepared, monkeypatch):
     """With the dense stage's cells the graph start is judged by how far each frame lies from the planes the other
     frames make (map entropy chose a depth camera's graph solution 7x farther from the truth than the loop-closed
     poses): the judge ranks the truth first, keeps the graph when its frames agree better and refuses a bent one."""
-    from dm2_backend.pipeline.start import DenseCells
+    from dm2_backend.pipeline.dense_start import DenseCells
 
     case = planar_case()
     seq = ScanSequence(lambda i: Scan(case.scans[i]), len(case.scans), planar=True)
@@ -111,7 +111,7 @@ def test_a_judge_with_no_shared_plane_leaves_the_choice_to_the_maps(prepared, sa
     """Scans whose frames share no plane (here: cells of one frame only) give the judge nothing (NaN): the start is
     chosen by map entropy, as without the dense stage, and the judge's empty verdict is kept in the report."""
     from dm2_backend.kernel.planes import Cells
-    from dm2_backend.pipeline.start import DenseCells
+    from dm2_backend.pipeline.dense_start import DenseCells
 
     rng = np.random.default_rng(0)
     lone = Cells(np.zeros(50, np.int32), np.full(50, 10, np.float32), rng.uniform(0, 1, (50, 3)).astype(np.float32),
@@ -134,7 +134,8 @@ def test_prepared_and_auto_on_planar_data(prepared, sampler):
 def test_the_dense_stage_on_planar_scans_stays_planar_and_lowers_the_error():
     """A 2D laser's lines are walls: the dense stage runs on planar scans, keeps x, y, yaw poses, leaves the truth
     at its noise floor and brings the loop-closed start to it."""
-    from dm2_backend.pipeline.start import Start, dense_start
+    from dm2_backend.pipeline.dense_start import dense_start
+    from dm2_backend.pipeline.start import Start
 
     case = planar_case()
     seq = ScanSequence(lambda i: Scan(case.scans[i]), len(case.scans), planar=True)
@@ -188,7 +189,8 @@ def test_a_corridors_truth_holds_with_the_registrations_own_information():
     from dm2_backend.kernel.planes import cells_from_scans
     from dm2_backend.optim.config import NOISE_WIDTHS, dense_voxel
     from dm2_backend.optim.dense import refine_dense
-    from dm2_backend.pipeline.start import PLANAR_HOLD, Start, dense_start, range_noise
+    from dm2_backend.pipeline.dense_start import PLANAR_HOLD, dense_start, range_noise
+    from dm2_backend.pipeline.start import Start
     from dm2_backend.plugins.registration_icp import IcpRegistration
     from dm2_backend.plugins.topology_radius import RadiusTopology
     from dm2_backend.simulate.corridor import corridor_sequence

@@ -234,8 +234,8 @@ def test_a_degenerate_view_repairs_a_step_its_frames_contradict_but_not_one_alon
 
 
 def test_the_console_names_held_stretches_and_the_profile_gets_the_guards_marks():
+    from dm2_backend.pipeline.dense_start import spans
     from dm2_backend.pipeline.run_writer import guard_marks
-    from dm2_backend.pipeline.start import spans
 
     assert spans([3, 4, 5, 9, 11, 12]) == "3-5, 9, 11-12" and spans([]) == ""
     details = {"start": {"dense": {"step_guard": {"held": [4, 5], "check": {"contradicted": [7]}}}}}
@@ -254,7 +254,7 @@ def test_no_first_order_epochs_after_a_dense_stage_whose_result_was_not_kept(roo
     from dm2_backend.kernel.stages import Pairwise, Topology
     from dm2_backend.optim.config import OptimConfig
     from dm2_backend.optim.dense import DenseResult
-    from dm2_backend.pipeline import start as start_module
+    from dm2_backend.pipeline import dense_start as start_module
     from dm2_backend.pipeline.parallel import build
     from dm2_backend.prepare.steps import Prepared
 

@@ -12,11 +12,12 @@ from dm2_backend.optim import dense_checkpoint, distributed
 from dm2_backend.optim.checkpoint import CHECKPOINT, load_checkpoint
 from dm2_backend.optim.problem import Watch
 from dm2_backend.pipeline import parallel
+from dm2_backend.pipeline.dense_start import DenseCells, dense_start
 from dm2_backend.pipeline.inputs import RunInputs
 from dm2_backend.pipeline.live import live_metric
 from dm2_backend.pipeline.run_report import RunReport
 from dm2_backend.pipeline.run_writer import map_entropy, map_sampler, output_timestamps, write_run
-from dm2_backend.pipeline.start import DenseCells, choose_start, dense_start
+from dm2_backend.pipeline.start import choose_start
 from dm2_backend.runtime.memory import release_mapped
 
 log = logging.getLogger(__name__)

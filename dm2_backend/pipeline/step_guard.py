@@ -6,7 +6,8 @@ neighbours in a stretch twice as wide each round, is held (:func:`hold_of`: an e
 :meth:`~dm2_backend.kernel.pose_graph.PoseGraph.holding`) where its two frames fit best, with the information they give
 (a direction they leave free, along a corridor or across one wall, is not held), and the dense stage solves again
 from its result; this repeats while steps are contradicted, at most :data:`ROUNDS` times. :func:`guard` returns the
-poses and the final verdicts; ``pipeline.start.dense_start`` does not return a result with a contradicted step left.
+poses and the final verdicts; ``pipeline.dense_start.dense_start`` does not return a result with a contradicted
+step left.
 """
 
 from __future__ import annotations
