@@ -1,5 +1,6 @@
 """Imports go down the declared layers (``dm2_backend/layers.py``; docs/architecture.md): every import of every
-module, at module level and inside functions, reaches a lower layer or stays in its own package."""
+module, at module level and inside functions, reaches a lower layer or stays in its own package. Modules loaded by
+name at run time (``importlib``, the plugins' and formats' entry points) are not imports and are not checked."""
 
 from __future__ import annotations
 
@@ -26,6 +27,8 @@ def imported(source: str, module: str, package: bool = False) -> list[tuple[int,
     found = []
     for node in ast.walk(ast.parse(source)):
         if isinstance(node, ast.ImportFrom):
+            if node.level > len(package_parts):
+                raise ValueError(f"{module}:{node.lineno}: a relative import above the package")
             base = ".".join(package_parts[:len(package_parts) - node.level + 1]) if node.level else ""
             target = ".".join(p for p in (base, node.module) if p)
             found += [(node.lineno, f"{target}.{alias.name}") for alias in node.names]
@@ -53,7 +56,7 @@ def upward_imports(sources: dict[str, tuple[str, bool]] | None = None) -> list[s
 
 
 def dm2_files() -> list[Path]:
-    return sorted([*ROOT.glob("dm2_backend/**/*.py"), *ROOT.glob("formats/*.py"), *ROOT.glob("plugins/*.py")])
+    return sorted([*ROOT.glob("dm2_backend/**/*.py"), *ROOT.glob("formats/**/*.py"), *ROOT.glob("plugins/**/*.py")])
 
 
 def test_every_import_goes_down_the_layers():
@@ -106,3 +109,14 @@ def test_the_architecture_page_draws_the_declared_layers():
     expected = [(name, [f"{u}/" for u in units if folders.get(u, u)]) for name, units in reversed(LAYERS)]
     drawn = [(line[:16].strip(), [w for w in line[16:].split() if w.endswith("/")]) for line in diagram]
     assert drawn == expected
+
+
+def test_every_package_folder_is_installed():
+    """pyproject.toml lists every folder of dm2 that holds an ``__init__.py`` (an editable install would hide a
+    missing one; a wheel would lack it)."""
+    import tomllib
+
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    folders = {module_name(p.parent / "x.py").removesuffix(".x")
+               for p in dm2_files() if p.name == "__init__.py"}
+    assert listed == folders, listed ^ folders
