@@ -219,3 +219,21 @@ def test_a_checkpoint_records_why_the_stage_ended_and_refuses_an_unknown_reason(
     ckpt.with_suffix(".tmp.npz").replace(ckpt)
     with pytest.raises(InputError, match="end record"):
         dense_checkpoint.load(ckpt, poses, 30)
+
+
+@pytest.mark.parametrize("text,reason", [("converged in round 3 (rms step 0.0002 m)", StopReason.CONVERGED),
+                                         ("round 4: no step lowered the objective", StopReason.NO_DESCENT),
+                                         ("30 rounds", StopReason.BUDGET), ("", None)])
+def test_an_earlier_dm2s_checkpoint_end_is_read_by_its_words(tmp_path, text, reason):
+    poses = se3.identity(10)
+    ckpt = tmp_path / dense_checkpoint.DENSE_CHECKPOINT
+    row = {"graph": 1.0, "sigma": 0.01, "step_rms_m": 0.001}
+    dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row]), poses)
+    with np.load(ckpt) as data:
+        meta = json.loads(str(data["meta"]))
+        meta["stopped"] = text
+        np.savez(ckpt.with_suffix(".tmp.npz"), poses=data["poses"], start=data["start"],
+                 meta=np.array(json.dumps(meta)))
+    ckpt.with_suffix(".tmp.npz").replace(ckpt)
+    stopped = dense_checkpoint.load(ckpt, poses, 30).stopped
+    assert (stopped is None) if reason is None else (stopped.reason is reason and stopped.detail == text)

@@ -437,3 +437,10 @@ def test_a_switch_reads_yamls_booleans_and_null_as_words(given, read):
 def test_an_auto_switch_is_decided_and_an_explicit_one_holds():
     assert switch("auto", True) and not switch("auto", False) and switch("on", False) and not switch("off", True)
     assert OptimConfig(dense=None).dense is True and OptimConfig().dense is True
+
+
+def test_after_the_dense_stage_the_epochs_do_not_run_and_say_so(case):
+    after_dense = Problem(case.frames, case.topology, case.pairwise, case.warm, after_dense=True)
+    result = Optimiser(after_dense, small_config(epochs=2), CPU).run()
+    assert result.stopped.reason is StopReason.NOT_RUN and result.history == [] and result.best_epoch == -1
+    np.testing.assert_array_equal(result.poses, Optimiser(after_dense, small_config(epochs=2), CPU).poses())

@@ -15,6 +15,7 @@ from dm2_backend.kernel.graph_edges import build_graph
 from dm2_backend.kernel.scans import Scan, ScanSequence
 from dm2_backend.kernel.solver_options import GraphResult
 from dm2_backend.optim.config import OptimConfig
+from dm2_backend.optim.stop import StopReason
 from dm2_backend.pipeline import start as start_module
 from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.pipeline.start import GRAPH_SOLVER, Kept, StartKind, choose_start
@@ -149,6 +150,8 @@ def test_the_dense_stage_on_planar_scans_stays_planar_and_lowers_the_error():
     assert floor < 0.01  # the truth stands (its steps fit their frames best) or moves within the noise
     assert ate_rmse(case.gt, out.poses) < min(0.01, 0.2 * ate_rmse(case.gt, start))
     assert out.dense.step_guard.clean and truth.dense.step_guard.clean
+    assert out.dense.stopped.reason in (StopReason.CONVERGED, StopReason.BUDGET)
+    assert out.summary()["dense"]["stop_reason"] == out.dense.stopped.reason.value
 
 
 def test_a_planar_graph_lifted_to_se3_has_the_planar_costs_and_optimum(prepared):

@@ -102,6 +102,7 @@ def test_report(run):
     out, result, report = run
     assert report["method"] == "dm2 refine" and report["frames"] == len(planar_case().scans)
     assert report["planar"] is True and report["device"] == "cpu" and report["stopped"] is None
+    assert report["stop_reason"] == "budget" and report["start"]["dense"] == {}  # dense: false, two epochs
     metrics, before = report["metrics"], report["warm_start_metrics"]
     assert {"ape_trans_rmse_m", "ape_rot_rmse_deg", "rpe_trans_rmse_m", "paper_ate_trans"} <= set(metrics)
     assert set(metrics) == set(before)

@@ -149,10 +149,21 @@ def _checked(poses: np.ndarray, made_from: np.ndarray, meta: dict, start: np.nda
     return DenseState(poses, done, float(damping), history, _stop(stopped), _odometry(meta.get("odometry"), len(start)))
 
 
+#: how a checkpoint of an earlier dm2 worded each end (its record was the text alone)
+_EARLIER_WORDS = (("converged in round", StopReason.CONVERGED), ("no step lowered", StopReason.NO_DESCENT),
+                  ("rounds", StopReason.BUDGET))
+
+
 def _stop(record: object) -> Stop | None:
-    """The end a checkpoint recorded: None (still running) or a known reason with a short text."""
-    if record is None:
+    """The end a checkpoint recorded: None (still running) or a known reason with a short text (an earlier dm2's
+    text alone: "" while running, else its reason read from its words)."""
+    if record is None or record == "":
         return None
+    if isinstance(record, str) and len(record) <= 500:
+        reason = next((r for words, r in _EARLIER_WORDS if words in record), None)
+        if reason is None:
+            raise ValueError("its end record is not a known reason with a short text")
+        return Stop(reason, record)
     reasons = {r.value: r for r in StopReason}
     if (not isinstance(record, dict) or record.get("reason") not in reasons or not isinstance(record.get("detail"), str)
             or len(record["detail"]) > 500):

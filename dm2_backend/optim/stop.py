@@ -9,6 +9,8 @@ from dataclasses import dataclass
 class StopReason(str, enum.Enum):
     """Why the rounds (dense stage) or epochs (first-order stage) ended."""
 
+    #: no round or epoch was asked for (the first-order epochs after the dense stage, by default)
+    NOT_RUN = "not run"
     #: every round or epoch asked for ran
     BUDGET = "budget"
     #: the steps, or the loss and the map, stopped changing

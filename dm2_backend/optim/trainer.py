@@ -326,7 +326,9 @@ class Optimiser:
                                                 f"(limit {self.derived.max_disagreement:.3g} m); returned the start")
         if ckpt is not None and lead:
             self._save_mnet(checkpoint_dir / MNET)
-        stopped = stopped or Stop(StopReason.BUDGET, f"{len(history)} epochs")
+        if stopped is None:
+            stopped = (Stop(StopReason.BUDGET, f"{len(history)} epochs") if self.epochs > 0
+                       else Stop(StopReason.NOT_RUN, "no first-order epoch (optimiser.first_order)"))
         return OptimResult(best["poses"], best["epoch"], history, self.derived, stopped,
                            selection(best, by_map, rejected, self.epochs))
 
