@@ -258,6 +258,25 @@ def test_a_dense_result_that_agrees_worse_is_not_kept(monkeypatch, scores):
     assert out.dense.returned is start_module.Kept.GRAPH
 
 
+def test_a_warm_start_that_agrees_best_is_named_as_such(monkeypatch):
+    """The judge keeps the front end's warm start over both the graph start and the dense result: the start is
+    the warm start, by name (never relabelled as the prepared poses)."""
+    from dm2_backend.optim.dense import DenseResult
+    from dm2_backend.pipeline import dense_start as start_module
+
+    prep, seq, gt = _prepared_3d()
+    moved = gt.copy()
+    moved[:, 0, 3] += 0.5
+    monkeypatch.setattr(start_module, "refine_dense", lambda *a, **k: DenseResult(moved, [], 0.0))
+    monkeypatch.setattr(start_module, "agreement_score",
+                        lambda *a, **k: {"warm start": 0.1, "graph": 0.5, "dense": 2.0})
+    out = start_module.dense_start(seq, prep, start_module.Start(gt, start_module.StartKind.GRAPH, "graph"),
+                                   OptimConfig())
+    np.testing.assert_array_equal(out.poses, prep.warm_start)
+    assert out.name is start_module.StartKind.WARM_START and out.dense.returned is start_module.Kept.WARM_START
+    assert out.summary()["name"] == "warm start" and not out.locally_accurate
+
+
 def test_a_dense_result_that_cuts_the_sequence_is_not_kept(monkeypatch):
     """Its frames agree best with the others' planes, but one of its steps is 2 m and 29 deg from the odometry's:
     the start stands, and the report says why."""

@@ -53,6 +53,29 @@ class StartKind(str, enum.Enum):
     WARM_START = "warm start"
 
 
+class StartReason(str, enum.Enum):
+    """What decided the start: the config, the data, or the evidence the candidates were judged by."""
+
+    #: set by the caller (a test, a benchmark), not chosen here
+    GIVEN = "given"
+    #: ``optimiser.start: prepared``
+    CONFIGURED = "configured"
+    #: ``optimiser.start: auto`` on planar data
+    PLANAR = "planar data"
+    #: no registration edge beyond the odometry: the graph's solution is the prepared poses
+    NO_LOOP_EDGES = "no loop edges"
+    #: the pose graph could not be solved
+    GRAPH_UNSOLVED = "graph unsolved"
+    #: the graph's solution cuts the sequence (``graph_cuts``)
+    GRAPH_CUTS = "graph cuts"
+    #: judged by how the candidates' frames agree with the others' planes (``agreement_m2``)
+    PLANES = "planes"
+    #: judged by the candidates' mean map entropy (``map_entropy``)
+    MAP_SHARPNESS = "map sharpness"
+    #: nothing to judge the graph's solution by: it is taken
+    NO_JUDGE = "no judge"
+
+
 class Kept(str, enum.Enum):
     """The poses the dense stage's judge kept: its own result or one of the poses it was measured against."""
 
@@ -106,6 +129,7 @@ class Start:
     poses: np.ndarray
     name: StartKind
     why: str
+    reason: StartReason = StartReason.GIVEN
     map_entropy: dict[str, float] = field(default_factory=dict)  # candidate -> mean map entropy
     dense: DenseSummary | None = None
     graph_cuts: continuity.Cuts | None = None  # the pose-graph solution's cut steps, where it was solved
@@ -129,7 +153,7 @@ class Start:
         return self.name is StartKind.GRAPH or self.refined
 
     def summary(self) -> dict:
-        return {"name": self.name.value, "why": self.why, "map_entropy": self.map_entropy,
+        return {"name": self.name.value, "reason": self.reason.value, "why": self.why, "map_entropy": self.map_entropy,
                 "agreement_m2": self.agreement_m2, "dense": self.dense.summary() if self.dense else {},
                 "cuts": {"graph": self.graph_cuts.summary()} if self.graph_cuts is not None else {}}
 
@@ -159,24 +183,27 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None,
     further than the graph over the pairwise registrations; docs/decisions/0002-start-judged-by-planes.md)."""
     prepared = prep.initial
     if cfg.start == "prepared":
-        return Start(prepared, StartKind.PREPARED, "optimiser.start: prepared")
+        return Start(prepared, StartKind.PREPARED, "optimiser.start: prepared", StartReason.CONFIGURED)
     if cfg.start == "auto" and prep.frames.planar:
-        return Start(prepared, StartKind.PREPARED, "optimiser.start auto: planar data start from the prepared poses")
+        return Start(prepared, StartKind.PREPARED, "optimiser.start auto: planar data start from the prepared poses",
+                     StartReason.PLANAR)
     model = InformationModel.from_resolved(prep.resolved)
     graph = build_graph(prep.frames, prepared, prep.topology, prep.pairwise, model)
     if graph.meta["loop_edges"] == 0:  # the odometry edges are the prepared poses' own steps
-        return Start(prepared, StartKind.PREPARED, "no registration edges beyond the odometry: the graph is the start")
+        return Start(prepared, StartKind.PREPARED, "no registration edges beyond the odometry: the graph is the start",
+                     StartReason.NO_LOOP_EDGES)
     try:
         solved = gtsam_solver.optimize(graph, GRAPH_SOLVER).poses
     except InputError as exc:
         log.warning("pose-graph start failed (%s); starting from the prepared poses", exc.message)
-        return Start(prepared, StartKind.PREPARED, f"the pose graph could not be solved: {exc.message}")
+        return Start(prepared, StartKind.PREPARED, f"the pose graph could not be solved: {exc.message}",
+                     StartReason.GRAPH_UNSOLVED)
     cut = sequence_cuts(prep, solved)
     if cut:
         log.warning("pose-graph start not taken: it cuts the sequence at %s", cut.describe())
         why = (f"the pose-graph solution cuts the sequence at {cut.describe()}, which neither the odometry nor the "
                "registration of those frames says")
-        return Start(prepared, StartKind.PREPARED, why, graph_cuts=cut)
+        return Start(prepared, StartKind.PREPARED, why, StartReason.GRAPH_CUTS, graph_cuts=cut)
     agreement = judge.agreement({"prepared": prepared, "graph": solved}) if judge is not None else {}
     if agreement and all(np.isfinite(v) for v in agreement.values()):  # each frame against the others' planes
         graph_agrees = agreement["graph"] <= agreement["prepared"]
@@ -184,16 +211,16 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None,
                  "graph" if graph_agrees else "prepared", agreement["prepared"], agreement["graph"])
         if graph_agrees:
             return Start(solved, StartKind.GRAPH, "the pose-graph solution's frames agree better with the planes the "
-                         "others see", graph_cuts=cut, agreement_m2=agreement)
+                         "others see", StartReason.PLANES, graph_cuts=cut, agreement_m2=agreement)
         return Start(prepared, StartKind.PREPARED, "the pose-graph solution's frames agree worse with the planes the "
-                     "others see", graph_cuts=cut, agreement_m2=agreement)
+                     "others see", StartReason.PLANES, graph_cuts=cut, agreement_m2=agreement)
     # no judge, or no plane seen by two frames to judge by: the maps' sharpness
     if sampler is None:
-        return Start(solved, StartKind.GRAPH, "pose-graph solution (no map to compare)", graph_cuts=cut,
-                     agreement_m2=agreement)
+        return Start(solved, StartKind.GRAPH, "pose-graph solution (no map to compare)", StartReason.NO_JUDGE,
+                     graph_cuts=cut, agreement_m2=agreement)
     scores = {"prepared": sampler.evaluate(prepared).entropy, "graph": sampler.evaluate(solved).entropy}
     if scores["graph"] <= scores["prepared"]:
-        return Start(solved, StartKind.GRAPH, "the pose-graph solution makes the sharper map", scores,
-                     graph_cuts=cut, agreement_m2=agreement)
-    return Start(prepared, StartKind.PREPARED, "the pose-graph solution makes a blurrier map", scores,
-                 graph_cuts=cut, agreement_m2=agreement)
+        return Start(solved, StartKind.GRAPH, "the pose-graph solution makes the sharper map",
+                     StartReason.MAP_SHARPNESS, scores, graph_cuts=cut, agreement_m2=agreement)
+    return Start(prepared, StartKind.PREPARED, "the pose-graph solution makes a blurrier map",
+                 StartReason.MAP_SHARPNESS, scores, graph_cuts=cut, agreement_m2=agreement)
