@@ -21,12 +21,12 @@ import time
 import numpy as np
 import psutil
 
+from dm2_backend.config.optimiser import OptimConfig
 from dm2_backend.evaluation.consistency_profile import consistency_profiles, profile_voxel
 from dm2_backend.formats import open_scans
 from dm2_backend.kernel import planes
 from dm2_backend.kernel.geometry import se3
 from dm2_backend.kernel.pose_graph import PoseGraph
-from dm2_backend.optim.config import OptimConfig
 from dm2_backend.optim.dense import refine_dense
 
 

@@ -21,7 +21,7 @@ Semantics as in the official code (github.com/ai4ce/DeepMapping2):
   multiplies it with float32 tensors. (An older ``script/pairwise_icp.py`` wrote (N, G-1, 4)
   ``x y z yaw`` in the other direction; that layout is rejected.)
 
-Our representation (:mod:`dm2_backend.kernel.stages`): poses (N,4,4); ``groups`` (N, k) neighbour indices
+Our representation (:mod:`dm2_backend.kernel.prepared`): poses (N,4,4); ``groups`` (N, k) neighbour indices
 without the anchor, -1 pads; ``relative`` (N, k, 4, 4) = ``T_j^i``, the neighbour in the anchor's frame,
 the inverse of the file's entries. Pads are written as the anchor itself with an identity pairwise pose
 (a self-pair), and a neighbour equal to its anchor reads back as a pad.

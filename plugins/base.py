@@ -9,7 +9,7 @@ from typing import Protocol
 
 import numpy as np
 
-from dm2_backend.kernel.stages import Frames, Pairwise, Topology
+from dm2_backend.kernel.prepared import Frames, Pairwise, Topology
 from dm2_backend.kernel.trajectory import Trajectory
 
 

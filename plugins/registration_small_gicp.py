@@ -12,7 +12,7 @@ import numpy as np
 from dm2_backend.algorithms.common import Cloud, Match, lengths, project_planar
 from dm2_backend.algorithms.gates import coverage
 from dm2_backend.algorithms.pairwise import PairwiseRegistration
-from dm2_backend.kernel.stages import Frames
+from dm2_backend.kernel.prepared import Frames
 from dm2_backend.runtime.errors import InputError
 
 TYPES = ("GICP", "VGICP", "ICP", "PLANE_ICP")

@@ -29,7 +29,7 @@ from dm2_backend.algorithms.common import (
 from dm2_backend.algorithms.gates import check_alignment, constraint
 from dm2_backend.algorithms.icp import register
 from dm2_backend.algorithms.topology import check_k, check_poses
-from dm2_backend.kernel.stages import Frames, ScanScale, Topology
+from dm2_backend.kernel.prepared import Frames, ScanScale, Topology
 from dm2_backend.runtime.progress import progress
 
 

@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 
 from dm2_backend.algorithms.common import assemble
 from dm2_backend.algorithms.topology import check_k, check_poses
-from dm2_backend.kernel.stages import Frames, Topology
+from dm2_backend.kernel.prepared import Frames, Topology
 from dm2_backend.runtime.errors import InputError
 
 

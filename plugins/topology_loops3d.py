@@ -51,7 +51,7 @@ from dm2_backend.algorithms.icp import register
 from dm2_backend.algorithms.loop_graph3d import Closure3, FrameGraph
 from dm2_backend.algorithms.topology import check_k, check_poses
 from dm2_backend.kernel.geometry import se3
-from dm2_backend.kernel.stages import Frames, Topology
+from dm2_backend.kernel.prepared import Frames, Topology
 from dm2_backend.runtime.errors import InputError
 from dm2_backend.runtime.progress import progress
 

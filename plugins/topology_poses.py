@@ -11,7 +11,7 @@ import numpy as np
 
 from dm2_backend.algorithms.common import assemble, radius_neighbours
 from dm2_backend.algorithms.topology import check_k, check_poses, default_radius
-from dm2_backend.kernel.stages import Frames, Topology
+from dm2_backend.kernel.prepared import Frames, Topology
 from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.runtime.errors import InputError
 

@@ -61,7 +61,7 @@ from dm2_backend.algorithms.drift_windows import OdometryNoise, WindowVerdict, a
 from dm2_backend.algorithms.icp import information_2d, register, slide_loss
 from dm2_backend.algorithms.match_noise import AXES, MIN_TRIPLES, MatchWeights, match_weights
 from dm2_backend.kernel.geometry import se3
-from dm2_backend.kernel.stages import Frames
+from dm2_backend.kernel.prepared import Frames
 from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.runtime.errors import InputError
 from dm2_backend.runtime.progress import progress

@@ -8,7 +8,7 @@ from typing import ClassVar
 import numpy as np
 
 from dm2_backend.algorithms.common import project_planar
-from dm2_backend.kernel.stages import Frames
+from dm2_backend.kernel.prepared import Frames
 from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.runtime.errors import InputError
 

@@ -11,10 +11,10 @@ import numpy as np
 import torch
 import yaml
 
+from dm2_backend.config.optimiser import OptimConfig
 from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.prepared import Frames, Pairwise, Topology
 from dm2_backend.kernel.scans import Scan, ScanSequence
-from dm2_backend.kernel.stages import Frames, Pairwise, Topology
-from dm2_backend.optim.config import OptimConfig
 from dm2_backend.plugins.registration_icp import IcpRegistration
 from dm2_backend.plugins.topology_radius import RadiusTopology
 from dm2_backend.prepare.frames import load_frames

@@ -7,8 +7,8 @@ import numpy as np
 import open3d as o3d
 
 from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.prepared import Frames
 from dm2_backend.kernel.scans import Scan, ScanSequence
-from dm2_backend.kernel.stages import Frames
 from dm2_backend.prepare.frames import load_frames
 from dm2_backend.simulate.lidar import LidarModel, Raycaster
 

@@ -20,8 +20,8 @@ from dm2_backend.kernel import gtsam_solver
 from dm2_backend.kernel.geometry import se3
 from dm2_backend.kernel.graph_edges import InformationModel, build_graph, registration_information
 from dm2_backend.kernel.pose_graph import PoseGraph
+from dm2_backend.kernel.prepared import Frames, Pairwise, ScanScale, Topology
 from dm2_backend.kernel.solver_options import SolverOptions
-from dm2_backend.kernel.stages import Frames, Pairwise, ScanScale, Topology
 from dm2_backend.runtime.errors import InputError
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -314,3 +314,10 @@ def test_multiway_refuses_graphs_too_large_for_its_dense_solver():
     check_size(100, available=2**30)  # 0.003 GiB of 1: fine
     with pytest.raises(InputError, match="7374 frames"):
         check_size(7374, available=24 * 2**30)
+
+
+def test_every_graph_method_has_a_solver_and_every_solver_a_name():
+    from dm2_backend.baselines.methods import GRAPH_METHODS, METHODS
+    from dm2_backend.baselines.solvers import GRAPH_SOLVERS
+
+    assert set(GRAPH_SOLVERS) == set(GRAPH_METHODS) and set(GRAPH_METHODS) <= set(METHODS)

@@ -22,7 +22,7 @@ from dm2_backend.formats import ReadOptions, detect_scan_source, detect_trajecto
 from dm2_backend.formats.kitti_raw import oxts_poses, parse_stamp, read_drive, read_oxts_file
 from dm2_backend.formats.scan_folder import write_bin
 from dm2_backend.formats.tum import read_tum
-from dm2_backend.kernel.stages import Frames
+from dm2_backend.kernel.prepared import Frames
 from dm2_backend.pipeline.inputs import load_inputs
 from dm2_backend.plugins.topology_poses import GpsTopology
 from dm2_backend.plugins.topology_radius import RadiusTopology

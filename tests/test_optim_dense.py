@@ -13,12 +13,12 @@ from optim_cases import one_thread
 from scipy.sparse import bsr_matrix
 from scipy.spatial.transform import Rotation
 
+from dm2_backend.config.optimiser import OptimConfig
 from dm2_backend.kernel import planes
 from dm2_backend.kernel.geometry import se3
 from dm2_backend.kernel.geometry.voxels import group_rows
 from dm2_backend.kernel.pose_graph import PoseGraph
 from dm2_backend.kernel.scans import Scan, ScanSequence
-from dm2_backend.optim.config import OptimConfig
 from dm2_backend.optim.dense import refine_dense
 from dm2_backend.optim.stop import StopReason
 from dm2_backend.pipeline.live import ate_rmse
@@ -229,7 +229,7 @@ def _prepared_3d(frames: int = 12):
     """A small 3D preparation (odometry only) for the dense stage's guard."""
     from optim_cases import frames_of
 
-    from dm2_backend.kernel.stages import Pairwise, Topology
+    from dm2_backend.kernel.prepared import Pairwise, Topology
     from dm2_backend.prepare.steps import Prepared
 
     scans, gt, warm = simulate(SimSettings(frames=frames, seed=5, extent=10.0, laps=0.5), progress=False)

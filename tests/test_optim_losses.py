@@ -9,7 +9,7 @@ import torch
 from optim_cases import Case, one_thread, perturb, planar_case, small_config
 
 from dm2_backend.kernel.geometry import se3, se3_torch
-from dm2_backend.kernel.stages import Topology
+from dm2_backend.kernel.prepared import Topology
 from dm2_backend.optim import losses
 from dm2_backend.optim.occupancy import GridOccupancy
 from dm2_backend.optim.pose_model import PoseModel

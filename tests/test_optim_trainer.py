@@ -11,21 +11,13 @@ import pytest
 import torch
 from optim_cases import Case, frames_of, one_thread, planar_case, small_config
 
-from dm2_backend.config.optimiser import switch
+from dm2_backend.config.optimiser import OptimConfig, switch
 from dm2_backend.kernel.geometry import se3, se3_torch
-from dm2_backend.kernel.stages import ScanScale
+from dm2_backend.kernel.prepared import ScanScale
 from dm2_backend.optim import losses
 from dm2_backend.optim.batching import make_groups, random_groups, temporal_groups
 from dm2_backend.optim.checkpoint import CHECKPOINT
-from dm2_backend.optim.config import (
-    LossRegime,
-    OptimConfig,
-    PoseRegime,
-    derive,
-    loss_regime,
-    pose_regime,
-    sampled_points,
-)
+from dm2_backend.optim.derived import LossRegime, PoseRegime, derive, loss_regime, pose_regime, sampled_points
 from dm2_backend.optim.problem import Execution, Problem, Watch
 from dm2_backend.optim.regime import disagreement, locally_accurate
 from dm2_backend.optim.stop import StopReason

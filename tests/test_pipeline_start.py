@@ -8,13 +8,13 @@ import pytest
 from optim_cases import one_thread, perturb, planar_case
 from pydantic import ValidationError
 
+from dm2_backend.config.optimiser import OptimConfig
 from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.kernel import gtsam_solver
 from dm2_backend.kernel.geometry import se3
 from dm2_backend.kernel.graph_edges import build_graph
 from dm2_backend.kernel.scans import Scan, ScanSequence
 from dm2_backend.kernel.solver_options import GraphResult
-from dm2_backend.optim.config import OptimConfig
 from dm2_backend.optim.stop import StopReason
 from dm2_backend.pipeline import start as start_module
 from dm2_backend.pipeline.live import ate_rmse
@@ -192,8 +192,8 @@ def test_a_corridors_truth_holds_with_the_registrations_own_information():
     from optim_cases import frames_of
 
     from dm2_backend.kernel.planes import cells_from_scans
-    from dm2_backend.optim.config import NOISE_WIDTHS, dense_voxel
     from dm2_backend.optim.dense import refine_dense
+    from dm2_backend.optim.derived import NOISE_WIDTHS, dense_voxel
     from dm2_backend.pipeline.dense_start import PLANAR_HOLD, dense_start, range_noise
     from dm2_backend.pipeline.start import Start
     from dm2_backend.plugins.registration_icp import IcpRegistration

@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from dm2_backend.evaluation import plots
 from dm2_backend.kernel.geometry import se3
-from dm2_backend.kernel.stages import Topology
+from dm2_backend.kernel.prepared import Topology
 from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.pipeline import outputs
 

@@ -150,7 +150,7 @@ def test_a_closure_measured_again_on_short_submaps_is_not_turned_by_the_drift(fl
 def test_loops_on_a_short_sequence_without_revisits(floor):
     """Fewer frames than a loop needs: no candidates, no loop-closed poses, groups still filled."""
     frames, truth = floor
-    from dm2_backend.kernel.stages import Frames
+    from dm2_backend.kernel.prepared import Frames
 
     few = Frames(frames.points[:5], None, True, frames.scale)
     topo = load("dm2.place_recognition", "loops")(progress=False, k=3).run(few, truth[:5])

@@ -13,7 +13,7 @@ from plugins_scenes import floor_2d, room_3d
 
 from dm2_backend.cli.main import cli
 from dm2_backend.kernel.geometry import se3
-from dm2_backend.kernel.stages import Topology
+from dm2_backend.kernel.prepared import Topology
 from dm2_backend.plugins.registration_icp import GicpRegistration, IcpRegistration
 from dm2_backend.plugins.registration_small_gicp import SmallGicpRegistration
 from dm2_backend.plugins.registry import GROUPS, discover

@@ -11,7 +11,7 @@ from dm2_backend.algorithms import scan_context as sc
 from dm2_backend.algorithms.common import temporal_order
 from dm2_backend.formats.registry import ReadOptions, write_trajectory
 from dm2_backend.kernel.geometry import se3
-from dm2_backend.kernel.stages import Frames
+from dm2_backend.kernel.prepared import Frames
 from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.plugins.topology_descriptor import DescriptorTopology
 from dm2_backend.plugins.topology_external import ExternalTopology

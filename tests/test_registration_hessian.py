@@ -10,7 +10,7 @@ from dm2_backend.config.schema import PluginSection
 from dm2_backend.kernel import gtsam_solver
 from dm2_backend.kernel.geometry import se3
 from dm2_backend.kernel.graph_edges import EIGEN_FLOOR, InformationModel, build_graph, hessian_information
-from dm2_backend.kernel.stages import Frames, Pairwise, ScanScale, Topology
+from dm2_backend.kernel.prepared import Frames, Pairwise, ScanScale, Topology
 
 
 def _exp(xi: np.ndarray) -> np.ndarray:

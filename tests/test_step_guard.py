@@ -249,10 +249,10 @@ def test_no_first_order_epochs_after_a_dense_stage_whose_result_was_not_kept(roo
     the start's and the result's steps fit their frames."""
     from optim_cases import frames_of
 
+    from dm2_backend.config.optimiser import OptimConfig
     from dm2_backend.config.schema import RunConfig
+    from dm2_backend.kernel.prepared import Pairwise, Topology
     from dm2_backend.kernel.scans import Scan, ScanSequence
-    from dm2_backend.kernel.stages import Pairwise, Topology
-    from dm2_backend.optim.config import OptimConfig
     from dm2_backend.optim.dense import DenseResult
     from dm2_backend.pipeline import dense_start as start_module
     from dm2_backend.pipeline.parallel import build

@@ -12,7 +12,7 @@ from optim_cases import planar_case
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.topology_log import DROPPED, candidates, document, pairs_by_status
 from dm2_backend.kernel.geometry import se3
-from dm2_backend.kernel.stages import Topology
+from dm2_backend.kernel.prepared import Topology
 from dm2_backend.pipeline import outputs
 from dm2_backend.plugins.registry import load
 

@@ -11,8 +11,8 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from dm2_backend.kernel.geometry import se3
+from dm2_backend.kernel.prepared import Frames, ScanScale, Topology
 from dm2_backend.kernel.scan_scale import point_spacing
-from dm2_backend.kernel.stages import Frames, ScanScale, Topology
 from dm2_backend.runtime.errors import InputError
 
 #: ICP variants; "auto" is GICP for 3D clouds (sparse down-sampled scans suit its covariances better than

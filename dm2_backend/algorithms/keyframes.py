@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 
 from dm2_backend.algorithms.common import path_length
 from dm2_backend.kernel.geometry import se3
-from dm2_backend.kernel.stages import Frames
+from dm2_backend.kernel.prepared import Frames
 
 
 def select(poses: np.ndarray, spacing: float, angle: float) -> np.ndarray:

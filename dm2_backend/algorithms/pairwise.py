@@ -33,7 +33,7 @@ from dm2_backend.algorithms.common import (
 from dm2_backend.algorithms.gates import Gate, GateFailure, check_alignment
 from dm2_backend.algorithms.icp import register
 from dm2_backend.kernel.geometry import se3
-from dm2_backend.kernel.stages import Frames, Pairwise, Topology
+from dm2_backend.kernel.prepared import Frames, Pairwise, Topology
 from dm2_backend.runtime.progress import progress
 
 #: the coarse pass's correspondence distance, in fine distances: the farthest a registration reaches for a

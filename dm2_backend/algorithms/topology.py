@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from dm2_backend.algorithms.common import lengths
-from dm2_backend.kernel.stages import Frames
+from dm2_backend.kernel.prepared import Frames
 from dm2_backend.runtime.errors import InputError
 
 

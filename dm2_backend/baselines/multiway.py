@@ -18,8 +18,8 @@ import open3d as o3d
 from dm2_backend.algorithms.common import fine_distance, lengths
 from dm2_backend.kernel.geometry import se3
 from dm2_backend.kernel.graph_edges import valid_pairs
+from dm2_backend.kernel.prepared import Frames, Pairwise, Topology
 from dm2_backend.kernel.solver_options import GraphResult, SolverOptions
-from dm2_backend.kernel.stages import Frames, Pairwise, Topology
 from dm2_backend.runtime.errors import InputError
 
 reg = o3d.pipelines.registration

@@ -1,7 +1,7 @@
 """The optimiser section of the run configuration (``optimiser:`` in the YAML config): one frozen model, each
 field with the rule behind its default (the measurements that chose them: ``docs/decisions/``). Validated once,
 when the config is read (``config.load``); the values the optimiser derives from the data are in
-:mod:`dm2_backend.optim.config`."""
+:mod:`dm2_backend.optim.derived`."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ def switch(value: Switch, auto: bool) -> bool:
 
 class OptimConfig(BaseModel):
     """Defaults work without tuning: every length left as None is derived from the data (see
-    ``optim.config.derive``). Strict types: an int is taken for a float, nothing else is converted."""
+    ``optim.derived.derive``). Strict types: an int is taken for a float, nothing else is converted."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
 
@@ -111,7 +111,7 @@ class OptimConfig(BaseModel):
     dense: bool = True
     #: largest voxel of the plane term (m; non-flat voxels are split down to a quarter); None:
     #: max(median range / 8, 4 x the raw scans' point spacing, 28 x the range noise where the registrations
-    #: measured it: every planar one, ``optim.config.dense_voxel``;
+    #: measured it: every planar one, ``optim.derived.dense_voxel``;
     #: docs/decisions/0008-dense-voxel-and-planar-information.md)
     dense_voxel: float | None = Field(None, gt=0)
     #: at most this many rounds (one Gauss-Newton step each, planes fitted again)

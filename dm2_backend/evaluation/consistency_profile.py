@@ -55,9 +55,9 @@ from dm2_backend.kernel.planes import (
     fit,
     placed_means,
 )
+from dm2_backend.kernel.prepared import ScanScale
 from dm2_backend.kernel.scan_scale import derive_scale
 from dm2_backend.kernel.scans import ScanSequence
-from dm2_backend.kernel.stages import ScanScale
 from dm2_backend.runtime.atomic import atomic_write
 from dm2_backend.runtime.memory import release_freed_memory, release_mapped
 from dm2_backend.runtime.progress import progress as progress_of

@@ -19,7 +19,7 @@ from collections import Counter
 
 import numpy as np
 
-from dm2_backend.kernel.stages import Topology
+from dm2_backend.kernel.prepared import Topology
 
 DROPPED = "dropped by the final robust solve"
 STATUSES = ("accepted", "dropped", "verified", "rejected")

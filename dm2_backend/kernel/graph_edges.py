@@ -34,7 +34,7 @@ import numpy as np
 
 from dm2_backend.kernel.geometry import se3
 from dm2_backend.kernel.pose_graph import PoseGraph
-from dm2_backend.kernel.stages import Frames, Pairwise, Topology
+from dm2_backend.kernel.prepared import Frames, Pairwise, Topology
 from dm2_backend.runtime.errors import InputError
 
 MODEL_TEXT = "sigma_t = max(rmse, floor) / sqrt(fitness * points), sigma_r = sigma_t / lever arm"

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
+from dm2_backend.kernel.prepared import ScanScale
 from dm2_backend.kernel.scans import ScanSequence
-from dm2_backend.kernel.stages import ScanScale
 
 
 def point_spacing(points: np.ndarray) -> float:

@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dm2_backend.kernel.prepared import ScanScale
 from dm2_backend.kernel.scans import ScanSequence
-from dm2_backend.kernel.stages import ScanScale
 from dm2_backend.maps import mnet_export, occupancy_grid
 from dm2_backend.maps.octomap_export import MissingExtra, write_octomap
 from dm2_backend.optim import mnet_file

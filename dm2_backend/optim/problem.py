@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dm2_backend.kernel.stages import Frames, Pairwise, Topology
+from dm2_backend.kernel.prepared import Frames, Pairwise, Topology
 from dm2_backend.optim.distributed import Dist
 
 

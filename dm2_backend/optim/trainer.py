@@ -13,13 +13,13 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from dm2_backend.config.optimiser import switch
+from dm2_backend.config.optimiser import OptimConfig, switch
 from dm2_backend.kernel.geometry import se3_torch
-from dm2_backend.kernel.stages import Frames
+from dm2_backend.kernel.prepared import Frames
 from dm2_backend.optim import distributed, losses
 from dm2_backend.optim.batching import make_groups
 from dm2_backend.optim.checkpoint import CHECKPOINT, load_checkpoint, plain_state, save_checkpoint
-from dm2_backend.optim.config import Derived, OptimConfig, derive, loss_regime, pose_regime, sampled_points
+from dm2_backend.optim.derived import Derived, derive, loss_regime, pose_regime, sampled_points
 from dm2_backend.optim.mnet_file import MNET, save_mnet
 from dm2_backend.optim.occupancy import GridOccupancy
 from dm2_backend.optim.pose_model import PoseModel

@@ -20,10 +20,10 @@ from dm2_backend.kernel.planes import Cells, agreement_score, cells_from_scans
 from dm2_backend.kernel.pose_graph import lift_planar_information
 from dm2_backend.kernel.scans import DEPTH_CAMERA, ScanSequence
 from dm2_backend.optim import depth_noise
-from dm2_backend.optim.config import dense_voxel
 from dm2_backend.optim.dense import refine_dense
 from dm2_backend.optim.dense_checkpoint import DENSE_CHECKPOINT
 from dm2_backend.optim.depth_noise import RangeNoise
+from dm2_backend.optim.derived import dense_voxel
 from dm2_backend.pipeline import step_guard
 from dm2_backend.pipeline.start import DenseSummary, Kept, Start, StartKind, sequence_cuts
 from dm2_backend.prepare.steps import Prepared

@@ -16,7 +16,7 @@ from dm2_backend.formats import TRAJECTORY_FORMATS, write_trajectory
 from dm2_backend.formats.dm2_priors import write_priors
 from dm2_backend.formats.hba import write_hba_folder
 from dm2_backend.formats.kitti import lidar_to_camera, read_calib_tr
-from dm2_backend.kernel.stages import Frames, Pairwise, Topology
+from dm2_backend.kernel.prepared import Frames, Pairwise, Topology
 from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.runtime.atomic import atomic_path, atomic_write
 from dm2_backend.runtime.errors import InputError

@@ -27,8 +27,9 @@ import torch.distributed as td
 import torch.multiprocessing as mp
 from torch.multiprocessing.spawn import ProcessException
 
+from dm2_backend.config.optimiser import OptimConfig
 from dm2_backend.config.schema import RunConfig
-from dm2_backend.optim.config import OptimConfig, sampled_points
+from dm2_backend.optim.derived import sampled_points
 from dm2_backend.optim.distributed import Dist, init, rank_device, wait_group
 from dm2_backend.optim.problem import Execution, Problem, Watch
 from dm2_backend.optim.trainer import Optimiser, OptimResult, sample_points

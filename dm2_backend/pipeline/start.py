@@ -25,12 +25,12 @@ import numpy as np
 
 from dm2_backend.algorithms.common import lengths
 from dm2_backend.algorithms.pairwise import COARSE
+from dm2_backend.config.optimiser import OptimConfig
 from dm2_backend.evaluation import continuity
 from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.kernel import gtsam_solver
 from dm2_backend.kernel.graph_edges import InformationModel, build_graph
 from dm2_backend.kernel.solver_options import SolverOptions
-from dm2_backend.optim.config import OptimConfig
 from dm2_backend.optim.depth_noise import RangeNoise
 from dm2_backend.optim.odometry_noise import MeasuredNoise
 from dm2_backend.optim.stop import Stop

@@ -7,9 +7,9 @@ from dataclasses import replace
 import numpy as np
 import open3d as o3d
 
+from dm2_backend.kernel.prepared import Frames
 from dm2_backend.kernel.scan_scale import derive_scale, point_spacing
 from dm2_backend.kernel.scans import ScanSequence
-from dm2_backend.kernel.stages import Frames
 from dm2_backend.runtime.progress import progress as progress_of
 from dm2_backend.runtime.threads import ordered_map
 

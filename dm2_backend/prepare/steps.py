@@ -22,8 +22,8 @@ import numpy as np
 
 from dm2_backend.algorithms.common import path_length
 from dm2_backend.config.schema import PluginSection, RunConfig
+from dm2_backend.kernel.prepared import Frames, Pairwise, Topology
 from dm2_backend.kernel.scans import DEPTH_CAMERA, ScanSequence
-from dm2_backend.kernel.stages import Frames, Pairwise, Topology
 from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.plugins.registry import load as load_plugin
 from dm2_backend.prepare import store

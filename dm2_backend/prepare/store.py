@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dm2_backend.kernel.stages import Frames, Pairwise, ScanScale, Topology
+from dm2_backend.kernel.prepared import Frames, Pairwise, ScanScale, Topology
 from dm2_backend.runtime.atomic import atomic_path
 from dm2_backend.runtime.errors import InputError
 

@@ -6,10 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from dm2_backend.config.optimiser import OptimConfig, switch
-from dm2_backend.kernel.stages import ScanScale
-
-__all__ = ["Derived", "Lengths", "LossRegime", "OptimConfig", "PoseRegime", "dense_voxel", "derive", "loss_regime",
-           "pose_regime", "sampled_points"]
+from dm2_backend.kernel.prepared import ScanScale
 
 
 @dataclass(frozen=True)
