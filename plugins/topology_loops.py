@@ -28,7 +28,7 @@ Every verification, accepted or not, is logged with its scores and reason.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import numpy as np
@@ -459,10 +459,8 @@ class LoopsTopology:
         limit = self.max_loops if self.max_loops is not None else self.k // 2
         rows = loop_rows(corrected[:, :3, 3], path_length(corrected), L["radius"], L["min_path_gap"], self.k, limit)
         topo = assemble(rows, self.k, self.temporal_fill, log)
-        topo.closures = closures
-        topo.poses = corrected if closures else None  # loop-closed only when a loop was closed
-        topo.loop_closed = topo.poses is not None
-        return topo
+        poses = corrected if closures else None  # loop-closed only when a loop was closed
+        return replace(topo, closures=closures, poses=poses, loop_closed=poses is not None)
 
 
 def _shared(cloud: Cloud, sample: int = 200) -> float:

@@ -24,7 +24,7 @@ Every verification, accepted or not, is logged with its scores and reason.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import numpy as np
@@ -318,11 +318,10 @@ class Loops3dTopology:
         rows = loop_rows(pos, path_length(corrected), L["radius"], L["min_path_gap"], self.k, limit, centroid)
         topo = assemble(rows, self.k, self.temporal_fill, log)
         # corrected only when a loop was closed or a failed step repaired
-        topo.closures, topo.repaired_steps = closures, tuple(repaired)
-        topo.poses = corrected if closures or repaired else None
-        topo.loop_closed = topo.poses is not None and closures > 0
+        poses = corrected if closures or repaired else None
         # (Topology.loop_closed tells the two apart: the optimiser treats only loop-closed starts as accurate)
-        return topo
+        return replace(topo, closures=closures, repaired_steps=tuple(repaired), poses=poses,
+                       loop_closed=poses is not None and closures > 0)
 
 
 def _keyframes(poses: np.ndarray, spacing: float, angle: float) -> np.ndarray:

@@ -4,6 +4,7 @@ cost, the truth as a fixed point, a drifted start brought to the noise floor, a 
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -287,7 +288,7 @@ def test_a_dense_result_that_cuts_the_sequence_is_not_kept(monkeypatch):
     prep, seq, gt = _prepared_3d(30)
     # the registration's correspondence distance as configured (0.3 m: a 1.2 m slide, 13 deg at the 5.4 m median
     # range), not the default from these sparse frames' 0.6 m point spacing
-    prep.resolved = {"registration": PluginSection(name="icp", options={"max_distance": 0.3})}
+    prep = replace(prep, resolved={"registration": PluginSection(name="icp", options={"max_distance": 0.3})})
     cut = gt.copy()
     cut[16:] = se3.make_poses(Rotation.from_rotvec([0, 0, 0.5]).as_matrix(), np.array([5.0, 0, 0])) @ gt[16:]
     monkeypatch.setattr(start_module, "refine_dense", lambda *a, **k: DenseResult(cut, [], 0.0))

@@ -60,7 +60,7 @@ class Frames:
         return max((len(p) for p in self.points), default=0)
 
 
-@dataclass
+@dataclass(frozen=True)
 class Topology:
     """Map topology as groups: ``groups[i]`` = neighbour indices of anchor i (-1 pads), best first."""
 

@@ -35,7 +35,7 @@ class SolverOptions:
             raise InputError(None, f"relative tolerance must be >= 0, got {self.relative_error_tol}")
 
 
-@dataclass
+@dataclass(frozen=True)
 class GraphResult:
     """Optimised poses (N,4,4) in the graph's node order; errors in GTSAM's convention (0.5 * chi2)."""
 

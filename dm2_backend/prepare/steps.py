@@ -34,7 +34,7 @@ from dm2_backend.runtime.stage_log import StageLog
 log = logging.getLogger(__name__)
 
 
-@dataclass
+@dataclass(frozen=True)
 class Prepared:
     frames: Frames
     warm_start: np.ndarray
