@@ -5,24 +5,24 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
-import numpy as np
 
 from dm2_backend.cli.options import depth_scale_option, duplicate_times_option, intrinsics_option, read_options
 from dm2_backend.cli.suggest import Choice
-from dm2_backend.evaluation import drawn_alignment, plots
 from dm2_backend.evaluation.ape_rpe import ALIGN_MODES, DELTA_UNITS
 from dm2_backend.evaluation.consistency_profile import (
     PROFILE_FILES,
-    consistency_profiles,
-    flag_text,
-    write_profiles,
 )
 from dm2_backend.evaluation.evaluate import EvalOptions
 from dm2_backend.evaluation.relations import MAX_DT
-from dm2_backend.evaluation.report import EvalReport, terminal_text
-from dm2_backend.evaluation.report_writers import safe_name, write_csv, write_evo_results, write_json, write_markdown
-from dm2_backend.evaluation.request import Estimate, EvalRequest, evaluate_request
-from dm2_backend.evaluation.run_compare import read_run_report
+from dm2_backend.evaluation.report import terminal_text
+from dm2_backend.evaluation.report_writers import write_csv, write_evo_results, write_json, write_markdown
+from dm2_backend.evaluation.request import (
+    Estimate,
+    EvalRequest,
+    evaluate_request,
+    write_evaluation_profiles,
+    write_plots,
+)
 from dm2_backend.formats import ReadOptions
 from dm2_backend.pipeline.inputs import looks_planar
 from dm2_backend.runtime.errors import InputError
@@ -69,31 +69,6 @@ def _check_delta(delta: float, unit: str) -> None:
         raise click.BadParameter("must be a whole number of frames with --delta-unit f", param_hint="--delta")
 
 
-def _plots(
-    folder: Path, report: EvalReport, gt_positions: np.ndarray | None, run_report: Path | None
-) -> list:
-    written = []
-    # each estimate as evaluated, or aligned at its first pose where the console cautions that the
-    # SE(3)/Sim(3) alignment is not meaningful (drawn_alignment); the titles name the alignment
-    drawn = {est.label: drawn_alignment.from_pose_errors(est.poses) for est in report.estimates
-             if est.poses is not None}
-    estimates = {est.label: drawn[est.label].positions if est.label in drawn else est.positions
-                 for est in report.estimates}
-    written.append(plots.plot_trajectories(folder / "trajectories.png", gt_positions, estimates,
-                                           drawn_alignment.title(drawn) if drawn else ""))
-    for label, d in drawn.items():
-        errors = {"APE trans": (d.trans_errors, "m"), "APE rot": (d.rot_errors_deg, "deg")}
-        written.append(plots.plot_error_map(folder / f"errors_{safe_name(label)}.png", label, d.positions, errors,
-                                            gt_positions, drawn_alignment.title({label: d})))
-    if run_report is not None:
-        out = plots.plot_run_epochs(folder / "epochs.png", read_run_report(run_report))
-        if out is None:
-            click.echo(f"note: {run_report}: no epoch has an 'ate' entry; no error-vs-epoch plot", err=True)
-        else:
-            written.append(out)
-    return written
-
-
 def _free_profile_folder(folder: Path) -> None:
     """``--profile`` is a folder (made when missing) that holds none of the files it gets: nothing of the user's
     is replaced."""
@@ -103,14 +78,6 @@ def _free_profile_folder(folder: Path) -> None:
     if taken:
         raise InputError(folder / taken[0], "exists: --profile does not replace files; remove them or give another "
                                             "folder")
-
-
-def _profiles(folder: Path, scans, at_scans: dict[str, np.ndarray]) -> list[Path]:
-    """Each estimate's consistency profile, its flagged stretches printed, the files written to ``folder``."""
-    profiles = consistency_profiles(scans, at_scans, scans.timestamps, looks_planar(scans, None))
-    for label, prof in profiles.items():
-        click.echo(f"consistency: {label}: {flag_text(prof.summary())}")
-    return [folder / name for name in write_profiles(folder, profiles, {k: v[:, :3, 3] for k, v in at_scans.items()})]
 
 
 #: the alignment line printed above the table
@@ -233,7 +200,7 @@ def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topi
                           ReadOptions(topic=gt_topic, times=gt_times, duplicate_times=duplicate_times),
                           relations_path, scans_path, scans_format, scan_options, profile=profile_dir is not None)
     evaluation = evaluate_request(request)
-    report, gt = evaluation.report, evaluation.gt
+    report = evaluation.report
     click.echo(f"alignment: {ALIGN_TEXT[align] if not align_origin else 'first poses only (--align-origin)'}")
     click.echo(terminal_text(report))
     written = []
@@ -247,10 +214,16 @@ def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topi
         write_markdown(report, md_path)
         written.append(md_path)
     if plot_dir:
-        written += _plots(plot_dir, report, gt.positions if gt is not None else None, run_report)
+        plotted, note = write_plots(plot_dir, evaluation, run_report)
+        if note:
+            click.echo(note, err=True)
+        written += plotted
     if evo_dir:
         written += write_evo_results(report, evo_dir)
     if profile_dir:
-        written += _profiles(profile_dir, evaluation.scans, evaluation.at_scans)
+        profiled, lines = write_evaluation_profiles(profile_dir, evaluation, looks_planar(evaluation.scans, None))
+        for line in lines:
+            click.echo(line)
+        written += profiled
     for p in written:
         click.echo(f"wrote {p}")

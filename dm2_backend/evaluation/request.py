@@ -8,10 +8,14 @@ from pathlib import Path
 
 import numpy as np
 
+from dm2_backend.evaluation import drawn_alignment, plots
+from dm2_backend.evaluation.consistency_profile import consistency_profiles, flag_text, write_profiles
 from dm2_backend.evaluation.evaluate import EvalOptions, evaluate
 from dm2_backend.evaluation.map_quality import MapSampler, poses_of_scans
 from dm2_backend.evaluation.relations import load_relations
 from dm2_backend.evaluation.report import EvalReport
+from dm2_backend.evaluation.report_writers import safe_name
+from dm2_backend.evaluation.run_compare import read_run_report
 from dm2_backend.formats import ReadOptions, open_scans, read_trajectory
 from dm2_backend.kernel.scans import ScanSequence
 from dm2_backend.kernel.trajectory import Trajectory
@@ -86,3 +90,40 @@ def evaluate_request(request: EvalRequest) -> Evaluation:
         report.estimates.append(evaluate(est, estimate.label, estimate.path, gt=gt, relations=relations,
                                          sampler=sampler, scans=scans, options=options))
     return Evaluation(report, gt, scans, at_scans)
+
+
+def write_plots(folder: Path, evaluation: Evaluation, run_report: Path | None = None) -> tuple[list[Path], str]:
+    """The trajectories, each estimate's error map and (from a refine's ``run_report``) its error against the
+    epochs, as PNG files in ``folder``; returns them and a note for the console ("" when none). Each estimate is
+    drawn as evaluated, or aligned at its first pose where the SE(3)/Sim(3) alignment is not meaningful
+    (:mod:`~dm2_backend.evaluation.drawn_alignment`); the titles name the alignment."""
+    report = evaluation.report
+    gt_positions = evaluation.gt.positions if evaluation.gt is not None else None
+    drawn = {est.label: drawn_alignment.from_pose_errors(est.poses) for est in report.estimates
+             if est.poses is not None}
+    estimates = {est.label: drawn[est.label].positions if est.label in drawn else est.positions
+                 for est in report.estimates}
+    written = [plots.plot_trajectories(folder / "trajectories.png", gt_positions, estimates,
+                                       drawn_alignment.title(drawn) if drawn else "")]
+    for label, d in drawn.items():
+        errors = {"APE trans": (d.trans_errors, "m"), "APE rot": (d.rot_errors_deg, "deg")}
+        written.append(plots.plot_error_map(folder / f"errors_{safe_name(label)}.png", label, d.positions, errors,
+                                            gt_positions, drawn_alignment.title({label: d})))
+    note = ""
+    if run_report is not None:
+        out = plots.plot_run_epochs(folder / "epochs.png", read_run_report(run_report))
+        if out is None:
+            note = f"note: {run_report}: no epoch has an 'ate' entry; no error-vs-epoch plot"
+        else:
+            written.append(out)
+    return written, note
+
+
+def write_evaluation_profiles(folder: Path, evaluation: Evaluation, planar: bool) -> tuple[list[Path], list[str]]:
+    """Each estimate's consistency profile (its poses at the scans, kept with ``EvalRequest.profile``) written to
+    ``folder``; returns the files and one line per estimate naming its flagged stretches."""
+    scans, at_scans = evaluation.scans, evaluation.at_scans
+    profiles = consistency_profiles(scans, at_scans, scans.timestamps, planar)
+    lines = [f"consistency: {label}: {flag_text(prof.summary())}" for label, prof in profiles.items()]
+    names = write_profiles(folder, profiles, {k: v[:, :3, 3] for k, v in at_scans.items()})
+    return [folder / name for name in names], lines
