@@ -185,7 +185,7 @@ def test_a_drifted_start_reaches_the_noise_floor():
     end = ate_rmse(gt, result.poses)
     # a dead-reckoned chain without loop edges (its soft bending modes follow the planes: held planes crept)
     assert start > 0.05 and end < 2 * floor and result.stopped.reason is StopReason.CONVERGED
-    assert result.history[-1]["sigma"] < 0.5 * result.history[0]["sigma"]  # the map's noise scale: sharper
+    assert result.history[-1].sigma < 0.5 * result.history[0].sigma  # the map's noise scale: sharper
 
 
 def test_a_broken_stretch_disagrees_with_the_others_planes():

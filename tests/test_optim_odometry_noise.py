@@ -19,10 +19,14 @@ from dm2_backend.kernel.pose_graph import ROTATION_FIRST, PoseGraph
 from dm2_backend.kernel.scans import Scan, ScanSequence
 from dm2_backend.optim import dense_checkpoint, odometry_noise
 from dm2_backend.optim.dense import refine_dense
+from dm2_backend.optim.dense_round import Round
 from dm2_backend.optim.stop import Stop, StopReason
 from dm2_backend.pipeline.live import ate_rmse
 from dm2_backend.runtime.errors import InputError
 from dm2_backend.simulate.sequence import SimSettings, simulate
+
+#: a round record as the dense stage writes one
+ROUND = Round(0, 1.0, 0.5, 0.5, 0.01, 10, 100, 0.001, 0.002, 0.001, 1.0, 1e-4, 5)
 
 #: odometry noise per step (m, rad) and the solution's own error per frame, twice as large
 SIGMA = np.array([5e-4, 5e-4, 2e-4, 5e-5, 5e-5, 1e-4])
@@ -149,12 +153,12 @@ def test_the_dense_stage_measures_the_odometry_it_was_given_with_a_guessed_weigh
     truth = np.array([5e-4] * 3 + [5e-5] * 3)
     assert np.all(result.odometry.sigma > truth / 2) and np.all(result.odometry.sigma < 2 * truth)
     assert ate_rmse(gt, result.poses) < 0.002  # from 0.0087; the range noise is 0.02 m
-    assert sum("odometry_noise" in row for row in result.history) == 1
+    assert sum(row.odometry_noise is not None for row in result.history) == 1
     # resumed after it ended: the measured noise comes back with it
     again = refine_dense(cells, graph, start, VOXEL, measure_odometry=True, checkpoint=ckpt, resume=True)
     np.testing.assert_array_equal(again.odometry.sigma, result.odometry.sigma)
     # interrupted in the round after the measurement and resumed: where the uninterrupted stage ends
-    marked = next(i for i, row in enumerate(result.history) if "odometry_noise" in row)
+    marked = next(i for i, row in enumerate(result.history) if row.odometry_noise is not None)
     assert marked + 1 < len(result.history)  # rounds ran with the measured weight
     calls = []
 
@@ -176,7 +180,7 @@ def test_the_dense_stage_measures_the_odometry_it_was_given_with_a_guessed_weigh
 def test_a_checkpoint_with_a_damaged_odometry_record_is_refused(tmp_path):
     poses = se3.identity(100)
     ckpt = tmp_path / dense_checkpoint.DENSE_CHECKPOINT
-    row = {"graph": 1.0, "sigma": 0.01, "step_rms_m": 0.001}
+    row = ROUND
     good = odometry_noise.MeasuredNoise(SIGMA.copy(), SOLUTION.copy(), 99)
     dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row], None, good), poses)
     np.testing.assert_array_equal(dense_checkpoint.load(ckpt, poses, 30).odometry.sigma, SIGMA)
@@ -187,9 +191,16 @@ def test_a_checkpoint_with_a_damaged_odometry_record_is_refused(tmp_path):
         dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row], None, bad), poses)
         with pytest.raises(InputError, match=match):
             dense_checkpoint.load(ckpt, poses, 30)
-    dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [{"sigma": 0.01}], None, good), poses)
-    with pytest.raises(InputError, match="round records lack"):
-        dense_checkpoint.load(ckpt, poses, 30)
+    for damaged in ({"sigma": 0.01}, {**ROUND.row(), "planes": 2.5}, {**ROUND.row(), "sigma": float("nan")}):
+        dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [ROUND], None, good), poses)
+        with np.load(ckpt) as data:
+            meta = json.loads(str(data["meta"]))
+            meta["history"] = [damaged]
+            np.savez(ckpt.with_suffix(".tmp.npz"), poses=data["poses"], start=data["start"],
+                     meta=np.array(json.dumps(meta)))
+        ckpt.with_suffix(".tmp.npz").replace(ckpt)
+        with pytest.raises(InputError, match="round records lack"):
+            dense_checkpoint.load(ckpt, poses, 30)
     huge = odometry_noise.MeasuredNoise(SIGMA, SOLUTION, 99)
     dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row], None, huge), poses)
     text = ckpt.read_bytes()
@@ -207,7 +218,7 @@ def test_a_checkpoint_with_a_damaged_odometry_record_is_refused(tmp_path):
 def test_a_checkpoint_records_why_the_stage_ended_and_refuses_an_unknown_reason(tmp_path):
     poses = se3.identity(10)
     ckpt = tmp_path / dense_checkpoint.DENSE_CHECKPOINT
-    row = {"graph": 1.0, "sigma": 0.01, "step_rms_m": 0.001}
+    row = ROUND
     ended = Stop(StopReason.CONVERGED, "converged in round 0")
     dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row], ended), poses)
     assert dense_checkpoint.load(ckpt, poses, 30).stopped == ended
@@ -227,7 +238,7 @@ def test_a_checkpoint_records_why_the_stage_ended_and_refuses_an_unknown_reason(
 def test_an_earlier_dm2s_checkpoint_end_is_read_by_its_words(tmp_path, text, reason):
     poses = se3.identity(10)
     ckpt = tmp_path / dense_checkpoint.DENSE_CHECKPOINT
-    row = {"graph": 1.0, "sigma": 0.01, "step_rms_m": 0.001}
+    row = ROUND
     dense_checkpoint.save(ckpt, dense_checkpoint.DenseState(poses, 1, 1e-4, [row]), poses)
     with np.load(ckpt) as data:
         meta = json.loads(str(data["meta"]))
@@ -237,3 +248,10 @@ def test_an_earlier_dm2s_checkpoint_end_is_read_by_its_words(tmp_path, text, rea
     ckpt.with_suffix(".tmp.npz").replace(ckpt)
     stopped = dense_checkpoint.load(ckpt, poses, 30).stopped
     assert (stopped is None) if reason is None else (stopped.reason is reason and stopped.detail == text)
+
+
+def test_a_round_record_comes_back_from_its_row():
+    marked = Round(3, 2.0, 1.5, 0.5, 0.02, 7, 70, 0.001, 0.003, 0.002, 2.0, 1e-5, 9, ate=0.1,
+                   odometry_noise={"edges": 9})
+    assert Round.of_row(marked.row()) == marked and Round.of_row(ROUND.row()) == ROUND
+    assert "ate" not in ROUND.row() and "odometry_noise" not in ROUND.row()

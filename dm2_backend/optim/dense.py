@@ -20,7 +20,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import gtsam
@@ -35,6 +35,7 @@ from dm2_backend.kernel.planes import Cells
 from dm2_backend.kernel.pose_graph import PoseGraph
 from dm2_backend.kernel.solver_options import SolverOptions
 from dm2_backend.optim import dense_checkpoint, odometry_noise
+from dm2_backend.optim.dense_round import Round
 from dm2_backend.optim.stop import Stop, StopReason
 from dm2_backend.runtime.memory import release_freed_memory
 from dm2_backend.runtime.progress import progress as progress_of
@@ -56,8 +57,8 @@ class DenseResult:
     """The dense stage's poses, its rounds and why they ended."""
 
     poses: np.ndarray
-    #: one row per round: objective (plane, graph, total), noise sigma (m), planes, step (m, rad), step scale
-    history: list[dict] = field(default_factory=list)
+    #: one record per round: objective (plane, graph, total), noise sigma (m), planes, step (m, rad), step scale
+    history: list[Round] = field(default_factory=list)
     seconds: float = 0.0
     stopped: Stop = Stop(StopReason.BUDGET, "")
     #: rounds a checkpoint had done before this run continued it (0: started afresh)
@@ -186,7 +187,7 @@ def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float
         if odometry is None:
             return False
         graph, fg, objective, values = _reweighed(graph, steps, odometry, poses)
-        history[-1]["odometry_noise"] = odometry.summary()
+        history[-1] = replace(history[-1], odometry_noise=odometry.summary())
         lam = 1e-4
         keep(rounds_done)
         return True
@@ -222,13 +223,9 @@ def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float
         value, plane_value, values, new_poses, scale = best
         step_rms, step_t, step_r = _step(poses, new_poses)
         poses = new_poses
-        row = {"round": r, "objective": value, "plane": plane_value, "graph": value - plane_value,
-               "sigma": assignment.sigma, "planes": assignment.voxels, "cells_on_planes": assignment.cells,
-               "step_rms_m": step_rms, "step_m": step_t, "step_rad": step_r, "scale": scale, "damping": lam,
-               "cg_iterations": iterations}
-        if trace is not None:
-            row["ate"] = float(trace(poses))
-        history.append(row)
+        history.append(Round(r, value, plane_value, value - plane_value, assignment.sigma, int(assignment.voxels),
+                             int(assignment.cells), step_rms, step_t, step_r, scale, lam, int(iterations),
+                             ate=float(trace(poses)) if trace is not None else None))
         bar.set_postfix(objective=f"{value:.6g}", sigma=f"{assignment.sigma:.3g}", step=f"{step_rms:.2g}")
         done = _converged(history, tolerance)
         if (done or _settled(history)) and reweigh(r + 1):
@@ -245,26 +242,26 @@ def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float
     return DenseResult(poses, history, time.perf_counter() - t0, stopped, state.rounds_done, odometry)
 
 
-def _converged(history: list[dict], tolerance: float) -> bool:
+def _converged(history: list[Round], tolerance: float) -> bool:
     """The last round moved the poses by less than ``tolerance`` noise sigmas; once the odometry is reweighed
     (the rounds after the one that holds ``odometry_noise``), also the graph factors' cost changed by less than
     ``tolerance`` of itself between two rounds: the new weights move what the odometry holds by steps below the
     first test that still improve the steps, and the graph's cost alone can settle while the poses still move
     (docs/decisions/0007-odometry-noise-measured.md)."""
-    if history[-1]["step_rms_m"] >= tolerance * history[-1]["sigma"]:
+    if history[-1].step_rms_m >= tolerance * history[-1].sigma:
         return False
-    marks = [i for i, row in enumerate(history) if "odometry_noise" in row]
+    marks = [i for i, row in enumerate(history) if row.odometry_noise is not None]
     if not marks:
         return True
     after = history[marks[0] + 1:]
-    return len(after) >= 2 and abs(after[-1]["graph"] - after[-2]["graph"]) < tolerance * after[-2]["graph"]
+    return len(after) >= 2 and abs(after[-1].graph - after[-2].graph) < tolerance * after[-2].graph
 
 
-def _settled(history: list[dict]) -> bool:
+def _settled(history: list[Round]) -> bool:
     """The map's noise scale changed by less than :data:`SETTLED` of itself over the last round: the planes are
     as sharp as the current weights make them, though frames may still jitter between cells (a short sequence
     whose odometry is weighed too weakly can alternate between two states and never pass the step test)."""
-    return len(history) >= 2 and abs(history[-1]["sigma"] - history[-2]["sigma"]) < SETTLED * history[-2]["sigma"]
+    return len(history) >= 2 and abs(history[-1].sigma - history[-2].sigma) < SETTLED * history[-2].sigma
 
 
 def _reweighed(graph: PoseGraph, steps: np.ndarray, noise: odometry_noise.MeasuredNoise, poses: np.ndarray

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dm2_backend.optim.dense_round import Round
 from dm2_backend.optim.odometry_noise import MAX_SIGMA, MIN_SIGMA, MeasuredNoise
 from dm2_backend.optim.stop import Stop, StopReason
 from dm2_backend.runtime.atomic import atomic_write
@@ -31,8 +32,6 @@ FIXED_BYTES = 1 << 20
 #: largest difference of a pose entry (m, or rotation-matrix units) between the checkpoint's start and this run's
 #: (open3d's threads round a registration differently; measured differences are far below this)
 START_TOLERANCE = 1e-6
-#: the numbers of a round record the stage reads back when it continues (its convergence tests)
-ROW_NUMBERS = ("graph", "sigma", "step_rms_m")
 
 
 @dataclass
@@ -44,7 +43,7 @@ class DenseState:
     poses: np.ndarray
     rounds_done: int
     damping: float
-    history: list[dict]
+    history: list[Round]
     stopped: Stop | None = None
     odometry: MeasuredNoise | None = None
 
@@ -54,7 +53,8 @@ def save(path: Path, state: DenseState, start: np.ndarray) -> None:
     buf = io.BytesIO()
     stopped = None if state.stopped is None else {"reason": state.stopped.reason.value, "detail": state.stopped.detail}
     meta = {"rounds_done": state.rounds_done, "damping": state.damping, "stopped": stopped,
-            "history": state.history, "odometry": state.odometry.summary() if state.odometry else None}
+            "history": [r.row() for r in state.history],
+            "odometry": state.odometry.summary() if state.odometry else None}
     np.savez(buf, poses=np.asarray(state.poses, dtype=np.float64), start=np.asarray(start, dtype=np.float64),
              meta=np.array(json.dumps(meta, default=float)))
     with atomic_write(path, "wb") as fh:
@@ -142,10 +142,9 @@ def _checked(poses: np.ndarray, made_from: np.ndarray, meta: dict, start: np.nda
         raise ValueError(f"rounds done {done!r}, not 0 to {rounds}")
     if not isinstance(damping, float | int) or not np.isfinite(damping) or damping <= 0:
         raise ValueError(f"damping {damping!r}")
-    if not isinstance(history, list) or len(history) > done or not all(isinstance(r, dict) for r in history):
+    if not isinstance(history, list) or len(history) > done:
         raise ValueError("its round records do not match its rounds")
-    if not all(isinstance(r.get(k), float | int) and np.isfinite(r[k]) for r in history for k in ROW_NUMBERS):
-        raise ValueError(f"its round records lack one of {', '.join(ROW_NUMBERS)}")
+    history = [Round.of_row(r) for r in history]
     return DenseState(poses, done, float(damping), history, _stop(stopped), _odometry(meta.get("odometry"), len(start)))
 
 

@@ -31,6 +31,7 @@ from dm2_backend.evaluation.map_quality import MapSampler
 from dm2_backend.kernel import gtsam_solver
 from dm2_backend.kernel.graph_edges import InformationModel, build_graph
 from dm2_backend.kernel.solver_options import SolverOptions
+from dm2_backend.optim.dense_round import Round
 from dm2_backend.optim.depth_noise import RangeNoise
 from dm2_backend.optim.odometry_noise import MeasuredNoise
 from dm2_backend.optim.stop import Stop
@@ -98,7 +99,7 @@ class DenseSummary:
     cells: int
     cells_seconds: float
     seconds: float
-    history: list[dict]  # one row per round (``optim.dense.DenseResult.history``)
+    history: list[Round]
     stopped: Stop
     resumed_after_round: int
     odometry_noise: MeasuredNoise | None
@@ -114,7 +115,7 @@ class DenseSummary:
                 "depth_noise": self.depth_noise.summary() if self.depth_noise is not None else None,
                 "cell_m": self.cell_m, "cells": self.cells, "cells_seconds": self.cells_seconds,
                 "seconds": self.seconds, "rounds": len(self.history), "stopped": self.stopped.detail,
-                "stop_reason": self.stopped.reason.value, "history": self.history,
+                "stop_reason": self.stopped.reason.value, "history": [r.row() for r in self.history],
                 "resumed_after_round": self.resumed_after_round,
                 "odometry_noise": self.odometry_noise.summary() if self.odometry_noise else None,
                 "agreement_m2": self.agreement_m2, "cuts": self.cuts.summary(), "step_guard": self.step_guard.summary(),
