@@ -168,7 +168,7 @@ class OptimConfig(BaseModel):
     @classmethod
     def _switch_words(cls, value: object) -> object:
         """true/false/null (YAML's on/off among them) as "on"/"off"/"auto"."""
-        return _SWITCH_WORDS.get(value, value) if value is None or isinstance(value, bool) else value
+        return _SWITCH_WORDS[value] if value is None or isinstance(value, bool) else value
 
     @field_validator("dense", mode="before")
     @classmethod

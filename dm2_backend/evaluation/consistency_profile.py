@@ -54,6 +54,7 @@ from dm2_backend.kernel.planes import (
     disagreement,
     fit,
     placed_means,
+    rotated,
 )
 from dm2_backend.kernel.prepared import ScanScale
 from dm2_backend.kernel.scan_scale import derive_scale
@@ -249,14 +250,6 @@ def _flat_normals(cells: Cells) -> np.ndarray:
     return out
 
 
-def _rotated(vectors: np.ndarray, poses: np.ndarray, frame: np.ndarray) -> np.ndarray:
-    """``vectors`` (k,3) of frames ``frame`` turned into the world by ``poses``, as (3,k) rows (NaN stays NaN)."""
-    v = np.ascontiguousarray(vectors.T)
-    r = poses[:, :3, :3]
-    return np.stack([r[:, i, 0][frame] * v[0] + r[:, i, 1][frame] * v[1] + r[:, i, 2][frame] * v[2]
-                     for i in range(3)])
-
-
 def _sampled(cells: Cells, per_frame: int, bounds: np.ndarray, seed: int) -> Cells:
     """About ``per_frame`` cells of each frame (frame i's are rows ``bounds[i]:bounds[i + 1]``), each kept with the
     same chance (seeded), copied into memory a thousand frames at a time (a file's pages dropped after each)."""
@@ -307,14 +300,16 @@ def _neighbour_views(cells: Cells, poses: np.ndarray, voxel: float, window: int,
         return np.full(n, np.nan), np.full(n, np.nan)
     planes = fit(a, placed)
     tree = cKDTree(a.centre)
-    keep = np.zeros(n, bool)
-    keep[slice(None) if scored is None else scored] = True
     # every cell: where a stretch sees a fifth of a frame, fewer leave a score of a few cells
-    judged = cells.of_frames(keep)
+    judged = cells
+    if scored is not None:
+        keep = np.zeros(n, bool)
+        keep[scored] = True
+        judged = cells.of_frames(keep)
     surface = _flat_normals(judged) if surface is None else surface
     own = _offset(block, far)
     cap = CAP * a.sigma
-    surface = _rotated(surface, placed, judged.frame)  # world (3,K), NaN rows stay NaN
+    surface = rotated(np.ascontiguousarray(surface.T), placed, judged.frame)  # world (3,K), NaN rows stay NaN
     past = _against(judged, placed, a, planes, tree, _offset(block - 1, far) - own, np.isin(block - 1, block), cap,
                     surface)
     future = _against(judged, placed, a, planes, tree, _offset(block + 1, far) - own, np.isin(block + 1, block), cap,

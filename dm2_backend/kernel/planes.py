@@ -361,14 +361,26 @@ def _plane_of(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     return N, mu, lam, normal
 
 
+def rotated(vectors: np.ndarray, poses: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """``vectors`` (3,k) of frames ``frame`` turned into the world by ``poses`` (3,k), a coordinate at a time over
+    contiguous rows (NaN stays NaN)."""
+    return _turned(vectors, _pose_rows(poses), frame)
+
+
+def _turned(v: np.ndarray, rows: np.ndarray, f: np.ndarray) -> np.ndarray:
+    out = np.empty((3, len(f)))
+    for i in range(3):
+        out[i] = rows[i, 0][f] * v[0] + rows[i, 1][f] * v[1] + rows[i, 2][f] * v[2]
+    return out
+
+
 def placed_means(cells: Cells, poses: np.ndarray, part: slice) -> np.ndarray:
     """The means of cells ``part`` in the world at ``poses`` (k,3), a coordinate at a time over contiguous rows."""
     f = cells.frame[part]
     rows = _pose_rows(poses)
-    m = np.ascontiguousarray(cells.mean[part].T, dtype=np.float64)
-    out = np.empty((3, len(f)))
+    out = _turned(np.ascontiguousarray(cells.mean[part].T, dtype=np.float64), rows, f)
     for i in range(3):
-        out[i] = rows[i, 0][f] * m[0] + rows[i, 1][f] * m[1] + rows[i, 2][f] * m[2] + rows[i, 3][f]
+        out[i] += rows[i, 3][f]
     return out.T
 
 

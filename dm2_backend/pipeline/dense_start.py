@@ -125,21 +125,22 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     poses = guarded.poses
     start_fit = judge.fit(start.poses)  # reported beside the result's (``step_guard.check.fit_m``)
     # never worse than where it started, judged without ground truth: each frame against the map the others make
-    candidates = {Kept.WARM_START: prep.warm_start, Kept(start.name.value): start.poses, Kept.DENSE: poses}
+    begun = Kept(start.name.value)
+    candidates = {Kept.WARM_START: prep.warm_start, begun: start.poses, Kept.DENSE: poses}
     agreement = agreement_score(cells, {k.value: v for k, v in candidates.items()}, voxel,
-                                judges=(start.name.value, Kept.DENSE.value))
+                                judges=(begun.value, Kept.DENSE.value))
     finite = {Kept(name): score for name, score in agreement.items() if np.isfinite(score)}
     # no plane seen by two frames (too few or too sparse scans): nothing to judge by, the start stands
     judged = len(finite) == len(agreement)
-    chosen = min(finite, key=finite.get) if judged else Kept(start.name.value)
+    chosen = min(finite, key=finite.get) if judged else begun
     reason = f"{chosen.value} agrees better" if judged else "no plane seen by two frames to judge by"
     cut = sequence_cuts(prep, poses)
     if chosen is Kept.DENSE and cut:  # its frames agree, its steps do not: the start stands
         log.warning("dense stage's result not kept: it cuts the sequence at %s", cut.describe())
-        chosen, reason = Kept(start.name.value), f"it cuts the sequence at {cut.describe()}"
+        chosen, reason = begun, f"it cuts the sequence at {cut.describe()}"
     if chosen is Kept.DENSE and not guarded.clean:  # held and solved again, a step is still contradicted
         log.warning("dense stage's result not kept: its frames contradict %s", guarded.check.describe())
-        chosen, reason = Kept(start.name.value), f"its frames contradict {guarded.check.describe()}"
+        chosen, reason = begun, f"its frames contradict {guarded.check.describe()}"
     dense = DenseSummary(voxel, noise, graph.meta["hessian_edges"], built.depth_noise, cells.size, len(cells),
                          built.seconds, result.seconds, result.history, result.stopped, result.resumed_after,
                          result.odometry, agreement, cut, guarded, start_fit, chosen)

@@ -125,7 +125,8 @@ class DenseSummary:
 @dataclass(frozen=True)
 class Start:
     """The optimiser's start: its :class:`StartKind` ``name``, why, and the evidence the choice was made on;
-    ``dense`` what the dense stage did from there (None when it did not run; ``poses`` are then its result)."""
+    ``dense`` what the dense stage did from there (None when it did not run; else ``poses`` are what its judge
+    kept)."""
 
     poses: np.ndarray
     name: StartKind
