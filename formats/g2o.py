@@ -223,7 +223,7 @@ def read_g2o(path: str | Path, information: str = "file", warn: bool = True) -> 
             raise InputError(path, f"FIX of unknown node {node}", line=number)
     poses = np.stack([known[int(n)] for n in ids]).reshape(-1, 4, 4)
     validate_poses(poses, path)  # before any solver: chained edges can carry a position past any map
-    meta: dict = {"source": str(path)}
+    meta: dict = {}
     if filled:
         meta["initialised_from_edges"] = filled
     if parser.skipped:
@@ -235,7 +235,7 @@ def read_g2o(path: str | Path, information: str = "file", warn: bool = True) -> 
     return PoseGraph(
         ids=ids, poses=poses, edges=edges,
         relative=relative, information=matrices, planar=not is3d,
-        fixed=sorted({n for n, _ in parser.fixed}), meta=meta,
+        fixed=sorted({n for n, _ in parser.fixed}), meta=meta, source=str(path),
     )
 
 

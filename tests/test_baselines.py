@@ -109,7 +109,7 @@ def test_robust_kernel_rejects_outlier(backend):
     robust = module.optimize(graph, SolverOptions(robust="geman-mcclure"))
     err = [np.linalg.norm(r.poses[:, :3, 3] - gt[:, :3, 3], axis=1).max() for r in (plain, robust)]
     assert err[0] > 1.0 and err[1] < 0.01
-    assert robust.meta["robust"] == "geman-mcclure"
+    assert robust.robust == "geman-mcclure"
 
 
 def test_build_graph_from_registrations():
@@ -138,7 +138,7 @@ def test_build_graph_from_registrations():
     np.testing.assert_allclose(np.diag(graph.information[0]), 1 / np.square([sigma_t, sigma_t, sigma_t / 5]))
     np.testing.assert_allclose(graph.information[3], registration_information(0.01, 0.5, 100, 5.0, True, 0.01))
     np.testing.assert_allclose(graph.information[1], 0.1 * graph.information[0])  # median * fallback weight
-    assert graph.meta["odometry_from_warm_start"] == 1 and graph.meta["loop_edges"] == 1
+    assert graph.built.odometry_from_warm_start == 1 and graph.built.loop_edges == 1
     solved = gtsam_solver.optimize(graph)  # the weak warm-start edge gives way to the registrations
     err = [np.abs(se3.relative(P[0], P[2]) - se3.relative(gt[0], gt[2])).max() for P in (solved.poses, warm)]
     assert err[0] < 0.01 < err[1]
@@ -160,7 +160,7 @@ def test_build_graph_3d_solves_and_round_trips(tmp_path):
     pair = Pairwise(rel, groups >= 0, np.full((n, 2), 0.6), np.full((n, 2), 0.05))
     graph = build_graph(frames, warm, Topology(groups), pair, InformationModel(odometry="registration"))
     assert not graph.planar and graph.information.shape[1:] == (6, 6)
-    assert graph.meta["odometry_from_warm_start"] == 0 and graph.meta["loop_edges"] == n
+    assert graph.built.odometry_from_warm_start == 0 and graph.built.loop_edges == n
     solved = gtsam_solver.optimize(graph)
     aligned = se3.relative(solved.poses[0], solved.poses) - se3.relative(gt[0], gt)
     assert np.abs(aligned).max() < 1e-6
@@ -238,7 +238,7 @@ def test_multiway_function_returns_n_poses():
     rel[:-1, 0] = se3.relative(gt[:-1], gt[1:])
     pair = Pairwise(rel, groups >= 0, np.ones((40, 1)), np.full((40, 1), 0.01))
     result = multiway(frames, graph.poses, Topology(groups), pair)
-    assert result.poses.shape == (40, 4, 4) and result.meta["loop_edges"] == 0
+    assert result.poses.shape == (40, 4, 4) and result.loop_edges == 0
     np.testing.assert_allclose(se3.relative(result.poses[:-1], result.poses[1:]), rel[:-1, 0], atol=1e-6)
 
 

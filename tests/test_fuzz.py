@@ -451,6 +451,8 @@ class _Payload:
 
 def test_checkpoint_loads_without_running_code(tmp_path, monkeypatch):
     from dm2_backend.optim.checkpoint import load_checkpoint, plain_state
+    from dm2_backend.optim.epoch import Epoch, TracePoint
+    from dm2_backend.optim.selection import Best
 
     monkeypatch.chdir(tmp_path)
     evil = tmp_path / "checkpoint.pt"
@@ -459,12 +461,16 @@ def test_checkpoint_loads_without_running_code(tmp_path, monkeypatch):
         load_checkpoint(evil, "cpu")
     assert not (tmp_path / "PWNED_BY_CHECKPOINT").exists()
     good = tmp_path / "good.pt"
-    state = plain_state({"best": {"poses": np.eye(4)[None], "loss": np.float64(0.5)}, "history": [{"a": (1, 2)}],
-                         "epoch": 0})
+    row = Epoch(0, 0.5, 1.0, 3, (TracePoint(3, 0.5, 0.1),), chamfer=0.2, map_entropy=-4.0).row()
+    state = plain_state({"best": Best(np.eye(4)[None], 0, np.float64(0.5)).state(), "history": [row], "epoch": 0})
     torch.save(state, good)
     back = load_checkpoint(good, "cpu")
-    assert isinstance(back["best"]["poses"], np.ndarray) and back["best"]["loss"] == 0.5
-    assert back["history"] == [{"a": (1, 2)}]
+    assert isinstance(back["best"].poses, np.ndarray) and back["best"].loss == 0.5 and back["best"].epoch == 0
+    assert back["history"] == [Epoch.of_row(row)] and back["history"][0].trace[0].ate == 0.1
+    for damaged in ({**row, "loss": "low"}, {**row, "trace": [{"step": -1, "loss": 0.5}]}, {**row, "rejected": 3}):
+        torch.save(plain_state({**state, "history": [damaged]}), good)
+        with pytest.raises(InputError, match="not a checkpoint of this run"):
+            load_checkpoint(good, "cpu")
 
 
 def test_pickled_npy_is_never_unpickled(tmp_path, monkeypatch):

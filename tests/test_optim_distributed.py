@@ -161,13 +161,14 @@ def test_resume_of_a_distributed_run(seq, runs, tmp_path):
     assert (second / "writes-1.txt").read_text() == ""
     # every rank resumed from rank 0's checkpoint: they end with the same parameters
     np.testing.assert_array_equal(np.load(second / "poses-0.npy"), np.load(second / "poses-1.npy"))
-    assert [row["epoch"] for row in result.history] == list(range(EPOCHS))
-    assert result.history[: EPOCHS // 2] == state["history"]  # the first epochs come from the checkpoint
+    assert [row.epoch for row in result.history] == list(range(EPOCHS))
+    # the first epochs come from the checkpoint
+    assert [row.row() for row in result.history[: EPOCHS // 2]] == state["history"]
     # ... and the resumed run equals the uninterrupted distributed run of the CLI
     uninterrupted = np.load(runs["root"] / "two" / "poses.npy")
     np.testing.assert_array_equal(result.poses[:, :3, 3], uninterrupted[:, :3, 3])
     losses = [e["loss"] for e in runs["two"]["epochs"]]
-    assert [row["loss"] for row in result.history] == losses
+    assert [row.loss for row in result.history] == losses
 
 
 def test_unused_field_network_weights_and_a_rank_without_anchors(seq, runs, tmp_path):
@@ -179,7 +180,7 @@ def test_unused_field_network_weights_and_a_rank_without_anchors(seq, runs, tmp_
     result, start = done["result"], np.load(runs["root"] / "one" / "warm_start.npy")
     np.testing.assert_array_equal(np.load(tmp_path / "poses-0.npy"), np.load(tmp_path / "poses-1.npy"))
     assert np.isfinite(result.poses).all() and not np.allclose(result.poses, start)
-    assert len(result.history) == 1 and "bce" not in result.history[0] and np.isfinite(result.history[0]["loss"])
+    assert len(result.history) == 1 and result.history[0].bce is None and np.isfinite(result.history[0].loss)
 
 
 # ---------------------------------------------------------------- pieces

@@ -4,7 +4,7 @@ non-finite loss stops the run with the best poses kept."""
 
 from __future__ import annotations
 
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
@@ -18,6 +18,7 @@ from dm2_backend.optim import losses
 from dm2_backend.optim.batching import make_groups, random_groups, temporal_groups
 from dm2_backend.optim.checkpoint import CHECKPOINT
 from dm2_backend.optim.derived import LossRegime, PoseRegime, derive, loss_regime, pose_regime, sampled_points
+from dm2_backend.optim.epoch import Epoch
 from dm2_backend.optim.problem import Execution, Problem, Watch
 from dm2_backend.optim.regime import disagreement, locally_accurate
 from dm2_backend.optim.stop import StopReason
@@ -64,8 +65,8 @@ class Recorder:
         return ate_rmse(self.gt, poses)
 
 
-def strip_times(history: list[dict]) -> list[dict]:
-    return [{k: v for k, v in row.items() if k != "seconds"} for row in history]
+def strip_times(history: tuple[Epoch, ...]) -> list[Epoch]:
+    return [replace(row, seconds=0.0) for row in history]
 
 
 @pytest.fixture(scope="module")
@@ -81,10 +82,10 @@ def test_refine_lowers_ate_with_icp_pairwise(case, full_run):
     before, after = ate_rmse(case.gt, case.warm), ate_rmse(case.gt, result.poses)
     assert after <= 0.7 * before, (before, after)
     assert len(result.history) == EPOCHS and result.stopped.reason is StopReason.BUDGET
-    assert [row["epoch"] for row in result.history] == list(range(EPOCHS))
-    assert all({"loss", "bce", "chamfer", "consistency", "ate"} <= set(row) for row in result.history)
-    assert result.history[-1]["ate"] == pytest.approx(ate_rmse(case.gt, rec.poses[-1]))
-    assert result.best_epoch == int(np.argmin([row["loss"] for row in result.history]))
+    assert [row.epoch for row in result.history] == list(range(EPOCHS))
+    assert all(None not in (row.bce, row.chamfer, row.consistency, row.ate) for row in result.history)
+    assert result.history[-1].ate == pytest.approx(ate_rmse(case.gt, rec.poses[-1]))
+    assert result.best_epoch == int(np.argmin([row.loss for row in result.history]))
     np.testing.assert_array_equal(result.poses, rec.poses[result.best_epoch])
     np.testing.assert_allclose(result.poses[0], case.warm[0], atol=1e-9)  # the gauge: frame 0 stays put
     assert (folder / CHECKPOINT).is_file()
@@ -123,9 +124,9 @@ def test_ablation_switches_run(case, switches, absent):
     # truth (no drift terms 0.67, the full objective 0.30)
     assert ate_rmse(case.gt, result.poses) < 0.8 * ate_rmse(case.gt, case.warm)
     for row in result.history:
-        assert np.isfinite(row["loss"])
+        assert np.isfinite(row.loss)
         if absent is not None:
-            assert absent not in row
+            assert getattr(row, absent) is None
 
 
 def test_unknown_choices_are_errors(case):
@@ -174,7 +175,7 @@ def test_resume_extends_a_finished_shorter_run(case, tmp_path):
     rec = Recorder(case.gt)
     result = optimiser(case, metric=rec).run(checkpoint_dir=tmp_path, resume=True)
     assert len(rec.poses) == EPOCHS - EPOCHS // 2
-    assert [row["epoch"] for row in result.history] == list(range(EPOCHS))
+    assert [row.epoch for row in result.history] == list(range(EPOCHS))
 
 
 @pytest.mark.parametrize("nan_at_step", [0, 9])
@@ -198,7 +199,7 @@ def test_non_finite_loss_stops_and_keeps_best(case, monkeypatch, nan_at_step):
         assert result.best_epoch == -1
         np.testing.assert_allclose(result.poses, case.warm, atol=1e-9)
     else:
-        assert result.best_epoch == int(np.argmin([row["loss"] for row in result.history]))
+        assert result.best_epoch == int(np.argmin([row.loss for row in result.history]))
         np.testing.assert_array_equal(result.poses, rec.poses[result.best_epoch])
 
 
@@ -290,7 +291,7 @@ def test_select_by_map_returns_the_sharpest_epoch(case):
     result = opt.run()
     assert result.best_epoch == 1
     np.testing.assert_array_equal(result.poses, scores.poses[2])
-    assert [row["map_entropy"] for row in result.history] == [4.0, 2.0, 3.0, 6.0]
+    assert [row.map_entropy for row in result.history] == [4.0, 2.0, 3.0, 6.0]
     assert result.selection.startswith("sharpest map: epoch 1")
 
 
@@ -305,7 +306,7 @@ def test_select_by_map_never_returns_a_blurrier_map_than_the_start(case):
     loss_run = Optimiser(Problem(case.frames, case.topology, case.pairwise, case.warm),
                          small_config(epochs=2, select="loss"), CPU,
                          Watch(map_metric=MapScores([1.0, 2.0, 3.0]))).run()
-    assert loss_run.best_epoch >= 0 and "map_entropy" in loss_run.history[0]
+    assert loss_run.best_epoch >= 0 and loss_run.history[0].map_entropy is not None
 
 
 def test_loss_regime_from_the_pose_graph_start():
@@ -367,8 +368,8 @@ def test_a_diverging_run_returns_its_start_not_a_scattered_map(case, select):
                     small_config(epochs=2, lr_pose=1e6, select=select), CPU,
                     Watch(map_metric=None if sampler is None else sampler.entropy))
     result = opt.run()
-    assert all("rejected" in row for row in result.history)
-    assert min(row["disagreement"] for row in result.history) > 10 * opt.derived.start_disagreement
+    assert all(row.rejected is not None for row in result.history)
+    assert min(row.disagreement for row in result.history) > 10 * opt.derived.start_disagreement
     assert result.best_epoch == -1 and result.stopped.reason is StopReason.DIVERGED
     np.testing.assert_allclose(result.poses, case.warm, atol=1e-9)
 
@@ -391,14 +392,14 @@ def test_converged_run_stops_early_and_traces(case):
     run = Optimiser(Problem(case.frames, case.topology, case.pairwise, case.warm),
                     small_config(epochs=6, converge_tol=1.0), CPU,
                     Watch(map_metric=flat_map, trace=lambda poses: ate_rmse(case.gt, poses))).run()
-    assert [row["epoch"] for row in run.history] == [0, 1, 2] and "converged" in run.history[-1]
+    assert [row.epoch for row in run.history] == [0, 1, 2] and run.history[-1].converged is not None
     assert not run.stopped.failed and run.best_epoch == -1  # the start: no epoch made a sharper map
-    trace = [p for row in run.history for p in row["trace"]]
-    assert [p["step"] for p in trace] == sorted({p["step"] for p in trace}) and all("ate" in p for p in trace)
-    assert run.history[-1]["steps"] == trace[-1]["step"]
+    trace = [p for row in run.history for p in row.trace]
+    assert [p.step for p in trace] == sorted({p.step for p in trace}) and all(p.ate is not None for p in trace)
+    assert run.history[-1].steps == trace[-1].step
     full = Optimiser(Problem(case.frames, case.topology, case.pairwise, case.warm),
                      small_config(epochs=6, converge_tol=0.0), CPU, Watch(map_metric=flat_map)).run()
-    assert len(full.history) == 6 and not any("converged" in row for row in full.history)
+    assert len(full.history) == 6 and all(row.converged is None for row in full.history)
 
 
 def test_chamfer_matches_brute_force_nearest_points(case):
@@ -434,5 +435,5 @@ def test_an_auto_switch_is_decided_and_an_explicit_one_holds():
 def test_after_the_dense_stage_the_epochs_do_not_run_and_say_so(case):
     after_dense = Problem(case.frames, case.topology, case.pairwise, case.warm, after_dense=True)
     result = Optimiser(after_dense, small_config(epochs=2), CPU).run()
-    assert result.stopped.reason is StopReason.NOT_RUN and result.history == [] and result.best_epoch == -1
+    assert result.stopped.reason is StopReason.NOT_RUN and result.history == () and result.best_epoch == -1
     np.testing.assert_array_equal(result.poses, Optimiser(after_dense, small_config(epochs=2), CPU).poses())

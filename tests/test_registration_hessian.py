@@ -89,12 +89,12 @@ def test_hessian_information_keeps_a_slid_corridor_match_from_moving_the_graph()
                         hessian=hess if kind == "hessian" else None,
                         plane_rmse=np.full((n, 1), 0.01) if kind == "hessian" else None)
         graph = build_graph(frames, gt, Topology(groups), pair, InformationModel(use_hessians=True))
-        assert graph.meta["hessian_edges"] == (n - 3 if kind == "hessian" else 0)
+        assert graph.built.hessian_edges == (n - 3 if kind == "hessian" else 0)
         solved = gtsam_solver.optimize(graph).poses
         err[kind] = np.abs(solved[:, 0, 3] - gt[:, 0, 3]).max()
     assert err["hessian"] < 0.01 < 0.2 < err["isotropic"]
     # recorded but not asked for (the pose graph's default): isotropic
-    assert build_graph(frames, gt, Topology(groups), pair).meta["hessian_edges"] == 0
+    assert build_graph(frames, gt, Topology(groups), pair).built.hessian_edges == 0
 
 
 def test_hessian_information_is_positive_definite_and_scaled_by_the_residual():
@@ -166,11 +166,11 @@ def test_planar_registrations_keep_their_own_information():
     default = InformationModel.from_resolved({"registration": PluginSection(name="icp")})
     assert asked.use_hessians and not default.use_hessians
     graph = build_graph(frames, np.tile(np.eye(4), (3, 1, 1)), topology, kept, asked)
-    assert graph.planar and graph.meta["hessian_edges"] == 3  # every registration has its own
+    assert graph.planar and graph.built.hessian_edges == 3  # every registration has its own
     loop = graph.information[-1]
     assert loop[1, 1] > 100 * loop[0, 0]  # across the corridor, not along it
     plain = build_graph(frames, np.tile(np.eye(4), (3, 1, 1)), topology, kept)
-    assert plain.meta["hessian_edges"] == 0
+    assert plain.built.hessian_edges == 0
     np.testing.assert_array_equal(plain.information[-1], np.diag(np.diag(plain.information[-1])))  # isotropic
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,26 @@ from dm2_backend.kernel.solver_options import GraphResult, SolverOptions
 from dm2_backend.runtime.errors import InputError
 
 reg = o3d.pipelines.registration
+
+
+@dataclass(frozen=True)
+class MultiwayResult(GraphResult):
+    """Open3D's answer (no errors or iterations reported) and its settings: the correspondence distance (m), the
+    line process's prune threshold, and the edges (odometry, how many from the warm start; loop edges
+    given and kept)."""
+
+    max_correspondence_distance: float = 0.0
+    edge_prune_threshold: float = 0.0
+    odometry_edges: int = 0
+    odometry_from_warm_start: int = 0
+    loop_edges: int = 0
+    loop_edges_kept: int = 0
+
+    def settings(self) -> dict:
+        return {"max_correspondence_distance": self.max_correspondence_distance,
+                "edge_prune_threshold": self.edge_prune_threshold, "odometry_edges": self.odometry_edges,
+                "odometry_from_warm_start": self.odometry_from_warm_start, "loop_edges": self.loop_edges,
+                "loop_edges_kept": self.loop_edges_kept}
 
 
 def dense_bytes(nodes: int) -> int:
@@ -93,10 +114,9 @@ def multiway(frames: Frames, warm: np.ndarray, topology: Topology, pairwise: Pai
     if frames.planar:
         poses = se3.from_xy_yaw(se3.to_xy_yaw(poses)).reshape(-1, 4, 4)
     kept = len(graph.edges) - (len(warm) - 1)
-    return GraphResult(
+    return MultiwayResult(
         poses=poses, initial_error=None, final_error=None, iterations=None, seconds=time.perf_counter() - t,
-        solver="open3d multiway",
-        meta={"max_correspondence_distance": distance, "edge_prune_threshold": edge_prune_threshold,
-              "odometry_edges": len(warm) - 1, "odometry_from_warm_start": from_warm,
-              "loop_edges": len(loops), "loop_edges_kept": kept},
+        solver="open3d multiway", max_correspondence_distance=distance, edge_prune_threshold=edge_prune_threshold,
+        odometry_edges=len(warm) - 1, odometry_from_warm_start=from_warm, loop_edges=len(loops),
+        loop_edges_kept=kept,
     )

@@ -97,7 +97,7 @@ def optimize(graph: PoseGraph, options: SolverOptions | None = None, tangent_inf
     t = time.perf_counter()
     opt = _build(g2o, graph, options, tangent_information)
     if not opt.initialize_optimization():
-        raise InputError(graph.meta.get("source"), "g2o could not initialise the optimisation")
+        raise InputError(graph.source, "g2o could not initialise the optimisation")
     opt.compute_active_errors()
     initial = 0.5 * opt.active_robust_chi2()
     stop = g2o.SparseOptimizerTerminateAction()
@@ -106,12 +106,12 @@ def optimize(graph: PoseGraph, options: SolverOptions | None = None, tangent_inf
     opt.add_post_iteration_action(stop)
     iterations = opt.optimize(options.max_iterations)
     if iterations < 0:
-        raise InputError(graph.meta.get("source"), "g2o optimisation failed")
+        raise InputError(graph.source, "g2o optimisation failed")
     opt.compute_active_errors()
     final = 0.5 * opt.active_robust_chi2()
     return GraphResult(
         poses=_poses(g2o, graph, opt), initial_error=float(initial), final_error=float(final),
         iterations=int(iterations), seconds=time.perf_counter() - t, solver="g2o",
-        meta={"robust": options.robust, "robust_k": options.kernel_k() if options.robust else None,
-              "tangent_information": tangent_information, "anchored": anchors(graph)},
+        robust=options.robust, robust_k=options.kernel_k() if options.robust else None,
+        anchored=tuple(anchors(graph)), tangent_information=tangent_information,
     )

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dm2_backend.kernel.geometry import se3
-from dm2_backend.kernel.pose_graph import PoseGraph
+from dm2_backend.kernel.pose_graph import GraphBuild, PoseGraph
 from dm2_backend.kernel.prepared import Frames, Pairwise, Topology
 from dm2_backend.runtime.errors import InputError
 
@@ -185,7 +185,6 @@ def build_graph(frames: Frames, warm: np.ndarray, topology: Topology, pairwise: 
     return PoseGraph(
         ids=np.arange(n), poses=poses.reshape(-1, 4, 4), edges=np.asarray(edges, dtype=int).reshape(-1, 2),
         relative=relative, information=np.asarray(information).reshape(-1, dim, dim), planar=planar,
-        meta={"odometry_edges": n - 1, "odometry_from_warm_start": warm_odometry, "loop_edges": len(loops),
-              "rmse_floor": floor, "information_model": HESSIAN_TEXT if hessians else MODEL_TEXT,
-              "hessian_edges": hessians},
+        built=GraphBuild(n - 1, warm_odometry, len(loops), floor, HESSIAN_TEXT if hessians else MODEL_TEXT,
+                         hessians),
     )

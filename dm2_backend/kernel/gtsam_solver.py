@@ -118,7 +118,7 @@ def warn_indefinite(graph: PoseGraph) -> int:
         log.warning("%s: %d of %d information matrices are not positive semi-definite (first: edge %d-%d); GTSAM "
                     "weighs the file as given, as gtsam.readG2o does (a partial Cholesky factor of each; "
                     "--information nearest-psd: the nearest positive-definite ones)",
-                    graph.meta.get("source", "graph"), int(bad.sum()), len(bad), *first)
+                    graph.source or "graph", int(bad.sum()), len(bad), *first)
     return int(bad.sum())
 
 
@@ -131,7 +131,7 @@ def _check_finite(graph: PoseGraph, fg: gtsam.NonlinearFactorGraph, initial: gts
     offset = fg.size() - len(graph.edges)  # the anchor priors come first
     bad = [k for k in range(len(graph.edges)) if not np.isfinite(fg.at(offset + k).error(initial))]
     where = f" (first: edge {graph.edges[bad[0], 0]}-{graph.edges[bad[0], 1]})" if bad else ""
-    raise InputError(graph.meta.get("source"), f"GTSAM's error is not finite on {len(bad)} edges{where}: an "
+    raise InputError(graph.source, f"GTSAM's error is not finite on {len(bad)} edges{where}: an "
                      "information matrix with a negative diagonal entry gets NaN sigmas in GTSAM; --information "
                      "nearest-psd uses the nearest positive-definite ones")
 
@@ -151,11 +151,11 @@ def optimize(graph: PoseGraph, options: SolverOptions | None = None) -> GraphRes
         result = optimizer.optimize()
     except RuntimeError as exc:  # indeterminate system: a disconnected or degenerate graph
         why = str(exc).strip().splitlines()[0]
-        raise InputError(graph.meta.get("source"), f"GTSAM could not solve the graph: {why}") from exc
+        raise InputError(graph.source, f"GTSAM could not solve the graph: {why}") from exc
     return GraphResult(
         poses=from_values(graph, result), initial_error=float(fg.error(initial)),
         final_error=float(fg.error(result)), iterations=int(optimizer.iterations()),
         seconds=time.perf_counter() - t, solver="gtsam",
-        meta={"robust": options.robust, "robust_k": options.kernel_k() if options.robust else None,
-              "anchored": anchors(graph)},
+        robust=options.robust, robust_k=options.kernel_k() if options.robust else None,
+        anchored=tuple(anchors(graph)),
     )

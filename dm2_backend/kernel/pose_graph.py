@@ -3,7 +3,7 @@ format holds, what the pose-graph baselines solve)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -28,9 +28,36 @@ def lift_planar_information(information: np.ndarray, hold: float) -> np.ndarray:
     return info
 
 
+@dataclass(frozen=True)
+class GraphBuild:
+    """How dm2 built a graph from registrations: its odometry edges (how many from the warm start's own steps,
+    where no registration held), its loop edges, the registrations' rmse floor (m), the information model in
+    words and how many edges carry a registration's Hessian."""
+
+    odometry_edges: int
+    odometry_from_warm_start: int
+    loop_edges: int
+    rmse_floor: float
+    information_model: str
+    hessian_edges: int
+
+    def summary(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class HeldAxes:
+    """The tangent axes a planar graph lifted to SE(3) holds still (z, roll, pitch) and their information."""
+
+    axes: tuple[int, ...]
+    information: float
+
+
 @dataclass
 class PoseGraph:
-    """Nodes (ascending ids) with initial poses, and relative-pose edges with information matrices."""
+    """Nodes (ascending ids) with initial poses, and relative-pose edges with information matrices; ``source``:
+    the file it was read from; ``built``: how dm2 built it; ``held``: the axes a lifted planar graph holds;
+    ``meta``: what the g2o reader noted (skipped lines, nodes placed from edges, informations not PSD)."""
 
     ids: np.ndarray  # (N,) int node ids, ascending
     poses: np.ndarray  # (N, 4, 4) initial poses
@@ -40,6 +67,9 @@ class PoseGraph:
     planar: bool = False
     fixed: list[int] = field(default_factory=list)
     meta: dict = field(default_factory=dict)
+    source: str | None = None
+    built: GraphBuild | None = None
+    held: HeldAxes | None = None
     #: (E,) bool: edges solved as given, without a robust kernel (steps the step guard holds); None: none
     exact: np.ndarray | None = None
 
@@ -79,15 +109,24 @@ class PoseGraph:
     def lifted_to_se3(self, hold: float) -> PoseGraph:
         """This graph as an SE(3) one: a planar graph's [x y theta] information on x, y and yaw
         (:data:`PLANAR_AXES`), and ``hold`` (1/m^2, 1/rad^2) on z, roll and pitch, so they stay where the poses have
-        them (``meta["held"]`` records it); a 3D graph as it is."""
+        them (:attr:`held` records it); a 3D graph as it is."""
         if not self.planar:
             return self
         info = lift_planar_information(self.information, hold)
-        held = {"axes": HELD_AXES.tolist(), "information": float(hold)}
-        return replace(self, information=info, planar=False, meta={**self.meta, "held": held})
+        held = HeldAxes(tuple(HELD_AXES.tolist()), float(hold))
+        return replace(self, information=info, planar=False, held=held)
+
+    def summary(self) -> dict:
+        """Where the graph came from and how it was built, for ``report.json``."""
+        out = {} if self.source is None else {"source": self.source}
+        if self.built is not None:
+            out.update(self.built.summary())
+        if self.held is not None:
+            out["held"] = {"axes": list(self.held.axes), "information": self.held.information}
+        return {**out, **self.meta}
 
     def to_trajectory(self) -> Trajectory:
-        meta = {"edges": len(self.edges), **self.meta}
+        meta = {"edges": len(self.edges), **self.summary()}
         return Trajectory(poses=self.poses, frame_ids=[str(int(n)) for n in self.ids], planar=self.planar,
                           meta=meta)
 

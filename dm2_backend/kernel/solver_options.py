@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -37,7 +37,9 @@ class SolverOptions:
 
 @dataclass(frozen=True)
 class GraphResult:
-    """Optimised poses (N,4,4) in the graph's node order; errors in GTSAM's convention (0.5 * chi2)."""
+    """Optimised poses (N,4,4) in the graph's node order; errors in GTSAM's convention (0.5 * chi2); the robust
+    kernel and its threshold, the nodes held at their initial pose and, for g2o, whether the information was
+    taken in the tangent space."""
 
     poses: np.ndarray
     initial_error: float | None
@@ -45,8 +47,19 @@ class GraphResult:
     iterations: int | None
     seconds: float
     solver: str
-    meta: dict = field(default_factory=dict)
+    robust: str | None = None
+    robust_k: float | None = None
+    anchored: tuple[int, ...] = ()
+    tangent_information: bool | None = None
 
     def summary(self) -> dict:
+        """The result as ``report.json`` keeps it."""
         return {"solver": self.solver, "initial_error": self.initial_error, "final_error": self.final_error,
-                "iterations": self.iterations, "seconds": self.seconds, **self.meta}
+                "iterations": self.iterations, "seconds": self.seconds, **self.settings()}
+
+    def settings(self) -> dict:
+        """How the solver was set: the robust kernel, the held nodes (and g2o's tangent information)."""
+        out = {"robust": self.robust, "robust_k": self.robust_k}
+        if self.tangent_information is not None:
+            out["tangent_information"] = self.tangent_information
+        return {**out, "anchored": list(self.anchored)}

@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dm2_backend.optim.epoch import Epoch
+from dm2_backend.optim.selection import Best
 from dm2_backend.runtime.atomic import atomic_write
 from dm2_backend.runtime.errors import InputError, one_line
 
@@ -36,8 +38,10 @@ def plain_state(value):
 
 def load_checkpoint(path: Path, device, frames: int | None = None) -> dict:
     """A checkpoint written by :func:`save_checkpoint`, loaded with ``weights_only=True`` (a file handed to
-    ``--resume`` cannot run code); ``best["poses"]`` back as a numpy array, checked: ``frames`` finite rigid
-    motions, a plausible epoch. An unreadable, foreign or damaged file is an :class:`InputError` naming it."""
+    ``--resume`` cannot run code), checked: ``frames`` finite rigid motions, a plausible epoch; ``best`` back as
+    a :class:`~dm2_backend.optim.selection.Best` and ``history`` as
+    :class:`~dm2_backend.optim.epoch.Epoch` records. An unreadable, foreign or damaged file is an
+    :class:`InputError` naming it."""
     try:
         state = torch.load(path, map_location=device, weights_only=True)
     except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError, AttributeError) as exc:
@@ -50,6 +54,12 @@ def load_checkpoint(path: Path, device, frames: int | None = None) -> dict:
     except (TypeError, ValueError) as exc:
         raise InputError(path, f"--resume: its best poses are not an array ({one_line(str(exc))[:120]})") from None
     problem = _problem(state, frames)
+    if not problem:
+        try:
+            state["best"] = Best.of_state(state["best"])
+            state["history"] = [Epoch.of_row(row) for row in state["history"]]
+        except ValueError as exc:
+            problem = str(exc)
     if problem:
         raise InputError(path, f"--resume: not a checkpoint of this run ({problem}); run without --resume")
     return state

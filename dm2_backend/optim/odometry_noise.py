@@ -94,15 +94,14 @@ def consecutive_edges(graph: PoseGraph) -> np.ndarray:
 
 def reweighted(graph: PoseGraph, edges: np.ndarray, noise: MeasuredNoise) -> PoseGraph:
     """A copy of ``graph`` whose ``edges`` carry the information of ``noise``; the axes a lifted planar graph holds
-    (``meta["held"]``, :meth:`~dm2_backend.kernel.pose_graph.PoseGraph.lifted_to_se3`) keep their hold."""
+    (``held``, :meth:`~dm2_backend.kernel.pose_graph.PoseGraph.lifted_to_se3`) keep their hold."""
     information = graph.information.copy()
     measured = noise.information()
-    held = graph.meta.get("held")
-    if held is not None:
-        axes = np.asarray(held["axes"])
+    if graph.held is not None:
+        axes = np.asarray(graph.held.axes)
         measured = measured.copy()
         measured[axes, :] = 0.0
         measured[:, axes] = 0.0
-        measured[axes, axes] = float(held["information"])
+        measured[axes, axes] = graph.held.information
     information[edges] = measured
-    return replace(graph, information=information, meta={**graph.meta, "odometry_noise": noise.summary()})
+    return replace(graph, information=information)

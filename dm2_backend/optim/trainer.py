@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -20,12 +20,13 @@ from dm2_backend.optim import distributed, losses
 from dm2_backend.optim.batching import make_groups
 from dm2_backend.optim.checkpoint import CHECKPOINT, load_checkpoint, plain_state, save_checkpoint
 from dm2_backend.optim.derived import Derived, derive, loss_regime, pose_regime, sampled_points
+from dm2_backend.optim.epoch import TERMS, Epoch, TracePoint
 from dm2_backend.optim.mnet_file import MNET, save_mnet
 from dm2_backend.optim.occupancy import GridOccupancy
 from dm2_backend.optim.pose_model import PoseModel
 from dm2_backend.optim.problem import Execution, Problem, Watch
 from dm2_backend.optim.regime import disagreement, locally_accurate
-from dm2_backend.optim.selection import first_candidate, offer, selection
+from dm2_backend.optim.selection import Best, first_candidate, offer, selection
 from dm2_backend.optim.stop import Stop, StopReason
 from dm2_backend.runtime.errors import InputError, one_line
 from dm2_backend.runtime.progress import progress
@@ -38,7 +39,7 @@ class OptimResult:
 
     poses: np.ndarray
     best_epoch: int
-    history: list[dict] = field(default_factory=list)
+    history: tuple[Epoch, ...] = ()
     derived: Derived | None = None
     stopped: Stop = Stop(StopReason.BUDGET, "")
     #: which poses were returned and why (``best_epoch`` -1: the start itself)
@@ -270,13 +271,13 @@ class Optimiser:
         T0 = self.model.T0[0].cpu().numpy()
         return T0 @ np.linalg.inv(T[0]) @ T
 
-    def _state(self, epoch: int, best: dict, history: list[dict]) -> dict:
+    def _state(self, epoch: int, best: Best, history: list[Epoch]) -> dict:
         """The checkpoint: tensors and plain Python values only (arrays as tensors, numpy scalars as floats),
         so that it loads with ``torch.load(weights_only=True)``, which runs no code from the file."""
         return {
             "epoch": epoch, "model": self.model.state_dict(), "field": self.field.state_dict(),
-            "optim": self.optim.state_dict(), "sched": self.sched.state_dict(), "best": plain_state(best),
-            "history": plain_state(history), "config": plain_state(self.cfg.model_dump()), "seed": int(self.seed),
+            "optim": self.optim.state_dict(), "sched": self.sched.state_dict(), "best": plain_state(best.state()),
+            "history": [e.row() for e in history], "config": plain_state(self.cfg.model_dump()), "seed": int(self.seed),
         }
 
     def _save_mnet(self, path: Path) -> None:
@@ -308,20 +309,21 @@ class Optimiser:
             sums, trace, stopped = self._epoch(epoch, ddp)
             if stopped is not None:
                 break
-            row = {k: v / self.steps_per_epoch for k, v in sums.items()}
-            row.update(epoch=epoch, seconds=time.perf_counter() - t0, steps=(epoch + 1) * self.steps_per_epoch,
-                       trace=trace)
-            best = self._judge(row, history, best, by_map)
-            bar.set_postfix(**{k: f"{row[k]:.4g}" for k in ("loss", "ate", "map_entropy") if k in row})
+            mean = {k: v / self.steps_per_epoch for k, v in sums.items()}
+            record = Epoch(epoch, mean["loss"], time.perf_counter() - t0, (epoch + 1) * self.steps_per_epoch,
+                           tuple(trace), **{t: mean[t] for t in TERMS if t in mean})
+            best = self._judge(record, history, best, by_map)
+            shown = {k: getattr(history[-1], k) for k in ("loss", "ate", "map_entropy")}
+            bar.set_postfix(**{k: f"{v:.4g}" for k, v in shown.items() if v is not None})
             flat, stopped = self._converged(epoch, history, best, by_map, flat)
             if stopped is not None:
-                row["converged"] = stopped.detail
+                history[-1] = replace(history[-1], converged=stopped.detail)
             if ckpt is not None and lead:
                 save_checkpoint(ckpt, self._state(epoch, best, history))
             if stopped is not None:
                 break
-        rejected = sum("rejected" in row for row in history)
-        if rejected and best["epoch"] < 0 and (stopped is None or not stopped.failed):
+        rejected = sum(e.rejected is not None for e in history)
+        if rejected and best.epoch < 0 and (stopped is None or not stopped.failed):
             stopped = Stop(StopReason.DIVERGED, f"diverged: all {rejected} epochs disagreed with the registrations "
                                                 f"(limit {self.derived.max_disagreement:.3g} m); returned the start")
         if ckpt is not None and lead:
@@ -329,10 +331,10 @@ class Optimiser:
         if stopped is None:
             stopped = (Stop(StopReason.BUDGET, f"{len(history)} epochs") if self.epochs > 0
                        else Stop(StopReason.NOT_RUN, "no first-order epoch (optimiser.first_order)"))
-        return OptimResult(best["poses"], best["epoch"], history, self.derived, stopped,
+        return OptimResult(best.poses, best.epoch, tuple(history), self.derived, stopped,
                            selection(best, by_map, rejected, self.epochs))
 
-    def _resume(self, ckpt: Path | None, resume: bool, frames: int, best: dict) -> tuple[dict, list[dict], int]:
+    def _resume(self, ckpt: Path | None, resume: bool, frames: int, best: Best) -> tuple[Best, list[Epoch], int]:
         """With ``resume``, the model, optimiser and schedule of rank 0's checkpoint (on every rank), and the best
         poses, the epoch rows and the next epoch it records; else ``best``, no rows and epoch 0."""
         dist = self.dist
@@ -353,7 +355,7 @@ class Optimiser:
             raise InputError(ckpt, "--resume: this checkpoint is of another kind of run and does not fit this "
                                    f"one ({one_line(str(exc))[:160]}); run without --resume") from None
 
-    def _epoch(self, epoch: int, ddp) -> tuple[dict[str, float], list[dict], Stop | None]:
+    def _epoch(self, epoch: int, ddp) -> tuple[dict[str, float], list[TracePoint], Stop | None]:
         """One pass over the anchor groups in this epoch's seeded order: the summed loss terms, the convergence
         trace (a few points: the loss and, with a metric, accuracy) and a :class:`Stop` on a non-finite loss."""
         dist, lead = self.dist, self.dist.rank == 0
@@ -386,34 +388,32 @@ class Optimiser:
                 sums[key] = sums.get(key, 0.0) + float(val.detach())
             window.append(float(values["loss"].detach()))
             if (s + 1) % trace_every == 0 or s + 1 == self.steps_per_epoch:
-                point = {"step": epoch * self.steps_per_epoch + s + 1, "loss": float(np.mean(window))}
-                if self.trace_metric is not None and lead:
-                    point["ate"] = float(self.trace_metric(self.poses()))
-                trace.append(point)
+                ate = float(self.trace_metric(self.poses())) if self.trace_metric is not None and lead else None
+                trace.append(TracePoint(epoch * self.steps_per_epoch + s + 1, float(np.mean(window)), ate))
                 window = []
         return sums, trace, None
 
-    def _judge(self, row: dict, history: list[dict], best: dict, by_map: bool) -> dict:
-        """Record the epoch's poses in ``row`` (accuracy, disagreement with the registrations, map entropy),
-        append it to ``history`` and return the best candidate so far: an epoch that disagrees far more than
-        the start did has diverged and is never one."""
+    def _judge(self, record: Epoch, history: list[Epoch], best: Best, by_map: bool) -> Best:
+        """Add what the epoch's poses measure to its ``record`` (accuracy, disagreement with the registrations,
+        map entropy), append it to ``history`` and return the best candidate so far: an epoch that disagrees
+        far more than the start did has diverged and is never one."""
         lead = self.dist.rank == 0
         poses = self.poses()
         if self.metric is not None and lead:
-            row["ate"] = float(self.metric(poses))
-            if getattr(self.metric, "name", None):  # which metric "ate" is (pipeline.live.LiveMetric)
-                row["ate_metric"] = self.metric.name
+            name = getattr(self.metric, "name", None) or None  # which metric "ate" is (pipeline.live.LiveMetric)
+            record = replace(record, ate=float(self.metric(poses)), ate_metric=name)
         spread, limit = disagreement(poses, *self._pairs), self.derived.max_disagreement
-        row["disagreement"] = spread
         diverged = spread is not None and limit is not None and spread > limit
         if diverged:
-            row["rejected"] = f"disagrees with the registrations ({spread:.3g} m > {limit:.3g} m)"
-        elif self.map_metric is not None and lead:
-            row["map_entropy"] = float(self.map_metric(poses))
-        history.append(row)
-        return best if diverged else offer(best, row, poses, by_map and lead)
+            record = replace(record, disagreement=spread,
+                             rejected=f"disagrees with the registrations ({spread:.3g} m > {limit:.3g} m)")
+        else:
+            entropy = float(self.map_metric(poses)) if self.map_metric is not None and lead else None
+            record = replace(record, disagreement=spread, map_entropy=entropy)
+        history.append(record)
+        return best if diverged else offer(best, record, poses, by_map and lead)
 
-    def _converged(self, epoch: int, history: list[dict], best: dict, by_map: bool, flat: int
+    def _converged(self, epoch: int, history: list[Epoch], best: Best, by_map: bool, flat: int
                    ) -> tuple[int, Stop | None]:
         """The early stop: after two epochs in a row whose loss changed by less than ``converge_tol`` of itself
         and whose map did not improve (past the pose warm-up; only under the step budget, explicit epochs run
@@ -423,8 +423,8 @@ class Optimiser:
         early = self.cfg.converge_tol > 0 and self.cfg.max_steps > 0 and self.cfg.select == "map"
         warmup_epochs = math.ceil(self.derived.pose_warmup_steps / self.steps_per_epoch)
         if early and by_map and lead and epoch >= warmup_epochs + 1:
-            previous, loss = history[-2]["loss"], history[-1]["loss"]
-            better_map = best["epoch"] == epoch
+            previous, loss = history[-2].loss, history[-1].loss
+            better_map = best.epoch == epoch
             small = abs(previous - loss) <= self.cfg.converge_tol * max(abs(previous), 1e-12)
             flat = flat + 1 if small and not better_map else 0
         if self.dist.enabled and early:

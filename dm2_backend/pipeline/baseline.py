@@ -61,7 +61,7 @@ def _solve(method: str, prep: Prepared, options: SolverOptions, out: Path) -> tu
     write_g2o(graph, out / "graph.g2o")
     result = solve(method, graph, options)
     return result.poses, {**result.summary(), "graph": "graph.g2o", "nodes": len(graph), "edges": len(graph.edges),
-                          **graph.meta}, ["graph.g2o"]
+                          **graph.summary()}, ["graph.g2o"]
 
 
 def optimise_file(method: str, path: Path, out: Path, options: SolverOptions, gt: Trajectory | None = None,
@@ -91,7 +91,7 @@ def optimise_file(method: str, path: Path, out: Path, options: SolverOptions, gt
         "edges": int(len(graph.edges)),
         "planar": graph.planar,
         **result.summary(),
-        "graph_meta": graph.meta,
+        "graph_meta": graph.summary(),
         "timings": {"read": t_read, "optimise": result.seconds,
                     "total": time.perf_counter() - (t_start if started is None else started)},
         "peak_rss_mb": peak_rss_mb(),

@@ -141,7 +141,7 @@ def dense_start(scans: ScanSequence, prep: Prepared, start: Start, cfg: OptimCon
     if chosen is Kept.DENSE and not guarded.clean:  # held and solved again, a step is still contradicted
         log.warning("dense stage's result not kept: its frames contradict %s", guarded.check.describe())
         chosen, reason = begun, f"its frames contradict {guarded.check.describe()}"
-    dense = DenseSummary(voxel, noise, graph.meta["hessian_edges"], built.depth_noise, cells.size, len(cells),
+    dense = DenseSummary(voxel, noise, graph.built.hessian_edges, built.depth_noise, cells.size, len(cells),
                          built.seconds, result.seconds, result.history, result.stopped, result.resumed_after,
                          result.odometry, agreement, cut, guarded, start_fit, chosen)
     log.info("dense: %d cells of %.3g m and up, %s; %s; returned %s (frames' disagreement with the others' "

@@ -22,6 +22,7 @@ from dm2_backend.evaluation.report import estimate_cautions, run_metrics
 from dm2_backend.formats.kitti import read_calib_tr
 from dm2_backend.kernel.trajectory import Trajectory
 from dm2_backend.maps.run_maps import write_run_maps
+from dm2_backend.optim.epoch import Epoch
 from dm2_backend.pipeline import outputs
 from dm2_backend.pipeline.full_rate import corrected_full_rate
 from dm2_backend.pipeline.inputs import RunInputs, depth_sensor
@@ -126,7 +127,7 @@ def sensor_comment(sensor: dict | None) -> str:
 
 
 def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, final: np.ndarray, method: str,
-              stages: StageLog, details: dict | None = None, epochs: list[dict] | None = None,
+              stages: StageLog, details: dict | None = None, epochs: tuple[Epoch, ...] | None = None,
               sampler: MapSampler | None = None, start: np.ndarray | None = None,
               files: list[str] | None = None, *, started: float) -> RunReport:
     """The run folder of ``refine`` and ``baseline``: trajectories, maps, priors, plots and ``report.json``
@@ -193,7 +194,7 @@ def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, fina
         peak_rss_mb_by_stage=dict(stages.peak_mb),
         prepare=PrepareSummary.of(prep),
         files=written + list(files or []),
-        epochs=epochs,
+        epochs=None if epochs is None else [e.row() for e in epochs],
         details=details,
     )
     if epochs is not None:

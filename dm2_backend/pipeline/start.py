@@ -191,7 +191,7 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None,
                      StartReason.PLANAR)
     model = InformationModel.from_resolved(prep.resolved)
     graph = build_graph(prep.frames, prepared, prep.topology, prep.pairwise, model)
-    if graph.meta["loop_edges"] == 0:  # the odometry edges are the prepared poses' own steps
+    if graph.built.loop_edges == 0:  # the odometry edges are the prepared poses' own steps
         return Start(prepared, StartKind.PREPARED, "no registration edges beyond the odometry: the graph is the start",
                      StartReason.NO_LOOP_EDGES)
     try:
