@@ -252,7 +252,11 @@ def test_an_earlier_dm2s_checkpoint_end_is_read_by_its_words(tmp_path, text, rea
 
 
 def test_a_round_record_comes_back_from_its_row():
-    marked = Round(3, 2.0, 1.5, 0.5, 0.02, 7, 70, 0.001, 0.003, 0.002, 2.0, 1e-5, 9, ate=0.1,
-                   odometry_noise={"edges": 9})
-    assert Round.of_row(marked.row()) == marked and Round.of_row(ROUND.row()) == ROUND
+    noise = odometry_noise.MeasuredNoise(SIGMA.copy(), SOLUTION.copy(), 9)
+    marked = Round(3, 2.0, 1.5, 0.5, 0.02, 7, 70, 0.001, 0.003, 0.002, 2.0, 1e-5, 9, ate=0.1, odometry_noise=noise)
+    back = Round.of_row(marked.row(), 10)
+    assert back.row() == marked.row() and Round.of_row(ROUND.row(), 10) == ROUND
+    np.testing.assert_array_equal(back.odometry_noise.sigma, SIGMA)
+    with pytest.raises(ValueError, match="odometry edges"):
+        Round.of_row(marked.row(), 9)  # nine frames have eight steps
     assert "ate" not in ROUND.row() and "odometry_noise" not in ROUND.row()

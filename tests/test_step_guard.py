@@ -139,7 +139,7 @@ def test_a_tension_handed_to_the_next_step_is_held_by_a_wider_stretch(room_seque
 
     guarded = step_guard.guard(judge, broken_at(truth, 10, offset), resolve)
     assert guarded.clean
-    assert [r["contradicted"] for r in guarded.rounds] == [[10], [11], [13], [17]]
+    assert [r.contradicted for r in guarded.rounds] == [(10,), (11,), (13,), (17,)]
     assert sorted(guarded.held) == list(range(10, 25))
 
 

@@ -187,7 +187,7 @@ def refine_dense(cells: Cells, graph: PoseGraph, start: np.ndarray, voxel: float
         if odometry is None:
             return False
         graph, fg, objective, values = _reweighed(graph, steps, odometry, poses)
-        history[-1] = replace(history[-1], odometry_noise=odometry.summary())
+        history[-1] = replace(history[-1], odometry_noise=odometry)
         lam = 1e-4
         keep(rounds_done)
         return True

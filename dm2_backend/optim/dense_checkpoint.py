@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from dm2_backend.optim.dense_round import Round
-from dm2_backend.optim.odometry_noise import MAX_SIGMA, MIN_SIGMA, MeasuredNoise
+from dm2_backend.optim.odometry_noise import MeasuredNoise
 from dm2_backend.optim.stop import Stop, StopReason
 from dm2_backend.runtime.atomic import atomic_write
 from dm2_backend.runtime.errors import InputError
@@ -144,8 +144,10 @@ def _checked(poses: np.ndarray, made_from: np.ndarray, meta: dict, start: np.nda
         raise ValueError(f"damping {damping!r}")
     if not isinstance(history, list) or len(history) > done:
         raise ValueError("its round records do not match its rounds")
-    history = [Round.of_row(r) for r in history]
-    return DenseState(poses, done, float(damping), history, _stop(stopped), _odometry(meta.get("odometry"), len(start)))
+    history = [Round.of_row(r, len(start)) for r in history]
+    odometry = meta.get("odometry")
+    odometry = None if odometry is None else MeasuredNoise.of_summary(odometry, len(start))
+    return DenseState(poses, done, float(damping), history, _stop(stopped), odometry)
 
 
 #: how a checkpoint of an earlier dm2 worded each end (its record was the text alone)
@@ -168,22 +170,3 @@ def _stop(record: object) -> Stop | None:
             or len(record["detail"]) > 500):
         raise ValueError("its end record is not a known reason with a short text")
     return Stop(reasons[record["reason"]], record["detail"])
-
-
-def _odometry(record: object, frames: int) -> MeasuredNoise | None:
-    """The odometry noise a checkpoint recorded: six sigmas within what :func:`odometry_noise.estimate` gives,
-    six finite non-negative solution sigmas, and an edge count below the frames'."""
-    if record is None:
-        return None
-    if not isinstance(record, dict):
-        raise ValueError("its odometry noise is not a mapping")
-    sigma = np.asarray(record["sigma"], dtype=np.float64)
-    solution = np.asarray(record["solution_sigma"], dtype=np.float64)
-    edges = record["edges"]
-    if sigma.shape != (6,) or not np.all((sigma >= MIN_SIGMA) & (sigma <= MAX_SIGMA)):
-        raise ValueError(f"its odometry noise is not six numbers from {MIN_SIGMA:g} to {MAX_SIGMA:g}")
-    if solution.shape != (6,) or not np.all(np.isfinite(solution) & (solution >= 0)):
-        raise ValueError("its solution noise is not six numbers")
-    if not isinstance(edges, int) or not 0 < edges < frames:
-        raise ValueError(f"its odometry edges {edges!r}, not 1 to {frames - 1}")
-    return MeasuredNoise(sigma, solution, edges)

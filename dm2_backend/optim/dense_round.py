@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 
+from dm2_backend.optim.odometry_noise import MeasuredNoise
+
 #: the record's whole numbers (counts); every other field but the optional two is a finite number
 COUNTS = ("round", "planes", "cells_on_planes", "cg_iterations")
 
@@ -14,7 +16,7 @@ class Round:
     """A Gauss-Newton round: the objective and its parts (planes, graph), the planes' noise sigma (m), how many
     planes and cells on them, the step it took (rms and largest, m; largest rotation, rad) at which scale and
     damping, and the conjugate-gradient iterations; ``ate``: accuracy against ground truth (recorded, never used
-    to decide); ``odometry_noise``: the noise the odometry was weighed by from this round on (its summary)."""
+    to decide); ``odometry_noise``: the noise the odometry was weighed by from this round on."""
 
     round: int
     objective: float
@@ -30,16 +32,18 @@ class Round:
     damping: float
     cg_iterations: int
     ate: float | None = None
-    odometry_noise: dict | None = None
+    odometry_noise: MeasuredNoise | None = None
 
     def row(self) -> dict:
         """The record as ``report.json`` and the checkpoint keep it (the optional fields only when set)."""
         out = {f.name: getattr(self, f.name) for f in fields(self)}
+        out["odometry_noise"] = None if self.odometry_noise is None else self.odometry_noise.summary()
         return {k: v for k, v in out.items() if v is not None or k not in ("ate", "odometry_noise")}
 
     @classmethod
-    def of_row(cls, row: object) -> Round:
-        """A row read back from a checkpoint: every field present and a number of its kind (ValueError)."""
+    def of_row(cls, row: object, frames: int) -> Round:
+        """A row read back from a checkpoint of ``frames`` poses: every field present and a number of its kind
+        (ValueError)."""
         if not isinstance(row, dict):
             raise ValueError("a round record is not a mapping")
         values = {}
@@ -55,6 +59,6 @@ class Round:
             values[f.name] = value
         if values["ate"] is not None and not isinstance(values["ate"], int | float):
             raise ValueError("a round record's ate is not a number")
-        if values["odometry_noise"] is not None and not isinstance(values["odometry_noise"], dict):
-            raise ValueError("a round record's odometry noise is not a mapping")
+        if values["odometry_noise"] is not None:
+            values["odometry_noise"] = MeasuredNoise.of_summary(values["odometry_noise"], frames)
         return cls(**values)

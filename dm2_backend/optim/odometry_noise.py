@@ -52,6 +52,23 @@ class MeasuredNoise:
     def summary(self) -> dict:
         return {"sigma": self.sigma.tolist(), "solution_sigma": self.solution_sigma.tolist(), "edges": self.edges}
 
+    @classmethod
+    def of_summary(cls, record: object, frames: int) -> MeasuredNoise:
+        """A :meth:`summary` read back from a checkpoint: six sigmas within what :func:`estimate` gives, six
+        finite non-negative solution sigmas, and an edge count below the ``frames`` (ValueError)."""
+        if not isinstance(record, dict):
+            raise ValueError("its odometry noise is not a mapping")
+        sigma = np.asarray(record.get("sigma"), dtype=np.float64)
+        solution = np.asarray(record.get("solution_sigma"), dtype=np.float64)
+        edges = record.get("edges")
+        if sigma.shape != (6,) or not np.all((sigma >= MIN_SIGMA) & (sigma <= MAX_SIGMA)):
+            raise ValueError(f"its odometry noise is not six numbers from {MIN_SIGMA:g} to {MAX_SIGMA:g}")
+        if solution.shape != (6,) or not np.all(np.isfinite(solution) & (solution >= 0)):
+            raise ValueError("its solution noise is not six numbers")
+        if isinstance(edges, bool) or not isinstance(edges, int) or not 0 < edges < frames:
+            raise ValueError(f"its odometry edges {edges!r}, not 1 to {frames - 1}")
+        return cls(sigma, solution, edges)
+
 
 def discrepancies(relative: np.ndarray, poses: np.ndarray) -> np.ndarray:
     """(E,6) ``[t, log R]`` of ``inv(relative[i]) inv(poses[i]) poses[i+1]`` for consecutive frames."""

@@ -132,12 +132,12 @@ class Start:
     name: StartKind
     why: str
     reason: StartReason = StartReason.GIVEN
-    map_entropy: dict[str, float] = field(default_factory=dict)  # candidate -> mean map entropy
+    map_entropy: dict[StartKind, float] = field(default_factory=dict)  # candidate -> mean map entropy
     dense: DenseSummary | None = None
     graph_cuts: continuity.Cuts | None = None  # the pose-graph solution's cut steps, where it was solved
-    #: candidate ("prepared", "graph") -> :meth:`DenseCells.agreement`, judged on those two's planes (the dense
-    #: stage's own ``agreement_m2`` judges its start and result on theirs)
-    agreement_m2: dict[str, float] = field(default_factory=dict)
+    #: candidate -> :meth:`DenseCells.agreement`, judged on those two's planes (the dense stage's own
+    #: ``agreement_m2`` judges its start and result on theirs)
+    agreement_m2: dict[StartKind, float] = field(default_factory=dict)
 
     @property
     def refined(self) -> bool:
@@ -155,8 +155,10 @@ class Start:
         return self.name is StartKind.GRAPH or self.refined
 
     def summary(self) -> dict:
-        return {"name": self.name.value, "reason": self.reason.value, "why": self.why, "map_entropy": self.map_entropy,
-                "agreement_m2": self.agreement_m2, "dense": self.dense.summary() if self.dense else {},
+        return {"name": self.name.value, "reason": self.reason.value, "why": self.why,
+                "map_entropy": {k.value: v for k, v in self.map_entropy.items()},
+                "agreement_m2": {k.value: v for k, v in self.agreement_m2.items()},
+                "dense": self.dense.summary() if self.dense else {},
                 "cuts": {"graph": self.graph_cuts.summary()} if self.graph_cuts is not None else {}}
 
 
@@ -206,11 +208,12 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None,
         why = (f"the pose-graph solution cuts the sequence at {cut.describe()}, which neither the odometry nor the "
                "registration of those frames says")
         return Start(prepared, StartKind.PREPARED, why, StartReason.GRAPH_CUTS, graph_cuts=cut)
-    agreement = judge.agreement({"prepared": prepared, "graph": solved}) if judge is not None else {}
+    candidates = {StartKind.PREPARED: prepared, StartKind.GRAPH: solved}
+    agreement = judge.agreement(candidates) if judge is not None else {}
     if agreement and all(np.isfinite(v) for v in agreement.values()):  # each frame against the others' planes
-        graph_agrees = agreement["graph"] <= agreement["prepared"]
+        graph_agrees = agreement[StartKind.GRAPH] <= agreement[StartKind.PREPARED]
         log.info("start: the %s poses (frames' disagreement with the others' planes: prepared %.3g m2, graph %.3g m2)",
-                 "graph" if graph_agrees else "prepared", agreement["prepared"], agreement["graph"])
+                 "graph" if graph_agrees else "prepared", agreement[StartKind.PREPARED], agreement[StartKind.GRAPH])
         if graph_agrees:
             return Start(solved, StartKind.GRAPH, "the pose-graph solution's frames agree better with the planes the "
                          "others see", StartReason.PLANES, graph_cuts=cut, agreement_m2=agreement)
@@ -220,8 +223,8 @@ def choose_start(prep: Prepared, cfg: OptimConfig, sampler: MapSampler | None,
     if sampler is None:
         return Start(solved, StartKind.GRAPH, "pose-graph solution (no map to compare)", StartReason.NO_JUDGE,
                      graph_cuts=cut, agreement_m2=agreement)
-    scores = {"prepared": sampler.evaluate(prepared).entropy, "graph": sampler.evaluate(solved).entropy}
-    if scores["graph"] <= scores["prepared"]:
+    scores = {kind: sampler.evaluate(poses).entropy for kind, poses in candidates.items()}
+    if scores[StartKind.GRAPH] <= scores[StartKind.PREPARED]:
         return Start(solved, StartKind.GRAPH, "the pose-graph solution makes the sharper map",
                      StartReason.MAP_SHARPNESS, scores, graph_cuts=cut, agreement_m2=agreement)
     return Start(prepared, StartKind.PREPARED, "the pose-graph solution makes a blurrier map",

@@ -41,6 +41,17 @@ class Hold:
 
 
 @dataclass(frozen=True)
+class GuardRound:
+    """One round of holding: the steps contradicted before it and how many steps were held after it."""
+
+    contradicted: tuple[int, ...]
+    held: int
+
+    def row(self) -> dict:
+        return {"contradicted": list(self.contradicted), "held": self.held}
+
+
+@dataclass(frozen=True)
 class Guarded:
     """The poses after the guard, their final :class:`StepCheck`, the steps held (step -> :class:`Hold`), one
     record per round of holding and the guard's seconds."""
@@ -48,7 +59,7 @@ class Guarded:
     poses: np.ndarray
     check: StepCheck
     held: dict[int, Hold] = field(default_factory=dict)
-    rounds: tuple[dict, ...] = ()
+    rounds: tuple[GuardRound, ...] = ()
     seconds: float = 0.0
 
     @property
@@ -57,7 +68,7 @@ class Guarded:
         return self.check.count == 0
 
     def summary(self) -> dict:
-        return {"held": sorted(self.held), "rounds": list(self.rounds), "contradicted": self.check.count,
+        return {"held": sorted(self.held), "rounds": [r.row() for r in self.rounds], "contradicted": self.check.count,
                 "seconds": self.seconds, "check": self.check.summary()}
 
 
@@ -108,7 +119,7 @@ def guard(judge: StepJudge, poses: np.ndarray, resolve: Callable[[np.ndarray, di
     t0 = time.perf_counter()
     check = judge.check(poses)
     held: dict[int, Hold] = {}
-    rounds = []
+    rounds: list[GuardRound] = []
     for r in range(ROUNDS):
         if not check.count:
             break
@@ -123,7 +134,7 @@ def guard(judge: StepJudge, poses: np.ndarray, resolve: Callable[[np.ndarray, di
             break
         log.info("step guard: %d step(s) contradicted by their frames: %s; held and solved again", len(bad),
                  check.describe())
-        rounds.append({"contradicted": check.steps[bad].tolist(), "held": len(held)})
+        rounds.append(GuardRound(tuple(check.steps[bad].tolist()), len(held)))
         poses = resolve(poses, held)
         check = judge.check(poses)
     return Guarded(poses, check, held, tuple(rounds), time.perf_counter() - t0)
