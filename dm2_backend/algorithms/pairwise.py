@@ -130,15 +130,12 @@ class PairwiseRegistration:
             bar = progress(jobs, "pairwise icp", total=len(pairs), unit="pair", enabled=self.progress)
             results = list(bar)
         self._clouds = {}
-        out = Pairwise(
-            relative=np.tile(np.eye(4), (n, k, 1, 1)),
-            valid=np.zeros((n, k), bool),
-            fitness=np.zeros((n, k)),
-            rmse=np.full((n, k), np.inf),
-        )
+        relative, valid = np.tile(np.eye(4), (n, k, 1, 1)), np.zeros((n, k), bool)
+        fitness, rmse, reason = np.zeros((n, k)), np.full((n, k), np.inf), {}
+        hessian = plane_rmse = None
         if self._record_hessians:
             dim = 3 if frames.planar else 6
-            out.hessian, out.plane_rmse = np.zeros((n, k, dim, dim), np.float32), np.full((n, k), np.inf)
+            hessian, plane_rmse = np.zeros((n, k, dim, dim), np.float32), np.full((n, k), np.inf)
         by_pair: dict[tuple[int, int], tuple[np.ndarray, list[GateFailure], Match]] = {}
         for pair, (m, free) in zip(pairs, results, strict=True):
             failed = []
@@ -157,13 +154,13 @@ class PairwiseRegistration:
                     continue
                 pair = (min(i, j), max(i, j))
                 T, failed, m = by_pair[pair]
-                out.relative[i, col] = T if i < j else se3.inverse(T)
-                out.valid[i, col], out.fitness[i, col], out.rmse[i, col] = not failed, m.fitness, m.rmse
-                if out.hessian is not None and m.hessian is not None:
-                    out.hessian[i, col], out.plane_rmse[i, col] = m.hessian, m.plane_rmse
+                relative[i, col] = T if i < j else se3.inverse(T)
+                valid[i, col], fitness[i, col], rmse[i, col] = not failed, m.fitness, m.rmse
+                if hessian is not None and m.hessian is not None:
+                    hessian[i, col], plane_rmse[i, col] = m.hessian, m.plane_rmse
                 if failed:
-                    out.reason[(i, j)] = "; ".join(map(str, failed))
-        return out
+                    reason[(i, j)] = "; ".join(map(str, failed))
+        return Pairwise(relative, valid, fitness, rmse, reason, hessian, plane_rmse)
 
     def _check(self, frames: Frames) -> None:
         self._method = resolve_method(self.method, frames.planar)

@@ -39,7 +39,7 @@ class ScanScale:
         return cls(**{k: float(v) for k, v in d.items()})
 
 
-@dataclass
+@dataclass(frozen=True)
 class Frames:
     """Down-sampled scans held in memory for preparation and optimisation.
 
@@ -85,7 +85,7 @@ class Topology:
         return self.groups.shape[1]
 
 
-@dataclass
+@dataclass(frozen=True)
 class Pairwise:
     """Pairwise registrations for a topology: ``relative[i, n]`` is T_j^i (frame j = groups[i, n] expressed
     in frame i), ``valid[i, n]`` False where registration failed its gate (see ``reason``)."""
