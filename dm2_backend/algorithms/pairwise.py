@@ -33,7 +33,8 @@ from dm2_backend.algorithms.common import (
 from dm2_backend.algorithms.gates import Gate, GateFailure, check_alignment
 from dm2_backend.algorithms.icp import register
 from dm2_backend.kernel.geometry import se3
-from dm2_backend.kernel.prepared import Frames, Pairwise, Topology
+from dm2_backend.kernel.prepared import Frames, FramesPart, Pairwise, Topology
+from dm2_backend.runtime import cluster
 from dm2_backend.runtime.progress import progress
 
 #: the coarse pass's correspondence distance, in fine distances: the farthest a registration reaches for a
@@ -116,20 +117,14 @@ class PairwiseRegistration:
         anchors, neighbours = rows.tolist(), groups[rows, cols].tolist()
         pairs = sorted({(min(i, j), max(i, j)) for i, j in zip(anchors, neighbours, strict=True)})
         inits = self._inits(poses, pairs, topology)
-        # open3d runs each 3D ICP on all cores already (threads over pairs only slow it down); the numpy/scipy
-        # planar ICP gains from threads (docs/decisions/0009-registration-and-pose-graph-defaults.md)
-        workers = self.workers or (min(8, os.cpu_count() or 1) if frames.planar else 1)
-        with ThreadPoolExecutor(workers) as pool:
-
-            def job(pair: tuple[int, int]) -> tuple[Match, float]:
-                a, b = pair
-                m = self._register_pair(frames, a, b, inits[pair], fine)
-                return m, check_alignment(self._clouds[b], self._clouds[a], m, fine, margin)
-
-            jobs = self._chunked(frames, pairs, fine, pool, job)
-            bar = progress(jobs, "pairwise icp", total=len(pairs), unit="pair", enabled=self.progress)
-            results = list(bar)
-        self._clouds = {}
+        engine = cluster.current()
+        if engine is not None and pairs:
+            results = self._on_cluster(engine, frames, pairs, inits, fine, margin)
+        else:
+            # open3d runs each 3D ICP on all cores already (threads over pairs only slow it down); the numpy/scipy
+            # planar ICP gains from threads (docs/decisions/0009-registration-and-pose-graph-defaults.md)
+            workers = self.workers or (min(8, os.cpu_count() or 1) if frames.planar else 1)
+            results = self._matches(frames, pairs, inits, fine, margin, workers, self.progress)
         relative, valid = np.tile(np.eye(4), (n, k, 1, 1)), np.zeros((n, k), bool)
         fitness, rmse, reason = np.zeros((n, k)), np.full((n, k), np.inf), {}
         hessian = plane_rmse = None
@@ -161,6 +156,35 @@ class PairwiseRegistration:
                 if failed:
                     reason[(i, j)] = "; ".join(map(str, failed))
         return Pairwise(relative, valid, fitness, rmse, reason, hessian, plane_rmse)
+
+    def _matches(self, frames: Frames, pairs: list[tuple[int, int]], inits: dict, fine: float, margin: float,
+                 workers: int, shown: bool) -> list[tuple[Match, float]]:
+        """Each pair's match and the share of its points in the other's free space, in order, on ``workers``
+        threads."""
+        with ThreadPoolExecutor(workers) as pool:
+
+            def job(pair: tuple[int, int]) -> tuple[Match, float]:
+                a, b = pair
+                m = self._register_pair(frames, a, b, inits[pair], fine)
+                return m, check_alignment(self._clouds[b], self._clouds[a], m, fine, margin)
+
+            jobs = self._chunked(frames, pairs, fine, pool, job)
+            results = list(progress(jobs, "pairwise icp", total=len(pairs), unit="pair", enabled=shown))
+        self._clouds = {}
+        return results
+
+    def _on_cluster(self, engine: cluster.Engine, frames: Frames, pairs: list[tuple[int, int]], inits: dict,
+                    fine: float, margin: float) -> list[tuple[Match, float]]:
+        """:meth:`_matches` of consecutive runs of pairs as tasks on the cluster's workers (at least four a
+        worker, at most :attr:`chunk` pairs each), each reading its frames where they are stored."""
+        size = max(1, min(self.chunk, -(-len(pairs) // (4 * max(1, engine.workers)))))
+        tasks = []
+        for c0 in range(0, len(pairs), size):
+            part = pairs[c0 : c0 + size]
+            tasks.append(PairTask(self, frames.part(np.array(part).ravel()), part, [inits[p] for p in part], fine,
+                                  margin))
+        done = engine.map(register_pairs, tasks, "pairwise icp", unit="task", enabled=self.progress)
+        return [match for chunk in done for match in chunk]
 
     def _check(self, frames: Frames) -> None:
         self._method = resolve_method(self.method, frames.planar)
@@ -203,3 +227,24 @@ class PairwiseRegistration:
                     i, j, T = int(e["i"]), int(e["j"]), np.asarray(e["relative"], dtype=np.float64)
                     loops[(min(i, j), max(i, j))] = T if i < j else se3.inverse(T)
         return {p: loops.get(p, se3.relative(poses[p[0]], poses[p[1]])) for p in pairs}
+
+
+@dataclass(frozen=True)
+class PairTask:
+    """Pairs for one worker: the registration (its options), the frames they need, each pair's start, the fine
+    correspondence distance and the free-space margin."""
+
+    registration: PairwiseRegistration
+    frames: FramesPart
+    pairs: list[tuple[int, int]]
+    inits: list[np.ndarray]
+    fine: float
+    margin: float
+
+
+def register_pairs(task: PairTask) -> list[tuple[Match, float]]:
+    """A worker's run of :meth:`PairwiseRegistration._matches` (one thread: the worker is one core)."""
+    registration, frames = task.registration, task.frames.frames()
+    registration._check(frames)
+    inits = dict(zip(task.pairs, task.inits, strict=True))
+    return registration._matches(frames, task.pairs, inits, task.fine, task.margin, 1, False)

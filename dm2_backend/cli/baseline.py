@@ -7,12 +7,13 @@ from pathlib import Path
 import click
 
 from dm2_backend.baselines.methods import GRAPH_METHODS, METHODS
-from dm2_backend.cli.run_setup import command_started, output_folder, prepare_run, run_options
+from dm2_backend.cli.run_setup import cluster_of, command_started, output_folder, prepare_run, run_options
 from dm2_backend.cli.suggest import Choice
 from dm2_backend.cli.summary import print_summary
 from dm2_backend.formats.g2o import INFORMATION_MODES
 from dm2_backend.kernel.solver_options import KERNELS, SolverOptions
 from dm2_backend.pipeline.run_folder import refuse_overlap, run_folder
+from dm2_backend.runtime import cluster
 
 path_type = click.Path(path_type=Path)
 _HELP = "\n".join(f"  {name:<9} {text}" for name, text in METHODS.items())
@@ -100,8 +101,9 @@ def command(method, graph_path, information, robust, robust_k, max_iterations, r
     overrides: dict = {}
     if method == "icp" and not kw["warm_start"]:
         overrides["warm_start"] = {"name": "icp"}
+    spec = cluster_of(kw)
     inputs, cfg, cache = prepare_run(kw, overrides)
-    with output_folder(kw, "baseline", cfg, inputs):
+    with output_folder(kw, "baseline", cfg, inputs), cluster.engine(spec):
         report = baseline(method, inputs, cfg, kw["out"], cache, options, progress=not kw["quiet"],
                           started=command_started())
     print_summary(report, kw["out"])

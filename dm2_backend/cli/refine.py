@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import click
 
-from dm2_backend.cli.run_setup import command_started, output_folder, path_type, prepare_run, run_options
+from dm2_backend.cli.run_setup import cluster_of, command_started, output_folder, path_type, prepare_run, run_options
 from dm2_backend.cli.suggest import Choice
 from dm2_backend.cli.summary import print_summary
+from dm2_backend.runtime import cluster
 from dm2_backend.runtime.errors import InputError
 
 
@@ -33,13 +34,14 @@ def command(epochs, device, resume, nproc, rerun_path, **kw) -> None:
         overrides["device"] = device
     if nproc is not None:
         overrides["nproc"] = nproc
+    spec = cluster_of(kw)
     inputs, cfg, cache = prepare_run(kw, overrides)
     check_device(cfg.device)
     if rerun_path is not None:
         from dm2_backend.cli.view import check_rerun, recording
 
         check_rerun()  # before the run, not after it
-    with output_folder(kw, "refine", cfg, inputs, resume):
+    with output_folder(kw, "refine", cfg, inputs, resume), cluster.engine(spec):
         report = refine(inputs, cfg, kw["out"], cache, resume=resume, progress=not kw["quiet"],
                         started=command_started())
     if report is not None:  # None: a torchrun rank other than 0

@@ -25,6 +25,7 @@ from dm2_backend.formats.kitti import find_calib, looks_camera_frame
 from dm2_backend.pipeline.inputs import load_inputs, with_warm_start
 from dm2_backend.pipeline.run_folder import digest, fingerprint, refuse_overlap, run_folder
 from dm2_backend.prepare.steps import default_cache_dir
+from dm2_backend.runtime.cluster import ClusterSpec
 from dm2_backend.runtime.errors import InputError
 from dm2_backend.runtime.input_files import check_kind
 
@@ -64,6 +65,12 @@ def run_options(f=None, *, scans_required: bool = True):
         click.option("--max-diff", type=float, default=0.01, show_default=True,
                      help="Seconds allowed between a scan and its pose when associating by time."),
         click.option("--quiet", "-q", is_flag=True, help="No progress bars."),
+        click.option("--workers", type=click.IntRange(min=1), default=None,
+                     help="Prepare on a local Dask cluster of N worker processes (default: in this process)."),
+        click.option("--scheduler", default=None,
+                     help="Prepare on the Dask cluster whose scheduler is at this address (tcp://host:8786; "
+                          "default $DASK_SCHEDULER_ADDRESS). Its workers read the frames from the cache folder "
+                          "(put it on storage they share; with --no-cache the frames travel with the tasks)."),
         topic_option, times_option, calib_option, intrinsics_option, depth_scale_option,
         duplicate_times_option,
     ]
@@ -98,6 +105,11 @@ def prepare_run(kw: dict, overrides: dict):
     asked = None if not kw["warm_start"] and not config.sets(kw["config_path"], "warm_start") else (
         "--warm-start" if kw["warm_start"] else kw["config_path"])
     return inputs, with_warm_start(cfg, inputs, asked), cache
+
+
+def cluster_of(kw: dict) -> ClusterSpec:
+    """Where the preparation's tasks run (``--workers`` / ``--scheduler``)."""
+    return ClusterSpec.of(kw["workers"], kw["scheduler"])
 
 
 def output_folder(kw: dict, command: str, cfg: RunConfig, inputs, resume: bool = False):

@@ -4,6 +4,7 @@ model beside :mod:`dm2_backend.kernel.scans` and :mod:`dm2_backend.kernel.trajec
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
+from pathlib import Path
 
 import numpy as np
 
@@ -51,6 +52,8 @@ class Frames:
     timestamps: np.ndarray | None
     planar: bool
     scale: ScanScale = field(default_factory=ScanScale)
+    #: the cache entry the points are memory-mapped from (:data:`POINTS_FILE`, :data:`OFFSETS_FILE`), if any
+    stored: Path | None = None
 
     def __len__(self) -> int:
         return len(self.points)
@@ -58,6 +61,42 @@ class Frames:
     @property
     def max_points(self) -> int:
         return max((len(p) for p in self.points), default=0)
+
+    def part(self, index: np.ndarray) -> FramesPart:
+        """What a task on another process needs of the frames ``index``: where they are stored (read there,
+        memory-mapped), else their points."""
+        index = np.unique(np.asarray(index, dtype=np.int64))
+        carried = () if self.stored is not None else tuple(self.points[i] for i in index)
+        return FramesPart(len(self), self.planar, self.scale, index, self.stored, carried)
+
+
+#: a frames cache entry: every frame's points concatenated (float32 rows), and where each frame starts (N + 1)
+POINTS_FILE, OFFSETS_FILE = "points.npy", "offsets.npy"
+
+
+@dataclass(frozen=True)
+class FramesPart:
+    """Some of a sequence's frames, as a task on another process receives them (:meth:`Frames.part`)."""
+
+    count: int
+    planar: bool
+    scale: ScanScale
+    index: np.ndarray
+    stored: Path | None
+    carried: tuple[np.ndarray, ...] = ()
+
+    def frames(self) -> Frames:
+        """Frames of the whole sequence's length holding these frames' points (the others empty)."""
+        points = [np.zeros((0, 3), np.float32)] * self.count
+        if self.stored is not None:
+            every = np.load(self.stored / POINTS_FILE, mmap_mode="r", allow_pickle=False)
+            offsets = np.load(self.stored / OFFSETS_FILE, allow_pickle=False)
+            for i in self.index:
+                points[i] = np.asarray(every[offsets[i] : offsets[i + 1]])
+        else:
+            for i, p in zip(self.index, self.carried, strict=True):
+                points[i] = p
+        return Frames(points, None, self.planar, self.scale, self.stored)
 
 
 @dataclass(frozen=True)

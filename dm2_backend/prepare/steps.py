@@ -140,7 +140,7 @@ def load_prepared(cache_dir: Path, keys: dict[str, str]) -> Prepared:
     missing = [keys[step] for step, hit in hits.items() if hit is None]
     if missing:
         raise FileNotFoundError(f"preparation cache {cache_dir} lacks {', '.join(missing)}")
-    frames = store.frames_from(*hits["frames"])
+    frames = store.frames_from(*hits["frames"], cache_dir / keys["frames"])
     return Prepared(frames, hits["warm_start"][0]["poses"], store.topology_from(hits["place_recognition"]),
                     store.pairwise_from(hits["registration"]), cached=dict.fromkeys(keys, True), keys=dict(keys),
                     warm_report=hits["warm_start"][1].get("report"))
@@ -220,8 +220,9 @@ def prepare(
         return load_frames(scans, fcfg.max_points, fcfg.voxel, cfg.seed, progress)
 
     k_frames = step_key(source_key(scans), fcfg.model_dump(), cfg.seed, scans.planar, code_fingerprint(frames_module))
-    frames = record.run(Step("frames", f"frames-{k_frames}", load, _save_frames, lambda hit: store.frames_from(*hit)),
-                        cache)
+    entry = f"frames-{k_frames}"
+    frames = record.run(Step("frames", entry, load, _save_frames,
+                             lambda hit: store.frames_from(*hit, cache.root / entry if cache.root else None)), cache)
 
     ws = cfg.warm_start
     given_hash = hashlib.sha1(given.poses.tobytes()).hexdigest() if given is not None else ""

@@ -135,12 +135,13 @@ def put_frames(root: Path, name: str, frames: Frames) -> None:
     put(root, name, arrays, {"planar": bool(frames.planar), "scale": frames.scale.to_dict()})
 
 
-def frames_from(arrays: dict[str, np.ndarray], meta: dict) -> Frames:
-    """Frames whose points are views of the (memory-mapped) concatenated array: no copy."""
+def frames_from(arrays: dict[str, np.ndarray], meta: dict, folder: Path | None = None) -> Frames:
+    """Frames whose points are views of the (memory-mapped) concatenated array: no copy; ``folder``: the entry
+    they were read from (tasks on other processes read them there)."""
     pts, offsets = arrays["points"], arrays["offsets"]
     points = [pts[offsets[i] : offsets[i + 1]] for i in range(len(offsets) - 1)]
     return Frames(points=points, timestamps=arrays.get("timestamps"), planar=bool(meta["planar"]),
-                  scale=ScanScale.from_dict(meta["scale"]))
+                  scale=ScanScale.from_dict(meta["scale"]), stored=folder)
 
 
 def topology_from(hit: tuple[dict, dict]) -> Topology:

@@ -1,0 +1,160 @@
+"""A real Dask cluster on this machine: a scheduler and worker processes joining it by address, as on two machines.
+A run on it gives the single-process answer; a worker killed in the middle of a task is replaced and the task run
+again; a task that kills every worker it gets ends the run in one line, and the cache continues it."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from dm2_backend.cli.main import cli
+from dm2_backend.kernel.prepared import Frames
+from dm2_backend.runtime.cluster import ClusterSpec
+from dm2_backend.runtime.errors import InputError
+from dm2_backend.simulate.sequence import SimSettings, generate
+
+FAULTS = Path(__file__).with_name("cluster_faults.py")
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("cluster") / "sim"
+    generate(SimSettings(frames=16, laps=1.0, planar=True), out, progress=False)
+    return out
+
+
+@contextlib.contextmanager
+def cluster(tmp: Path, workers: int = 2, env: dict | None = None, allowed_failures: int = 3):
+    """A scheduler on a free port and ``workers`` single-threaded worker processes joining it by its address;
+    yields the address."""
+    file = tmp / "scheduler.json"
+    scheduler_env = {**os.environ, "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": str(allowed_failures)}
+    procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                               "--port", "0", "--no-dashboard", "--scheduler-file", str(file)],
+                              env=scheduler_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        deadline = time.monotonic() + 60
+        while not file.exists() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        address = json.loads(file.read_text())["address"]
+        worker_env = {**os.environ, "OMP_NUM_THREADS": "1", **(env or {})}
+        for _ in range(workers):
+            procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address,
+                                           "--nthreads", "1", "--no-dashboard", "--preload", str(FAULTS)],
+                                          env=worker_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        from distributed import Client
+
+        with Client(address, timeout=60) as client:
+            client.wait_for_workers(workers, timeout=120)
+        yield address
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in procs:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                p.wait(timeout=30)
+
+
+def baseline(sim: Path, out: Path, cache: Path, *extra: str, command: tuple[str, ...] = ("baseline", "gtsam")):
+    return CliRunner().invoke(cli, [*command, "-s", str(sim / "velodyne"), "-p", str(sim / "warm_start.txt"),
+                                    "-o", str(out), "--cache-dir", str(cache), "-q", *extra], obj={})
+
+
+def pairwise(cache: Path) -> dict[str, np.ndarray]:
+    (entry,) = cache.glob("pairwise-*")
+    return {name: np.load(entry / f"{name}.npy") for name in ("relative", "valid", "fitness")}
+
+
+@pytest.fixture(scope="module")
+def single(sim, tmp_path_factory) -> Path:
+    """The single-process baseline run."""
+    root = tmp_path_factory.mktemp("single")
+    result = baseline(sim, root / "run", root / "cache")
+    assert result.exit_code == 0, result.output
+    return root
+
+
+@pytest.fixture(scope="module")
+def single_refine(sim, tmp_path_factory) -> Path:
+    """The single-process refine."""
+    root = tmp_path_factory.mktemp("single-refine")
+    result = baseline(sim, root / "run", root / "cache", command=("refine",))
+    assert result.exit_code == 0, result.output
+    return root
+
+
+def same_answer(single: Path, root: Path) -> None:
+    mine, theirs = pairwise(root / "cache"), pairwise(single / "cache")
+    assert set(np.unique(theirs["valid"])) == {False, True}  # some pairs pass the gates and some fail
+    np.testing.assert_array_equal(mine["valid"], theirs["valid"])
+    np.testing.assert_allclose(mine["relative"], theirs["relative"], atol=1e-9)
+    np.testing.assert_allclose(mine["fitness"], theirs["fitness"], atol=1e-9)
+    np.testing.assert_allclose(np.load(root / "run" / "poses.npy"), np.load(single / "run" / "poses.npy"),
+                               atol=1e-7)
+
+
+def test_a_refine_across_a_scheduler_and_its_workers_gives_the_single_process_answer(sim, single_refine, tmp_path):
+    with cluster(tmp_path) as address:
+        result = baseline(sim, tmp_path / "run", tmp_path / "cache", "--scheduler", address, command=("refine",))
+    assert result.exit_code == 0, result.output
+    same_answer(single_refine, tmp_path)
+
+
+def test_a_worker_killed_in_the_middle_of_a_task_is_replaced(sim, single, tmp_path):
+    died = tmp_path / "died"
+    with cluster(tmp_path, env={"DM2_TEST_DIE_ONCE": str(died)}) as address:
+        result = baseline(sim, tmp_path / "run", tmp_path / "cache", "--scheduler", address)
+    assert result.exit_code == 0, result.output
+    assert died.exists()  # a worker did die running a registration task
+    same_answer(single, tmp_path)
+
+
+def test_a_task_that_kills_every_worker_ends_the_run_in_one_line_and_the_cache_continues(sim, single, tmp_path):
+    with cluster(tmp_path, workers=1, env={"DM2_TEST_DIE_ALWAYS": "1"}, allowed_failures=1) as address:
+        failed = baseline(sim, tmp_path / "run", tmp_path / "cache", "--scheduler", address)
+    errors = [line for line in failed.output.splitlines() if line.startswith("dm2: error:")]
+    assert failed.exit_code == 2 and "Traceback" not in failed.output and len(errors) == 1
+    assert "2 workers died running its task" in errors[0] and "run the command again" in errors[0]
+    again = baseline(sim, tmp_path / "run", tmp_path / "cache", "--force")
+    assert again.exit_code == 0, again.output
+    cached = json.loads((tmp_path / "run" / "report.json").read_text())["prepare"]["cached"]
+    assert cached["frames"] and cached["place_recognition"] and not cached["registration"]
+    same_answer(single, tmp_path)
+
+
+def test_a_local_cluster_of_two_workers_gives_the_single_process_answer(sim, single, tmp_path):
+    result = baseline(sim, tmp_path / "run", tmp_path / "cache", "--workers", "2")
+    assert result.exit_code == 0, result.output
+    same_answer(single, tmp_path)
+
+
+def test_frames_travel_by_their_cache_entry_or_with_the_task(tmp_path):
+    from dm2_backend.prepare import store
+
+    points = [np.random.default_rng(i).normal(size=(5 + i, 3)).astype(np.float32) for i in range(4)]
+    frames = Frames(points, None, False)
+    store.put_frames(tmp_path, "frames-x", frames)
+    stored = store.frames_from(*store.get(tmp_path, "frames-x"), tmp_path / "frames-x")
+    for source in (frames, stored):
+        back = source.part(np.array([3, 1, 3])).frames()
+        assert len(back) == 4 and len(back.points[0]) == len(back.points[2]) == 0
+        np.testing.assert_array_equal(back.points[1], points[1])
+        np.testing.assert_array_equal(back.points[3], points[3])
+    assert stored.part(np.array([1])).carried == ()  # read where it is stored, not sent
+
+
+def test_workers_and_a_scheduler_at_once_are_refused(monkeypatch):
+    with pytest.raises(InputError, match="give one"):
+        ClusterSpec.of(2, "tcp://127.0.0.1:1")
+    monkeypatch.setenv("DASK_SCHEDULER_ADDRESS", "tcp://10.0.0.1:8786")
+    assert ClusterSpec.of(None, None).address == "tcp://10.0.0.1:8786"
+    assert ClusterSpec.of(2, None) == ClusterSpec(2, None)
