@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -40,7 +41,8 @@ def cluster(tmp: Path, workers: int = 2, env: dict | None = None, allowed_failur
     scheduler_env = {**os.environ, "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": str(allowed_failures)}
     procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
                                "--port", "0", "--no-dashboard", "--scheduler-file", str(file)],
-                              env=scheduler_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+                              env=scheduler_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                              start_new_session=True)]
     try:
         deadline = time.monotonic() + 60
         while not file.exists() and time.monotonic() < deadline:
@@ -50,18 +52,18 @@ def cluster(tmp: Path, workers: int = 2, env: dict | None = None, allowed_failur
         for _ in range(workers):
             procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address,
                                            "--nthreads", "1", "--no-dashboard", "--preload", str(FAULTS)],
-                                          env=worker_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+                                          env=worker_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                          start_new_session=True))
         from distributed import Client
 
         with Client(address, timeout=60) as client:
             client.wait_for_workers(workers, timeout=120)
         yield address
-    finally:
-        for p in reversed(procs):
-            p.terminate()
+    finally:  # each process with the worker processes it started (a session of its own)
         for p in procs:
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                p.wait(timeout=30)
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait(timeout=30)
 
 
 def baseline(sim: Path, out: Path, cache: Path, *extra: str, command: tuple[str, ...] = ("baseline", "gtsam")):

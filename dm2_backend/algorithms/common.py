@@ -4,6 +4,7 @@ topology assembly. ICP is in :mod:`.icp`, alignment checks in :mod:`.gates`."""
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -268,3 +269,11 @@ def assemble(
     keys = sorted(kinds)
     edges = np.array(keys, dtype=np.int64).reshape(-1, 2)
     return Topology(groups=groups, edges=edges, edge_kind=[kinds[e] for e in keys], log=list(log or []))
+
+
+def follow_thread_cap() -> None:
+    """open3d's threads capped as OpenMP's are (``OMP_NUM_THREADS``, which a cluster's worker processes get:
+    one task a core): open3d keeps its own pool and would otherwise run every task on every core."""
+    cap = os.environ.get("OMP_NUM_THREADS", "")
+    if cap.isdigit() and int(cap) > 0:
+        o3d.utility.set_max_threads(int(cap))

@@ -25,6 +25,7 @@ from dm2_backend.algorithms.common import (
     Cloud,
     Match,
     fine_distance,
+    follow_thread_cap,
     lengths,
     orthonormal,
     project_planar,
@@ -244,6 +245,7 @@ class PairTask:
 
 def register_pairs(task: PairTask) -> list[tuple[Match, float]]:
     """A worker's run of :meth:`PairwiseRegistration._matches` (one thread: the worker is one core)."""
+    follow_thread_cap()
     registration, frames = task.registration, task.frames.frames()
     registration._check(frames)
     inits = dict(zip(task.pairs, task.inits, strict=True))
