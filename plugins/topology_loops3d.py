@@ -33,6 +33,7 @@ from dm2_backend.algorithms.common import (
     Cloud,
     assemble,
     fine_distance,
+    follow_thread_cap,
     lengths,
     loop_rows,
     orthonormal,
@@ -51,7 +52,8 @@ from dm2_backend.algorithms.icp import register
 from dm2_backend.algorithms.loop_graph3d import Closure3, FrameGraph
 from dm2_backend.algorithms.topology import check_k, check_poses
 from dm2_backend.kernel.geometry import se3
-from dm2_backend.kernel.prepared import Frames, Topology
+from dm2_backend.kernel.prepared import Frames, FramesPart, Topology
+from dm2_backend.runtime import cluster
 from dm2_backend.runtime.errors import InputError
 from dm2_backend.runtime.progress import progress
 
@@ -175,19 +177,22 @@ class Loops3dTopology:
         moves with it. Returns the poses and the repaired step indices."""
         if self.repair_distance == 0 or len(poses) < 2:
             return poses, []
-        fine = self._lengths["fine"]
-        limit = self.repair_distance or fine
         steps = se3.relative(poses[:-1], poses[1:])
-        repaired = []
-        target = Cloud(frames.points[0], False, 2.0 * fine)
-        for k in progress(range(len(steps)), "odometry check", unit="step", enabled=self.progress):
-            source = Cloud(frames.points[k + 1], False, 2.0 * fine)
-            m = register(source, target, steps[k], (4.0 * fine, fine), "gicp")
-            if np.isfinite(m.T).all() and np.linalg.norm(se3.relative(steps[k], m.T)[:3, 3]) > limit and \
-                    self._replaces(source, target, m, steps[k]):
-                steps[k] = orthonormal(m.T)
-                repaired.append(k)
-            target = source
+        engine = cluster.current()
+        if engine is None:
+            bar = progress(range(len(steps)), "odometry check", unit="step", enabled=self.progress)
+            replaced = self._checked(frames, steps, bar)
+        else:  # runs of steps as tasks, each on its frames
+            size = max(2, -(-len(steps) // (4 * max(1, engine.workers))))
+            light = replace(self)  # the options; not the submaps of an earlier run (open3d clouds do not pickle)
+            light._lengths = self._lengths
+            tasks = [StepTask(light, frames.part(np.arange(k0, min(k0 + size, len(steps)) + 1)),
+                              steps[k0 : k0 + size], k0) for k0 in range(0, len(steps), size)]
+            done = engine.map(check_steps, tasks, "odometry check", enabled=self.progress)
+            replaced = {k: T for part in done for k, T in part.items()}
+        repaired = sorted(replaced)
+        for k in repaired:
+            steps[k] = replaced[k]
         if not repaired:
             return poses, []
         out = [poses[0]]
@@ -283,6 +288,25 @@ class Loops3dTopology:
             failed.append(GateFailure(Gate.DEGENERATE, c, self.min_constraint))
         return failed
 
+    def _checked(self, frames: Frames, steps: np.ndarray, ks, first: int = 0) -> dict[int, np.ndarray]:
+        """Of the steps ``first + i`` for ``i`` in ``ks`` (``steps[i]``: frame ``first + i + 1`` in frame
+        ``first + i``), those whose frames' GICP replaces the front end's, with the step that replaces it."""
+        fine = self._lengths["fine"]
+        limit = self.repair_distance or fine
+        replaced = {}
+        target = None
+        for i in ks:
+            k = first + i
+            if target is None:
+                target = Cloud(frames.points[k], False, 2.0 * fine)
+            source = Cloud(frames.points[k + 1], False, 2.0 * fine)
+            m = register(source, target, steps[i], (4.0 * fine, fine), "gicp")
+            if np.isfinite(m.T).all() and np.linalg.norm(se3.relative(steps[i], m.T)[:3, 3]) > limit and \
+                    self._replaces(source, target, m, steps[i]):
+                replaced[k] = orthonormal(m.T)
+            target = source
+        return replaced
+
     def _replaces(self, src: Cloud, tgt: Cloud, m, step: np.ndarray) -> bool:
         """A frame-pair registration replaces the front end's ``step`` when it passes the closure gates, or fails
         only the translation constraint (a view of few surfaces, where a scan matcher slides) while the two
@@ -333,3 +357,20 @@ def _keyframes(poses: np.ndarray, spacing: float, angle: float) -> np.ndarray:
         if np.linalg.norm(rel[:3, 3]) >= spacing or rotation_angle(rel[:3, :3]) >= angle:
             keep.append(i)
     return np.asarray(keep, dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class StepTask:
+    """A run of the front end's steps for one worker: the plugin (its options and lengths), the frames of those
+    steps, the steps and the first one's number."""
+
+    plugin: Loops3dTopology
+    frames: FramesPart
+    steps: np.ndarray
+    first: int
+
+
+def check_steps(task: StepTask) -> dict[int, np.ndarray]:
+    """A worker's run of :meth:`Loops3dTopology._checked` (one thread: the worker is one core)."""
+    follow_thread_cap()
+    return task.plugin._checked(task.frames.frames(), task.steps, range(len(task.steps)), task.first)

@@ -144,3 +144,20 @@ def test_loops3d_repairs_a_failed_front_end_step(two_laps):
     # with repairs off the step stays as the front end gave it
     kept = load("dm2.place_recognition", "loops3d")(repair_distance=0, min_path_gap=1e3, progress=False)
     assert kept.run(frames, warm).poses is None
+
+
+def test_loops3d_checks_the_steps_on_a_cluster_as_in_process(two_laps):
+    """The odometry check's steps as tasks on a local cluster (frames sent with the tasks): the same repair."""
+    from dm2_backend.runtime import cluster
+
+    frames, truth, _ = two_laps
+    warm = truth.copy()
+    warm[40:] = truth[39] @ se3.from_xyz_euler(np.array([0.6, -0.4, 0.0, 0.0, 0.0, 0.05])) @ \
+        se3.relative(truth[39], truth[40:])
+    plugin = load("dm2.place_recognition", "loops3d")(progress=False)
+    plugin.run(frames, warm)  # its lengths
+    here = plugin._repair(frames, warm)
+    with cluster.engine(cluster.ClusterSpec(workers=2)):
+        there = plugin._repair(frames, warm)
+    assert here[1] == there[1] == [39]
+    np.testing.assert_allclose(there[0], here[0], atol=1e-9)

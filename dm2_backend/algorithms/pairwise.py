@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar, Literal
 
 import numpy as np
@@ -179,10 +179,12 @@ class PairwiseRegistration:
         """:meth:`_matches` of consecutive runs of pairs as tasks on the cluster's workers (at least four a
         worker, at most :attr:`chunk` pairs each), each reading its frames where they are stored."""
         size = max(1, min(self.chunk, -(-len(pairs) // (4 * max(1, engine.workers)))))
+        light = replace(self)  # the options, not the clouds in hand (open3d clouds do not pickle)
+        light._record_hessians = self._record_hessians
         tasks = []
         for c0 in range(0, len(pairs), size):
             part = pairs[c0 : c0 + size]
-            tasks.append(PairTask(self, frames.part(np.array(part).ravel()), part, [inits[p] for p in part], fine,
+            tasks.append(PairTask(light, frames.part(np.array(part).ravel()), part, [inits[p] for p in part], fine,
                                   margin))
         done = engine.map(register_pairs, tasks, "pairwise icp", unit="task", enabled=self.progress)
         return [match for chunk in done for match in chunk]
