@@ -183,7 +183,7 @@ class Loops3dTopology:
             bar = progress(range(len(steps)), "odometry check", unit="step", enabled=self.progress)
             replaced = self._checked(frames, steps, bar)
         else:  # runs of steps as tasks, each on its frames
-            size = max(2, -(-len(steps) // (4 * max(1, engine.workers))))
+            size = max(2, -(-len(steps) // (4 * engine.slots)))
             light = replace(self)  # the options; not the submaps of an earlier run (open3d clouds do not pickle)
             light._lengths = self._lengths
             tasks = [StepTask(light, frames.part(np.arange(k0, min(k0 + size, len(steps)) + 1)),
@@ -371,6 +371,7 @@ class StepTask:
 
 
 def check_steps(task: StepTask) -> dict[int, np.ndarray]:
-    """A worker's run of :meth:`Loops3dTopology._checked` (one thread: the worker is one core)."""
+    """A worker's run of :meth:`Loops3dTopology._checked` (open3d's threads capped as the worker's
+    ``OMP_NUM_THREADS``)."""
     follow_thread_cap()
     return task.plugin._checked(task.frames.frames(), task.steps, range(len(task.steps)), task.first)

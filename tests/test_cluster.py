@@ -19,6 +19,7 @@ from click.testing import CliRunner
 
 from dm2_backend.cli.main import cli
 from dm2_backend.kernel.prepared import Frames
+from dm2_backend.runtime import cluster as cluster_module
 from dm2_backend.runtime.cluster import ClusterSpec
 from dm2_backend.runtime.errors import InputError
 from dm2_backend.simulate.sequence import SimSettings, generate
@@ -56,8 +57,9 @@ def cluster(tmp: Path, workers: int = 2, env: dict | None = None, allowed_failur
                                           start_new_session=True))
         from distributed import Client
 
-        with Client(address, timeout=60) as client:
-            client.wait_for_workers(workers, timeout=120)
+        if workers:
+            with Client(address, timeout=60) as client:
+                client.wait_for_workers(workers, timeout=120)
         yield address
     finally:  # each process with the worker processes it started (a session of its own)
         for p in procs:
@@ -160,3 +162,29 @@ def test_workers_and_a_scheduler_at_once_are_refused(monkeypatch):
     monkeypatch.setenv("DASK_SCHEDULER_ADDRESS", "tcp://10.0.0.1:8786")
     assert ClusterSpec.of(None, None).address == "tcp://10.0.0.1:8786"
     assert ClusterSpec.of(2, None) == ClusterSpec(2, None)
+    assert not ClusterSpec.of(0, None).distributed  # --workers 0: in this process, whatever the environment says
+
+
+def refuse(path: str) -> None:
+    raise InputError(path, "not a scan")
+
+
+def test_a_task_s_input_error_reaches_the_user_as_it_was_raised(tmp_path):
+    with cluster_module.engine(ClusterSpec(workers=1)) as engine:
+        assert engine.slots == 1
+        with pytest.raises(InputError) as info:
+            engine.map(refuse, [str(tmp_path / "a.pcd")], "reading", enabled=False)
+    assert info.value.message == f"{tmp_path / 'a.pcd'}: not a scan"
+
+
+def test_frames_stored_where_a_worker_cannot_read_them_are_one_line(tmp_path):
+    part = Frames([np.zeros((2, 3), np.float32)], None, False, stored=tmp_path / "gone").part(np.array([0]))
+    with pytest.raises(InputError, match="cannot read the cached frames"):
+        part.frames()
+
+
+def test_a_scheduler_without_workers_is_one_line_not_a_wait(tmp_path, monkeypatch):
+    monkeypatch.setattr(cluster_module, "CONNECT_TIMEOUT", 5)
+    with cluster(tmp_path, workers=0) as address, cluster_module.engine(ClusterSpec(address=address)) as engine:
+        with pytest.raises(cluster_module.ClusterError, match="no Dask scheduler with a worker"):
+            engine.map(refuse, ["x"], "reading", enabled=False)

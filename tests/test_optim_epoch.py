@@ -23,7 +23,16 @@ def test_an_epoch_row_reads_back_as_the_same_record(epoch, loss, seconds, steps,
     row = record.row()
     assert Epoch.of_row(row) == record
     assert list(row)[: len(set(TERMS) & set(extra))] == [t for t in TERMS if t in extra]  # the loss terms first
-    assert all(v is not None for v in row.values())  # unset fields are left out
+    assert all(v is not None for k, v in row.items() if k != "disagreement")  # unset fields are left out
+    assert "disagreement" in row  # null where no registration was valid to measure against
+
+
+def test_a_measurement_may_be_nan_a_loss_may_not():
+    row = Epoch(0, 1.0, 2.0, 3, map_entropy=math.nan, ate=math.nan).row()
+    back = Epoch.of_row(row)
+    assert math.isnan(back.map_entropy) and math.isnan(back.ate)
+    with pytest.raises(ValueError, match="loss"):
+        Epoch.of_row({**row, "loss": math.nan})
 
 
 @pytest.mark.parametrize("damage", [{"loss": math.nan}, {"epoch": -1}, {"steps": True}, {"ate": "far"},

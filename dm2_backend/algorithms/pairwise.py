@@ -177,8 +177,8 @@ class PairwiseRegistration:
     def _on_cluster(self, engine: cluster.Engine, frames: Frames, pairs: list[tuple[int, int]], inits: dict,
                     fine: float, margin: float) -> list[tuple[Match, float]]:
         """:meth:`_matches` of consecutive runs of pairs as tasks on the cluster's workers (at least four a
-        worker, at most :attr:`chunk` pairs each), each reading its frames where they are stored."""
-        size = max(1, min(self.chunk, -(-len(pairs) // (4 * max(1, engine.workers)))))
+        worker thread, at most :attr:`chunk` pairs each), each reading its frames where they are stored."""
+        size = max(1, min(self.chunk, -(-len(pairs) // (4 * engine.slots))))
         light = replace(self)  # the options, not the clouds in hand (open3d clouds do not pickle)
         light._record_hessians = self._record_hessians
         tasks = []
@@ -246,7 +246,8 @@ class PairTask:
 
 
 def register_pairs(task: PairTask) -> list[tuple[Match, float]]:
-    """A worker's run of :meth:`PairwiseRegistration._matches` (one thread: the worker is one core)."""
+    """A worker's run of :meth:`PairwiseRegistration._matches` on one thread (open3d's capped as the worker's
+    ``OMP_NUM_THREADS``)."""
     follow_thread_cap()
     registration, frames = task.registration, task.frames.frames()
     registration._check(frames)

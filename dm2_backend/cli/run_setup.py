@@ -65,12 +65,15 @@ def run_options(f=None, *, scans_required: bool = True):
         click.option("--max-diff", type=float, default=0.01, show_default=True,
                      help="Seconds allowed between a scan and its pose when associating by time."),
         click.option("--quiet", "-q", is_flag=True, help="No progress bars."),
-        click.option("--workers", type=click.IntRange(min=1), default=None,
-                     help="Prepare on a local Dask cluster of N worker processes (default: in this process)."),
+        click.option("--workers", type=click.IntRange(min=0), default=None,
+                     help="Run the preparation's tasks (the registration, loops3d's odometry check) on a local Dask "
+                          "cluster of N worker processes; 0: in this process, whatever $DASK_SCHEDULER_ADDRESS says "
+                          "[default: in this process]."),
         click.option("--scheduler", default=None,
-                     help="Prepare on the Dask cluster whose scheduler is at this address (tcp://host:8786; "
-                          "default $DASK_SCHEDULER_ADDRESS). Its workers read the frames from the cache folder "
-                          "(put it on storage they share; with --no-cache the frames travel with the tasks)."),
+                     help="Run the preparation's tasks on the Dask cluster whose scheduler is at this address "
+                          "(tcp://host:8786; default $DASK_SCHEDULER_ADDRESS). Its workers read the frames from "
+                          "the cache folder (put it on storage they share; with --no-cache the frames travel with "
+                          "the tasks)."),
         topic_option, times_option, calib_option, intrinsics_option, depth_scale_option,
         duplicate_times_option,
     ]

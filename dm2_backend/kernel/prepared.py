@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dm2_backend.runtime.errors import InputError
+
 
 @dataclass(frozen=True)
 class ScanScale:
@@ -40,7 +42,7 @@ class ScanScale:
         return cls(**{k: float(v) for k, v in d.items()})
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Frames:
     """Down-sampled scans held in memory for preparation and optimisation.
 
@@ -52,7 +54,8 @@ class Frames:
     timestamps: np.ndarray | None
     planar: bool
     scale: ScanScale = field(default_factory=ScanScale)
-    #: the cache entry the points are memory-mapped from (:data:`POINTS_FILE`, :data:`OFFSETS_FILE`), if any
+    #: the cache entry the points are memory-mapped from (:data:`POINTS_FILE`, :data:`OFFSETS_FILE`), if any;
+    #: frames with other points (``dataclasses.replace``) must drop it
     stored: Path | None = None
 
     def __len__(self) -> int:
@@ -74,7 +77,7 @@ class Frames:
 POINTS_FILE, OFFSETS_FILE = "points.npy", "offsets.npy"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class FramesPart:
     """Some of a sequence's frames, as a task on another process receives them (:meth:`Frames.part`)."""
 
@@ -89,8 +92,14 @@ class FramesPart:
         """Frames of the whole sequence's length holding these frames' points (the others empty)."""
         points = [np.zeros((0, 3), np.float32)] * self.count
         if self.stored is not None:
-            every = np.load(self.stored / POINTS_FILE, mmap_mode="r", allow_pickle=False)
-            offsets = np.load(self.stored / OFFSETS_FILE, allow_pickle=False)
+            try:
+                every = np.load(self.stored / POINTS_FILE, mmap_mode="r", allow_pickle=False)
+                offsets = np.load(self.stored / OFFSETS_FILE, allow_pickle=False)
+            except (OSError, ValueError) as exc:
+                raise InputError(self.stored, "a worker cannot read the cached frames there; put --cache-dir on "
+                                              f"storage every worker mounts at the same path ({exc})") from None
+            if len(offsets) != self.count + 1:
+                raise InputError(self.stored, f"holds {len(offsets) - 1} frames, not {self.count}")
             for i in self.index:
                 points[i] = np.asarray(every[offsets[i] : offsets[i + 1]])
         else:
@@ -124,7 +133,7 @@ class Topology:
         return self.groups.shape[1]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Pairwise:
     """Pairwise registrations for a topology: ``relative[i, n]`` is T_j^i (frame j = groups[i, n] expressed
     in frame i), ``valid[i, n]`` False where registration failed its gate (see ``reason``)."""

@@ -7,6 +7,8 @@ from dataclasses import dataclass
 
 #: the loss terms an epoch may record, in the order of its row
 TERMS = ("bce", "chamfer", "consistency")
+#: measurements that may be NaN (a map entropy with no neighbourhood of enough points, say)
+MAY_BE_NAN = ("ate", "disagreement", "map_entropy")
 #: the optional fields of an epoch record and the kind each holds
 OPTIONAL = {"bce": float, "chamfer": float, "consistency": float, "ate": float, "ate_metric": str,
              "disagreement": float, "rejected": str, "map_entropy": float, "converged": str}
@@ -54,6 +56,9 @@ class Epoch:
         out.update(loss=self.loss, epoch=self.epoch, seconds=self.seconds, steps=self.steps,
                    trace=[p.row() for p in self.trace])
         out.update({k: getattr(self, k) for k in OPTIONAL if k not in TERMS and getattr(self, k) is not None})
+        if "disagreement" not in out:  # recorded as null where no registration was valid to measure against
+            out = {**{k: v for k, v in out.items() if k not in ("rejected", "map_entropy", "converged")},
+                   "disagreement": None, **{k: out[k] for k in ("rejected", "map_entropy", "converged") if k in out}}
         return out
 
     @classmethod
@@ -65,12 +70,13 @@ class Epoch:
                   "seconds": _number(row, "seconds")}
         for name, kind in OPTIONAL.items():
             if row.get(name) is not None:
-                values[name] = _number(row, name) if kind is float else _text(row, name)
+                values[name] = _number(row, name, name in MAY_BE_NAN) if kind is float else _text(row, name)
         trace = row.get("trace", [])
         if not isinstance(trace, list | tuple) or not all(isinstance(p, dict) for p in trace):
             raise ValueError("an epoch's trace is not a list of mappings")
         values["trace"] = tuple(TracePoint(_whole(p, "step"), _number(p, "loss"),
-                                           _number(p, "ate") if p.get("ate") is not None else None) for p in trace)
+                                           _number(p, "ate", True) if p.get("ate") is not None else None)
+                                for p in trace)
         return cls(**values)
 
 
@@ -81,9 +87,9 @@ def _whole(row: dict, name: str) -> int:
     return value
 
 
-def _number(row: dict, name: str) -> float:
+def _number(row: dict, name: str, nan: bool = False) -> float:
     value = row.get(name)
-    if isinstance(value, bool) or not isinstance(value, int | float) or math.isnan(value):
+    if isinstance(value, bool) or not isinstance(value, int | float) or (math.isnan(value) and not nan):
         raise ValueError(f"an epoch record's {name} is not a number")
     return float(value)
 

@@ -35,7 +35,7 @@ MIN_SIGMA = 1e-6
 MAX_SIGMA = 1e3
 
 
-@dataclass
+@dataclass(eq=False)
 class MeasuredNoise:
     """The odometry edges' noise measured against a solution (not the planar warm start's translation and yaw
     spread, ``drift_windows.OdometryNoise``): per-step standard deviation (g2o order ``[x y z rx ry rz]``, m and

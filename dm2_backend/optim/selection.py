@@ -11,7 +11,7 @@ import numpy as np
 from dm2_backend.optim.epoch import Epoch
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Best:
     """The candidate returned so far: its ``poses``, the ``epoch`` that made them (-1: the start) and its mean
     loss; with the map selection its map entropy (``map``) and the start's (``start_map``)."""
@@ -34,10 +34,11 @@ class Best:
         epoch, loss = state.get("epoch"), state.get("loss")
         if isinstance(epoch, bool) or not isinstance(epoch, int) or epoch < -1:
             raise ValueError("its best epoch is not an epoch")
-        if isinstance(loss, bool) or not isinstance(loss, int | float):
+        if isinstance(loss, bool) or not isinstance(loss, int | float) or math.isnan(loss):
             raise ValueError("its best loss is not a number")
         maps = [state.get(k) for k in ("map", "start_map")]
-        if any(m is not None and (isinstance(m, bool) or not isinstance(m, int | float)) for m in maps):
+        if any(m is not None and (isinstance(m, bool) or not isinstance(m, int | float) or math.isnan(m))
+               for m in maps):
             raise ValueError("its best map entropy is not a number")
         return cls(state["poses"], epoch, float(loss), *maps)
 

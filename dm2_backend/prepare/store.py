@@ -141,7 +141,7 @@ def frames_from(arrays: dict[str, np.ndarray], meta: dict, folder: Path | None =
     pts, offsets = arrays["points"], arrays["offsets"]
     points = [pts[offsets[i] : offsets[i + 1]] for i in range(len(offsets) - 1)]
     return Frames(points=points, timestamps=arrays.get("timestamps"), planar=bool(meta["planar"]),
-                  scale=ScanScale.from_dict(meta["scale"]), stored=folder)
+                  scale=ScanScale.from_dict(meta["scale"]), stored=None if folder is None else folder.resolve())
 
 
 def topology_from(hit: tuple[dict, dict]) -> Topology:

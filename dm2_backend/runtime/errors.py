@@ -38,6 +38,10 @@ class InputError(Exception):
         self.topic = topic
         super().__init__(self.message)
 
+    def __reduce__(self):
+        """Pickled with its parts (raised in a task on another process, it arrives whole)."""
+        return (type(self), (self.source, self.problem), {"line": self.line, "topic": self.topic})
+
     @property
     def message(self) -> str:
         where = self.source or ""
