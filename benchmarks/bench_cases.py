@@ -76,8 +76,10 @@ def command_available(sub: str) -> bool:
 
 
 def run_process(cmd: list[str], log: Path, timeout: float) -> dict:
-    """Run ``cmd`` with its output in ``log``; wall time, exit code and the child's own peak RSS (wait4)."""
+    """Run ``cmd`` with its output in ``log``; wall time, exit code, the child's own peak RSS (wait4) and every
+    process's of its tree (sampled every 0.1 s: ``dm2`` itself, and each process it started, ``child-PID``)."""
     t0 = time.perf_counter()
+    peaks: dict[str, float] = {}
     with open(log, "w") as fh:
         proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
         timed_out = False
@@ -90,10 +92,30 @@ def run_process(cmd: list[str], log: Path, timeout: float) -> dict:
                 pid, status, usage = os.wait4(proc.pid, 0)
                 timed_out = True
                 break
+            _sample_tree(proc.pid, peaks)
             time.sleep(0.1)
     proc.returncode = os.waitstatus_to_exitcode(status)
     return {"returncode": proc.returncode, "timed_out": timed_out, "wall_s": time.perf_counter() - t0,
-            "peak_rss_mb": usage.ru_maxrss / 1024.0, "cpu_s": usage.ru_utime + usage.ru_stime}
+            "peak_rss_mb": usage.ru_maxrss / 1024.0, "cpu_s": usage.ru_utime + usage.ru_stime,
+            "peak_rss_mb_per_process": {k: round(v, 1) for k, v in peaks.items()}}
+
+
+def _sample_tree(pid: int, peaks: dict[str, float]) -> None:
+    """Each process's RSS (MiB) in ``pid``'s tree into ``peaks`` (the highest seen), keyed ``dm2`` for ``pid``."""
+    import psutil
+
+    try:
+        top = psutil.Process(pid)
+        tree = [top, *top.children(recursive=True)]
+    except psutil.Error:
+        return
+    for p in tree:
+        try:
+            mb = p.memory_info().rss / 2**20
+        except psutil.Error:
+            continue
+        key = "dm2" if p.pid == pid else f"child-{p.pid}"
+        peaks[key] = max(peaks.get(key, 0.0), mb)
 
 
 def run_case(method: Method, input_args: list[str], run_dir: Path, cache_dir: Path, epochs: int | None,
