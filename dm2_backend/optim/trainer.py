@@ -404,12 +404,11 @@ class Optimiser:
             record = replace(record, ate=float(self.metric(poses)), ate_metric=name)
         spread, limit = disagreement(poses, *self._pairs), self.derived.max_disagreement
         diverged = spread is not None and limit is not None and spread > limit
+        record = replace(record, disagreement=spread)
         if diverged:
-            record = replace(record, disagreement=spread,
-                             rejected=f"disagrees with the registrations ({spread:.3g} m > {limit:.3g} m)")
-        else:
-            entropy = float(self.map_metric(poses)) if self.map_metric is not None and lead else None
-            record = replace(record, disagreement=spread, map_entropy=entropy)
+            record = replace(record, rejected=f"disagrees with the registrations ({spread:.3g} m > {limit:.3g} m)")
+        elif self.map_metric is not None and lead:
+            record = replace(record, map_entropy=float(self.map_metric(poses)))
         history.append(record)
         return best if diverged else offer(best, record, poses, by_map and lead)
 
