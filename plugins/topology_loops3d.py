@@ -183,7 +183,7 @@ class Loops3dTopology:
             bar = progress(range(len(steps)), "odometry check", unit="step", enabled=self.progress)
             replaced = self._checked(frames, steps, bar)
         else:  # runs of steps as tasks, each on its frames
-            size = max(2, -(-len(steps) // (4 * engine.slots)))
+            size = engine.run_length(len(steps), smallest=2)
             light = replace(self)  # the options; not the submaps of an earlier run (open3d clouds do not pickle)
             light._lengths = self._lengths
             tasks = [StepTask(light, frames.part(np.arange(k0, min(k0 + size, len(steps)) + 1)),

@@ -178,7 +178,7 @@ class PairwiseRegistration:
                     fine: float, margin: float) -> list[tuple[Match, float]]:
         """:meth:`_matches` of consecutive runs of pairs as tasks on the cluster's workers (at least four a
         worker thread, at most :attr:`chunk` pairs each), each reading its frames where they are stored."""
-        size = max(1, min(self.chunk, -(-len(pairs) // (4 * engine.slots))))
+        size = engine.run_length(len(pairs), largest=self.chunk)
         light = replace(self)  # the options, not the clouds in hand (open3d clouds do not pickle)
         light._record_hessians = self._record_hessians
         tasks = []

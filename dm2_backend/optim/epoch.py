@@ -55,10 +55,9 @@ class Epoch:
         out = {t: getattr(self, t) for t in TERMS if getattr(self, t) is not None}
         out.update(loss=self.loss, epoch=self.epoch, seconds=self.seconds, steps=self.steps,
                    trace=[p.row() for p in self.trace])
-        out.update({k: getattr(self, k) for k in OPTIONAL if k not in TERMS and getattr(self, k) is not None})
-        if "disagreement" not in out:  # recorded as null where no registration was valid to measure against
-            out = {**{k: v for k, v in out.items() if k not in ("rejected", "map_entropy", "converged")},
-                   "disagreement": None, **{k: out[k] for k in ("rejected", "map_entropy", "converged") if k in out}}
+        # the disagreement even when null (no registration was valid to measure against)
+        out.update({k: getattr(self, k) for k in OPTIONAL
+                    if k not in TERMS and (getattr(self, k) is not None or k == "disagreement")})
         return out
 
     @classmethod

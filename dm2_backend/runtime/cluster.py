@@ -80,6 +80,11 @@ class Engine:
         """Tasks the cluster runs at once: its workers' threads together."""
         return sum(w["nthreads"] for w in self.client.scheduler_info(n_workers=-1)["workers"].values()) or 1
 
+    def run_length(self, count: int, smallest: int = 1, largest: int | None = None) -> int:
+        """How many of ``count`` items one task takes: at least four tasks a worker thread, within the bounds."""
+        size = max(smallest, -(-count // (4 * self.slots)))
+        return size if largest is None else max(smallest, min(largest, size))
+
     def map(self, fn: Callable[[Any], Any], tasks: Sequence[Any], desc: str, *, unit: str = "task",
             enabled: bool = True) -> list:
         """``fn(task)`` for every task on the cluster's workers, the results in the tasks' order; the stage's
