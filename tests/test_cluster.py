@@ -45,10 +45,7 @@ def cluster(tmp: Path, workers: int = 2, env: dict | None = None, allowed_failur
                               env=scheduler_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                               start_new_session=True)]
     try:
-        deadline = time.monotonic() + 60
-        while not file.exists() and time.monotonic() < deadline:
-            time.sleep(0.2)
-        address = json.loads(file.read_text())["address"]
+        address = _scheduler_address(file, procs[0])
         worker_env = {**os.environ, "OMP_NUM_THREADS": "1", **(env or {})}
         for _ in range(workers):
             procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address,
@@ -66,6 +63,17 @@ def cluster(tmp: Path, workers: int = 2, env: dict | None = None, allowed_failur
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(p.pid, signal.SIGKILL)
             p.wait(timeout=30)
+
+
+def _scheduler_address(file: Path, scheduler: subprocess.Popen, wait_s: float = 60) -> str:
+    """The address the scheduler writes to its file; the file appears before its text is complete."""
+    deadline = time.monotonic() + wait_s
+    while time.monotonic() < deadline:
+        assert scheduler.poll() is None, f"the scheduler exited with {scheduler.returncode}"
+        with contextlib.suppress(OSError, ValueError, KeyError):
+            return json.loads(file.read_text())["address"]
+        time.sleep(0.2)
+    raise AssertionError(f"no scheduler address in {file} after {wait_s:.0f} s")
 
 
 def baseline(sim: Path, out: Path, cache: Path, *extra: str, command: tuple[str, ...] = ("baseline", "gtsam")):
