@@ -1,13 +1,17 @@
 """The preparation's registration in this process and as tasks on a local Dask cluster of 1 and N workers.
 
-    python benchmarks/cluster.py [--frames 300] [--workers 1 2] [--planar] [--refine] [--out benchmarks/results]
+    python benchmarks/cluster.py [--frames 300] [--workers 1 2] [--planar] [--refine | --profile]
+                                 [--out benchmarks/results]
 
 A ``dm2 simulate`` sequence is prepared once (frames, warm start, place recognition) into a cache; then the
 registration runs on the same frames in-process and on each cluster (started before the clock, its start-up timed
 apart), and every answer is compared with the in-process one. The per-task overhead is the mean time of 200 empty
 tasks sent at once. With ``--refine``: the whole ``dm2 refine`` instead, in a fresh process and cache for each
 (``--workers 0`` and each N), with its APE, map entropy, the preparation's stages and the peak RSS of every process
-(sampled every 0.2 s). Writes ``<out>/YYYY-MM-DD-cluster[-refine][-planar]-N.json`` (every number, the command, the
+(sampled every 0.2 s). With ``--profile``: the consistency profile of the warm start and the truth (its stretches
+as tasks; a sequence of more than 732 frames is judged in stretches), in-process (two sets of poses on two threads)
+and on each cluster, every view compared with the in-process one. Writes
+``<out>/YYYY-MM-DD-cluster[-refine|-profile][-planar]-N.json`` (every number, the command, the
 machine, the load). Not part of the test suite.
 """
 
@@ -30,6 +34,7 @@ from bench_cases import run_process  # noqa: E402
 from run import commit, machine  # noqa: E402
 
 from dm2_backend.config import load as load_config  # noqa: E402
+from dm2_backend.evaluation.consistency_profile import consistency_profiles  # noqa: E402
 from dm2_backend.formats import open_scans  # noqa: E402
 from dm2_backend.formats.registry import read_trajectory  # noqa: E402
 from dm2_backend.plugins.registry import load as load_plugin  # noqa: E402
@@ -93,12 +98,32 @@ def registration_rows(sim: Path, root: Path, workers: list[int]) -> tuple[list[d
     return rows, int((prep.topology.groups >= 0).sum())
 
 
+def profile_rows(sim: Path, workers: list[int]) -> list[dict]:
+    """The consistency profile in-process and as tasks on each local cluster (started before the clock)."""
+    scans = open_scans(sim / "velodyne")
+    candidates = {name: read_trajectory(sim / f"{name}.txt").poses for name in ("warm_start", "poses")}
+    t0 = time.perf_counter()
+    single = consistency_profiles(scans, candidates, planar=scans.planar)
+    rows = [{"mode": "in-process", "seconds": time.perf_counter() - t0}]
+    for n in workers:
+        with cluster.engine(cluster.ClusterSpec(workers=n)) as engine:
+            assert engine.slots == n
+            t1 = time.perf_counter()
+            profiles = consistency_profiles(scans, candidates, planar=scans.planar)
+            seconds = time.perf_counter() - t1
+        rows.append({"mode": f"{n} worker(s)", "seconds": seconds,
+                     "same_views": all(np.array_equal(profiles[k].views_m[v], single[k].views_m[v], equal_nan=True)
+                                       for k in candidates for v in single[k].views_m)})
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--planar", action="store_true")
     ap.add_argument("--refine", action="store_true", help="the whole dm2 refine per worker count (0: in-process)")
+    ap.add_argument("--profile", action="store_true", help="the consistency profile instead of the registration")
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results")
     args = ap.parse_args(argv)
     load = os.getloadavg()
@@ -107,13 +132,15 @@ def main(argv: list[str] | None = None) -> int:
         generate(SimSettings(frames=args.frames, planar=args.planar), sim, progress=False)
         if args.refine:
             rows, pairs = [refine_row(sim, Path(tmp), n) for n in [0, *args.workers]], None
+        elif args.profile:
+            rows, pairs = profile_rows(sim, args.workers), None
         else:
             rows, pairs = registration_rows(sim, Path(tmp), args.workers)
     doc = {"command": "python benchmarks/cluster.py " + " ".join(argv if argv is not None else sys.argv[1:]),
            "commit": commit(), "machine": machine(), "load_before": load, "load_after": os.getloadavg(),
            "frames": args.frames, "planar": args.planar, "pairs": pairs, "rows": rows}
     args.out.mkdir(parents=True, exist_ok=True)
-    kind = ("-refine" if args.refine else "") + ("-planar" if args.planar else "")
+    kind = ("-refine" if args.refine else "-profile" if args.profile else "") + ("-planar" if args.planar else "")
     name = f"{datetime.date.today()}-cluster{kind}-{args.frames}.json"
     (args.out / name).write_text(json.dumps(doc, indent=1))
     for r in rows:

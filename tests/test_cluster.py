@@ -18,6 +18,9 @@ import pytest
 from click.testing import CliRunner
 
 from dm2_backend.cli.main import cli
+from dm2_backend.evaluation import consistency_profile as cp
+from dm2_backend.evaluation.profile_cells import StoredCells
+from dm2_backend.formats import open_scans, read_trajectory
 from dm2_backend.kernel.prepared import Frames
 from dm2_backend.runtime import cluster as cluster_module
 from dm2_backend.runtime.cluster import ClusterSpec
@@ -25,6 +28,8 @@ from dm2_backend.runtime.errors import InputError
 from dm2_backend.simulate.sequence import SimSettings, generate
 
 FAULTS = Path(__file__).with_name("cluster_faults.py")
+#: the environment the README's cluster recipe starts workers with
+RECIPE = {"MALLOC_TRIM_THRESHOLD_": "1073741824", "MALLOC_MMAP_THRESHOLD_": "33554432"}
 
 
 @pytest.fixture(scope="module")
@@ -35,9 +40,9 @@ def sim(tmp_path_factory) -> Path:
 
 
 @contextlib.contextmanager
-def cluster(tmp: Path, workers: int = 2, env: dict | None = None, allowed_failures: int = 3):
-    """A scheduler on a free port and ``workers`` single-threaded worker processes joining it by its address;
-    yields the address."""
+def cluster(tmp: Path, workers: int = 2, env: dict | None = None, allowed_failures: int = 3, recipe: bool = True):
+    """A scheduler on a free port and ``workers`` single-threaded worker processes joining it by its address
+    (``recipe``: with the README's glibc settings); yields the address."""
     file = tmp / "scheduler.json"
     scheduler_env = {**os.environ, "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": str(allowed_failures)}
     procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
@@ -46,7 +51,7 @@ def cluster(tmp: Path, workers: int = 2, env: dict | None = None, allowed_failur
                               start_new_session=True)]
     try:
         address = _scheduler_address(file, procs[0])
-        worker_env = {**os.environ, "OMP_NUM_THREADS": "1", **(env or {})}
+        worker_env = {**os.environ, "OMP_NUM_THREADS": "1", **(RECIPE if recipe else {}), **(env or {})}
         for _ in range(workers):
             procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address,
                                            "--nthreads", "1", "--no-dashboard", "--preload", str(FAULTS)],
@@ -196,3 +201,49 @@ def test_a_scheduler_without_workers_is_one_line_not_a_wait(tmp_path, monkeypatc
     with cluster(tmp_path, workers=0) as address, cluster_module.engine(ClusterSpec(address=address)) as engine:
         with pytest.raises(cluster_module.ClusterError, match="no Dask scheduler with a worker"):
             engine.map(refuse, ["x"], "reading", enabled=False)
+
+
+def test_the_consistency_profile_s_stretches_on_workers_score_as_in_this_process(sim, tmp_path, monkeypatch):
+    """16 frames with a budget of 4 frames' cells (as 2,000 frames with 1.5 million): each stretch of each set of
+    poses is a task on a worker, which maps the cells from the files in the folder given, and every view of every
+    frame, the noise and the flags equal the in-process profile's."""
+    scans = open_scans(sim / "velodyne")
+    candidates = {name: read_trajectory(sim / f"{name}.txt", "kitti").poses for name in ("warm_start", "poses")}
+    monkeypatch.setattr(cp, "MAX_CELLS", 4 * cp.CELLS_PER_FRAME)
+    here = cp.consistency_profiles(scans, candidates, planar=True)
+    tasks = []
+    sent = cluster_module.Engine.map
+    monkeypatch.setattr(cluster_module.Engine, "map", lambda self, fn, items, *a, **k: tasks.extend(items)
+                        or sent(self, fn, items, *a, **k))
+    monkeypatch.setattr(cp, "_judged_here", None)  # nothing judged in this process
+    with cluster(tmp_path) as address, cluster_module.engine(ClusterSpec(address=address)):
+        there = cp.consistency_profiles(scans, candidates, planar=True, folder=tmp_path / "cells")
+    assert len(tasks) >= 4 and {name for name, _ in tasks} == set(candidates)  # two stretches or more, each set
+    assert not list((tmp_path / "cells").glob("*/*.bin"))  # the cells' files are removed after the profile
+    for name in candidates:
+        assert here[name].window > 0 and len(here[name].score_m) == 16
+        for view in ("all", "past", "future"):
+            np.testing.assert_array_equal(there[name].views_m[view], here[name].views_m[view])
+        assert there[name].noise_m == here[name].noise_m and there[name].segments == here[name].segments
+
+
+@pytest.mark.parametrize("recipe", [True, False])
+def test_workers_that_map_every_temporary_afresh_are_named(tmp_path, caplog, recipe):
+    """Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_ set, which makes numpy's work 2-5 times slower; the
+    run says so, unless the workers were started as the README says."""
+    with cluster(tmp_path, workers=1, recipe=recipe) as address, \
+            cluster_module.engine(ClusterSpec(address=address)) as engine:
+        assert engine.slots == 1
+    named = [r.getMessage() for r in caplog.records if "MALLOC_TRIM_THRESHOLD_" in r.getMessage()]
+    assert len(named) == (0 if recipe else 1) and (recipe or "1 of 1 worker(s)" in named[0]), named
+
+
+def test_a_local_cluster_s_workers_keep_glibc_s_adaptive_threshold(tmp_path):
+    with cluster_module.engine(ClusterSpec(workers=1)) as engine:
+        assert engine.client.run(cluster_module.fixed_mmap_threshold) == {
+            address: False for address in engine.client.scheduler_info()["workers"]}
+
+
+def test_cells_a_worker_cannot_read_are_one_line(tmp_path):
+    with pytest.raises(InputError, match="cannot be read there.*storage every worker sees"):
+        StoredCells(tmp_path / "elsewhere", 10, 0.1).open()

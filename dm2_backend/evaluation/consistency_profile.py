@@ -39,7 +39,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from dm2_backend.evaluation import plots
-from dm2_backend.evaluation.profile_cells import CELLS_PER_FRAME, full_cells
+from dm2_backend.evaluation.profile_cells import CELLS_PER_FRAME, StoredCells, full_cells
 from dm2_backend.evaluation.report_writers import safe_name
 from dm2_backend.kernel.geometry.symmetric3 import smallest_eigen
 from dm2_backend.kernel.geometry.voxels import group_rows
@@ -59,6 +59,7 @@ from dm2_backend.kernel.planes import (
 from dm2_backend.kernel.prepared import ScanScale
 from dm2_backend.kernel.scan_scale import derive_scale
 from dm2_backend.kernel.scans import ScanSequence
+from dm2_backend.runtime import cluster
 from dm2_backend.runtime.atomic import atomic_write
 from dm2_backend.runtime.memory import release_freed_memory, release_mapped
 from dm2_backend.runtime.progress import progress as progress_of
@@ -353,7 +354,9 @@ def consistency_profiles(scans: ScanSequence, candidates: dict[str, np.ndarray],
     voxel = voxel or profile_voxel(scans, scale)
     release_freed_memory()
     candidates = {name: np.asarray(poses, dtype=np.float64) for name, poses in candidates.items()}
-    with full_cells(scans, voxel, seed, planar, progress, folder) as cells:
+    # on a cluster the stretches are tasks, which map the cells from files (in ``folder``: storage they all see)
+    stored = len(scans) * CELLS_PER_FRAME > MAX_CELLS and cluster.current() is not None
+    with full_cells(scans, voxel, seed, planar, progress, folder, stored) as cells:
         views = _stretched_views(len(scans), cells, candidates, voxel, seed, progress)
     # the sensor's: as measured at the poses that make the sharpest planes, at least the scans' resolution
     noise = max(min(measured for _, measured in views.values()), RESOLUTION * scale.spacing_raw)
@@ -373,38 +376,36 @@ def _stretched_views(n: int, cells: Cells, candidates: dict[str, np.ndarray], vo
     is judged by its own cells at full density against the neighbouring blocks (past, future) and against the map
     of the stretch's cells and the other frames' cells (all: at the density ``MAX_CELLS`` gives them) in the voxels
     the stretch reaches. ``cells``: every frame's at full density, in memory or mapped from files; in memory
-    besides: a stretch's (``MAX_CELLS``) and the other frames' map (``OTHERS_PER_FRAME`` a frame at least)."""
+    besides: a stretch's (``MAX_CELLS``) and the other frames' map (``OTHERS_PER_FRAME`` a frame at least). On a
+    cluster (:func:`cluster.current`) each stretch of each set of poses is a task (the cells stored in files)."""
     margin = 2 * max(window_frames(poses, voxel) for poses in candidates.values())
     whole = n * CELLS_PER_FRAME <= MAX_CELLS
     # the SIDE_BY_SIDE sets of poses judged at once share the budget (on any number of processors: the same
     # stretches, the same scores)
     length = n if whole else max(MAX_CELLS // SIDE_BY_SIDE // CELLS_PER_FRAME - 2 * margin, 2 * margin)
-    workers = min(len(candidates), SIDE_BY_SIDE, WORKERS)
-    views = {name: {view: np.full(n, np.nan) for view in ("all", "past", "future")} for name in candidates}
-    noise: dict[str, list[float]] = {name: [] for name in candidates}
     bounds = np.searchsorted(cells.frame, np.arange(n + 1, dtype=cells.frame.dtype))  # cells are in frame order
     release_mapped([cells.frame])
     # the other frames' map: sparser (a revisit is many frames, each sampled)
     others = cells if whole else _sampled(cells, max(OTHERS_PER_FRAME, MAX_CELLS // n), bounds, seed)
     index = {} if whole else {name: _Reach.of(others, poses, voxel) for name, poses in candidates.items()}
-    for s in progress_of(range(0, n, length), "profile stretches", total=-(-n // length), unit="stretch",
-                         enabled=progress and not whole):
-        release_freed_memory()  # the last stretch's blocks
-        release_mapped([cells.frame, cells.count, cells.mean, cells.scatter])  # the last stretch's pages, if files
-        e = min(n, s + length)
-        a, b = max(0, s - margin), min(n, e + margin)
-        part = slice(bounds[a], bounds[b])
-        dense = Cells(np.asarray(cells.frame[part]) - np.int32(a), np.asarray(cells.count[part]),
-                      np.asarray(cells.mean[part]), np.asarray(cells.scatter[part]), cells.size)
-        scored = np.zeros(b - a, bool)
-        scored[s - a:e - a] = True
-        surface = _flat_normals(dense.of_frames(scored))  # the candidates' shared judged cells
-        judge = partial(_judge_stretch, dense=dense, others=others, whole=whole, index=index, frames=(a, b),
-                        judged=(s, e), voxel=voxel, surface=surface)
-        # the sets of poses side by side (numpy's sorts, ufuncs and the KD-tree release the GIL)
-        for name, past, future, every, sigma in ordered_map(judge, candidates.items(), workers=workers):
-            views[name]["past"][s:e], views[name]["future"][s:e], views[name]["all"][s:e] = past, future, every
-            noise[name].append(sigma)
+    stretches = [_Stretch((max(0, s - margin), min(n, s + length + margin)), (s, min(n, s + length)),
+                          (int(bounds[max(0, s - margin)]), int(bounds[min(n, s + length + margin)])))
+                 for s in range(0, n, length)]
+    engine = None if whole or StoredCells.of(cells) is None else cluster.current()
+    if engine is not None:
+        shared = _Shared(StoredCells.of(cells), candidates, others, index, voxel)
+        tasks = [(name, stretch) for stretch in stretches for name in candidates]
+        results = engine.map(judge_stretch_task, tasks, "profile stretches", unit="stretch", enabled=progress,
+                             shared={"shared": shared})
+    else:
+        results = _judged_here(cells, candidates, stretches, others, whole, index, voxel, progress)
+    views = {name: {view: np.full(n, np.nan) for view in ("all", "past", "future")} for name in candidates}
+    noise: dict[str, list[float]] = {name: [] for name in candidates}
+    for (name, stretch), (past, future, every, sigma) in zip(
+            ((name, stretch) for stretch in stretches for name in candidates), results, strict=True):
+        s, e = stretch.judged
+        views[name]["past"][s:e], views[name]["future"][s:e], views[name]["all"][s:e] = past, future, every
+        noise[name].append(sigma)
     return {name: (views[name], float(np.median(noise[name]))) for name in candidates}
 
 
@@ -426,6 +427,63 @@ def _judge_stretch(candidate: tuple[str, np.ndarray], dense: Cells, others: Cell
     scored[s:e] = True
     every = _rms(disagreement(assigned, poses, CAP, bounded=True, judged=scored))
     return name, past[local], future[local], every[s:e], assigned.sigma
+
+
+@dataclass(frozen=True)
+class _Stretch:
+    """Frames ``frames`` (a, b) held to judge those of ``judged`` (s, e), their cells the rows ``rows``."""
+
+    frames: tuple[int, int]
+    judged: tuple[int, int]
+    rows: tuple[int, int]
+
+    def cells(self, cells: Cells) -> tuple[Cells, np.ndarray]:
+        """The stretch's cells (frames numbered from its first) copied into memory, and the judged cells'
+        :func:`_flat_normals`."""
+        (a, b), (s, e), part = self.frames, self.judged, slice(*self.rows)
+        dense = Cells(np.asarray(cells.frame[part]) - np.int32(a), np.asarray(cells.count[part]),
+                      np.asarray(cells.mean[part]), np.asarray(cells.scatter[part]), cells.size)
+        scored = np.zeros(b - a, bool)
+        scored[s - a:e - a] = True
+        return dense, _flat_normals(dense.of_frames(scored))
+
+
+def _judged_here(cells: Cells, candidates: dict[str, np.ndarray], stretches: list[_Stretch], others: Cells,
+                 whole: bool, index: dict[str, _Reach], voxel: float, progress: bool) -> list[tuple]:
+    """:func:`_judge_stretch` of every stretch and set of poses in this process (the sets side by side on
+    threads), in the order of the stretches, then the sets."""
+    workers = min(len(candidates), SIDE_BY_SIDE, WORKERS)
+    out = []
+    for stretch in progress_of(stretches, "profile stretches", total=len(stretches), unit="stretch",
+                               enabled=progress and not whole):
+        release_freed_memory()  # the last stretch's blocks
+        release_mapped([cells.frame, cells.count, cells.mean, cells.scatter])  # the last stretch's pages, if files
+        dense, surface = stretch.cells(cells)  # the candidates' shared judged cells
+        judge = partial(_judge_stretch, dense=dense, others=others, whole=whole, index=index,
+                        frames=stretch.frames, judged=stretch.judged, voxel=voxel, surface=surface)
+        # numpy's sorts, ufuncs and the KD-tree release the GIL
+        out += [result[1:] for result in ordered_map(judge, candidates.items(), workers=workers)]
+    return out
+
+
+@dataclass(frozen=True)
+class _Shared:
+    """What every stretch task reads (sent to the cluster once): where the cells are stored, the sets of poses,
+    the other frames' map and, per set, its index."""
+
+    cells: StoredCells
+    poses: dict[str, np.ndarray]
+    others: Cells
+    index: dict[str, _Reach]
+    voxel: float
+
+
+def judge_stretch_task(task: tuple[str, _Stretch], shared: _Shared) -> tuple:
+    """One stretch of one set of poses on a cluster's worker (:func:`_judge_stretch`): its views and noise."""
+    name, stretch = task
+    dense, surface = stretch.cells(shared.cells.open())
+    return _judge_stretch((name, shared.poses[name]), dense, shared.others, False, shared.index, stretch.frames,
+                          stretch.judged, shared.voxel, surface)[1:]
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import tempfile
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ import numpy as np
 from dm2_backend.kernel.planes import Cells, cells_from_scans
 from dm2_backend.kernel.scans import ScanSequence
 from dm2_backend.runtime.atomic import clean_stale, no_space_error, temp_prefix
+from dm2_backend.runtime.errors import InputError, one_line
 from dm2_backend.runtime.progress import progress as progress_of
 
 #: the cells kept per frame (as the dense stage keeps them at most)
@@ -45,18 +47,48 @@ def cells_folder(folder: Path | None = None) -> Path:
     return parent
 
 
+@dataclass(frozen=True)
+class StoredCells:
+    """Where :func:`full_cells` keeps a long sequence's cells: its files in ``folder``, ``rows`` cells of edge
+    ``size``; what a task on another process needs to map them (the folder on storage every worker sees)."""
+
+    folder: Path
+    rows: int
+    size: float
+
+    @classmethod
+    def of(cls, cells: Cells) -> StoredCells | None:
+        """Where ``cells`` are stored, None for cells held in memory."""
+        if not isinstance(cells.frame, np.memmap) or cells.frame.filename is None:
+            return None
+        return cls(Path(cells.frame.filename).parent, len(cells), cells.size)
+
+    def open(self) -> Cells:
+        """The cells, mapped read-only; a folder this process cannot read (a worker on another machine without
+        it): one line."""
+        try:
+            return Cells(*(np.memmap(self.folder / f"{name}.bin", dtype, "r", shape=(self.rows, *shape))
+                           for name, dtype, shape in COLUMNS), self.size)
+        except (OSError, ValueError) as exc:
+            raise InputError(self.folder, "the consistency profile's cells cannot be read there "
+                                          f"({one_line(str(exc))[:120]}); on several machines give --cache-dir on "
+                                          "storage every worker sees") from None
+
+
 @contextmanager
 def full_cells(scans: ScanSequence, voxel: float, seed: int, planar: bool, progress: bool,
-               folder: Path | None = None) -> Iterator[Cells]:
+               folder: Path | None = None, stored: bool = False) -> Iterator[Cells]:
     """Every frame's cells at full density (:func:`cells_of`), in frame order: in memory while ``ONE_PASS_CELLS``
-    hold them, else appended a part of the sequence at a time (each part seeded by its first frame) to files in
-    :func:`cells_folder`, mapped read-only (``memory.release_mapped`` drops their pages) and removed on leaving.
-    Out of disk space: one line (``InputError``)."""
+    hold them (and not ``stored``), else appended a part of the sequence at a time (each part seeded by its first
+    frame; one part where they fit: the cells held in memory otherwise) to files in :func:`cells_folder`, mapped
+    read-only (``memory.release_mapped`` drops their pages; :meth:`StoredCells.of` says where) and removed on
+    leaving. Out of disk space: one line (``InputError``)."""
     n = len(scans)
-    if n * CELLS_PER_FRAME <= ONE_PASS_CELLS:
+    one_pass = n * CELLS_PER_FRAME <= ONE_PASS_CELLS
+    if one_pass and not stored:
         yield cells_of(scans, voxel, n * CELLS_PER_FRAME, seed, planar, progress)
         return
-    part = max(1, ONE_PASS_CELLS // CELLS_PER_FRAME)
+    part = max(1, n if one_pass else ONE_PASS_CELLS // CELLS_PER_FRAME)
     with tempfile.TemporaryDirectory(prefix=f"{temp_prefix()}profile-", dir=cells_folder(folder)) as tmp:
         path = {name: Path(tmp) / f"{name}.bin" for name, _, _ in COLUMNS}
         rows = 0
@@ -64,9 +96,9 @@ def full_cells(scans: ScanSequence, voxel: float, seed: int, planar: bool, progr
             with ExitStack() as stack:
                 files = {name: stack.enter_context(open(p, "wb")) for name, p in path.items()}
                 for first in progress_of(range(0, n, part), "profile cells", total=-(-n // part), unit="part",
-                                         enabled=progress):
+                                         enabled=progress and not one_pass):
                     some = cells_of(scans.subset(np.arange(first, min(n, first + part))), voxel,
-                                    part * CELLS_PER_FRAME, seed + first, planar, False)
+                                    part * CELLS_PER_FRAME, seed + first, planar, progress and one_pass)
                     some.frame += np.int32(first)
                     for name, dtype, _ in COLUMNS:
                         np.ascontiguousarray(getattr(some, name), dtype).tofile(files[name])
@@ -76,5 +108,4 @@ def full_cells(scans: ScanSequence, voxel: float, seed: int, planar: bool, progr
         if rows == 0:  # no scan had a point
             yield Cells(*(np.zeros((0, *shape), dtype) for _, dtype, shape in COLUMNS), voxel / 4.0)
             return
-        yield Cells(*(np.memmap(path[name], dtype, "r", shape=(rows, *shape)) for name, dtype, shape in COLUMNS),
-                    voxel / 4.0)
+        yield StoredCells(Path(tmp), rows, voxel / 4.0).open()

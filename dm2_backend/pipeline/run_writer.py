@@ -28,6 +28,7 @@ from dm2_backend.pipeline.full_rate import corrected_full_rate
 from dm2_backend.pipeline.inputs import RunInputs, depth_sensor
 from dm2_backend.pipeline.run_report import PrepareSummary, RunReport
 from dm2_backend.prepare.steps import Prepared
+from dm2_backend.runtime import cluster
 from dm2_backend.runtime.errors import InputError
 from dm2_backend.runtime.memory import peak_rss_mb, release_mapped
 from dm2_backend.runtime.stage_log import StageLog
@@ -158,7 +159,7 @@ def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, fina
     release_mapped(prep.frames.points)  # the profiles read the scans, not the frames
     with stages.stage("consistency"):
         profiles = consistency_profiles(inputs.scans, {"warm start": prep.warm_start, method: final},
-                                        output_timestamps(inputs), prep.frames.planar)
+                                        output_timestamps(inputs), prep.frames.planar, folder=_cells_folder(prep))
         written += write_profiles(out, profiles, {"warm start": prep.warm_start[:, :3, 3], method: final[:, :3, 3]},
                                   steps=guard_marks(details))
     log.info("consistency: %s", "; ".join(f"{name} {len(p.segments)} flagged stretch(es), {int(p.flagged.sum())} "
@@ -236,3 +237,11 @@ def _warm_summary(warm_report: dict) -> dict:
         out["windows_from_odometry"] = [w for w in warm_report["windows"] if w.get("source") == "odometry"]
         out["windows_checked"] = len(warm_report["windows"])
     return out
+
+
+def _cells_folder(prep: Prepared) -> Path | None:
+    """Where a long sequence's profile cells are kept: on a cluster beside the cached frames (the workers read
+    both from there: the storage they share), else the system's temporary folder."""
+    if cluster.current() is None or prep.frames.stored is None:
+        return None
+    return prep.frames.stored.parent / "profile-cells"

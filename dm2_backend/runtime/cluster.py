@@ -85,16 +85,19 @@ class Engine:
         size = max(smallest, -(-count // (4 * self.slots)))
         return size if largest is None else max(smallest, min(largest, size))
 
-    def map(self, fn: Callable[[Any], Any], tasks: Sequence[Any], desc: str, *, unit: str = "task",
-            enabled: bool = True) -> list:
-        """``fn(task)`` for every task on the cluster's workers, the results in the tasks' order; the stage's
-        progress counts finished tasks across all workers. A task's error is raised here as it was raised there."""
+    def map(self, fn: Callable[..., Any], tasks: Sequence[Any], desc: str, *, unit: str = "task",
+            enabled: bool = True, shared: dict[str, Any] | None = None) -> list:
+        """``fn(task, **shared)`` for every task on the cluster's workers, the results in the tasks' order; the
+        stage's progress counts finished tasks across all workers. ``shared``: what every task reads, sent to the
+        cluster once (each value whole), not with each task. A task's error is raised here as it was raised
+        there."""
         from distributed import as_completed
         from distributed.client import FutureCancelledError
         from distributed.scheduler import KilledWorker
 
         client = self.client
-        futures = client.map(fn, list(tasks), pure=False)
+        sent = {name: client.scatter([value], hash=False)[0] for name, value in (shared or {}).items()}
+        futures = client.map(fn, list(tasks), pure=False, **sent)
         try:
             for _ in progress(as_completed(futures), desc, total=len(futures), unit=unit, enabled=enabled):
                 pass
@@ -107,7 +110,7 @@ class Engine:
         except FutureCancelledError as exc:
             raise ClusterError(None, f"{desc}: the cluster cancelled a task ({one_line(str(exc))[:200]})") from None
         finally:
-            client.cancel(futures)
+            client.cancel([*futures, *sent.values()])
 
 
 _current: contextvars.ContextVar[Engine | None] = contextvars.ContextVar("dm2_cluster", default=None)
@@ -141,7 +144,9 @@ def _client(spec: ClusterSpec) -> Iterator[Any]:
     from distributed import Client, LocalCluster
 
     settings = {"distributed.scheduler.allowed-failures": ALLOWED_FAILURES, "logging.distributed": "error",
-                "distributed.admin.system-monitor.gil.enabled": False}
+                "distributed.admin.system-monitor.gil.enabled": False,
+                # glibc's own memory thresholds (the one Dask sets maps and unmaps numpy's temporaries each time)
+                "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
     with dask.config.set(settings), contextlib.ExitStack() as stack:
         if spec.workers is not None:
             # one thread each: the tasks are numpy, scipy and open3d work that use a core apiece
@@ -158,9 +163,21 @@ def _client(spec: ClusterSpec) -> Iterator[Any]:
         workers = client.scheduler_info(n_workers=-1)["workers"]
         log.info("cluster: %d worker(s), %d thread(s) at %s", len(workers),
                  sum(w["nthreads"] for w in workers.values()), client.scheduler.address)
+        slow = [address for address, fixed in client.run(fixed_mmap_threshold).items() if fixed]
+        if slow:
+            log.warning("cluster: %d of %d worker(s) (%s) run with Dask's MALLOC_TRIM_THRESHOLD_ alone: numpy's "
+                        "temporaries are mapped and unmapped each time and tasks run 2-5 times slower; start the "
+                        "workers with MALLOC_MMAP_THRESHOLD_ set too (the README's cluster recipe)", len(slow),
+                        len(workers), slow[0])
         yield client
 
 
 def _one_thread_env() -> dict[str, str]:
     """Each worker process's thread caps: one task a core, not one task on every core."""
     return {name: "1" for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+
+
+def fixed_mmap_threshold() -> bool:
+    """Whether this process's glibc maps every allocation over 128 KiB afresh: ``MALLOC_TRIM_THRESHOLD_`` set
+    (as Dask's nanny sets it) turns off the adaptive mmap threshold, unless ``MALLOC_MMAP_THRESHOLD_`` sets one."""
+    return "MALLOC_TRIM_THRESHOLD_" in os.environ and "MALLOC_MMAP_THRESHOLD_" not in os.environ
