@@ -19,6 +19,7 @@ from click.testing import CliRunner
 
 from dm2_backend.cli.main import cli
 from dm2_backend.evaluation import consistency_profile as cp
+from dm2_backend.evaluation import profile_cells, profile_stretches
 from dm2_backend.evaluation.profile_cells import StoredCells
 from dm2_backend.formats import open_scans, read_trajectory
 from dm2_backend.kernel.prepared import Frames
@@ -209,13 +210,13 @@ def test_the_consistency_profile_s_stretches_on_workers_score_as_in_this_process
     frame, the noise and the flags equal the in-process profile's."""
     scans = open_scans(sim / "velodyne")
     candidates = {name: read_trajectory(sim / f"{name}.txt", "kitti").poses for name in ("warm_start", "poses")}
-    monkeypatch.setattr(cp, "MAX_CELLS", 4 * cp.CELLS_PER_FRAME)
+    monkeypatch.setattr(profile_stretches, "MAX_CELLS", 4 * profile_cells.CELLS_PER_FRAME)
     here = cp.consistency_profiles(scans, candidates, planar=True)
     tasks = []
     sent = cluster_module.Engine.map
     monkeypatch.setattr(cluster_module.Engine, "map", lambda self, fn, items, *a, **k: tasks.extend(items)
                         or sent(self, fn, items, *a, **k))
-    monkeypatch.setattr(cp, "_judged_here", None)  # nothing judged in this process
+    monkeypatch.setattr(profile_stretches, "_judged_here", None)  # nothing judged in this process
     with cluster(tmp_path) as address, cluster_module.engine(ClusterSpec(address=address)):
         there = cp.consistency_profiles(scans, candidates, planar=True, folder=tmp_path / "cells")
     assert len(tasks) >= 4 and {name for name, _ in tasks} == set(candidates)  # two stretches or more, each set

@@ -15,6 +15,7 @@ from shared_helpers import DATA, need, run
 
 from dm2_backend.evaluation import consistency_profile as cp
 from dm2_backend.evaluation import plots, profile_cells
+from dm2_backend.evaluation import profile_stretches as stretches
 from dm2_backend.evaluation.consistency_profile import GAP, consistency_profile, write_profiles
 from dm2_backend.formats import ReadOptions, write_trajectory
 from dm2_backend.kernel.geometry import se3
@@ -93,8 +94,8 @@ def test_a_sequence_longer_than_the_cell_budget_is_judged_a_stretch_at_a_time(mo
     far from it."""
     _, seq, gt = street()
     full = profile(seq, gt)
-    monkeypatch.setattr(cp, "MAX_CELLS", 8 * cp.CELLS_PER_FRAME)
-    one_pass_cells = profile_cells.ONE_PASS_CELLS if one_pass else 40 * cp.CELLS_PER_FRAME
+    monkeypatch.setattr(stretches, "MAX_CELLS", 8 * profile_cells.CELLS_PER_FRAME)
+    one_pass_cells = profile_cells.ONE_PASS_CELLS if one_pass else 40 * profile_cells.CELLS_PER_FRAME
     monkeypatch.setattr(profile_cells, "ONE_PASS_CELLS", one_pass_cells)
     poses = gt if poses_of == "truth" else jump_from(gt, 40)
     p = profile(seq, poses)
@@ -113,10 +114,10 @@ def test_the_sets_of_poses_judged_side_by_side_score_as_one_after_the_other(monk
     (8 frames' cells a set) do not depend on the processors."""
     _, seq, gt = street()
     candidates = {"truth": gt, "jump": jump_from(gt, 40)}
-    monkeypatch.setattr(cp, "MAX_CELLS", 16 * cp.CELLS_PER_FRAME)
-    monkeypatch.setattr(cp, "WORKERS", 2)
+    monkeypatch.setattr(stretches, "MAX_CELLS", 16 * profile_cells.CELLS_PER_FRAME)
+    monkeypatch.setattr(stretches, "WORKERS", 2)
     side_by_side = cp.consistency_profiles(seq, candidates, seq.timestamps)
-    monkeypatch.setattr(cp, "WORKERS", 1)
+    monkeypatch.setattr(stretches, "WORKERS", 1)
     in_turn = cp.consistency_profiles(seq, candidates, seq.timestamps)
     for name in candidates:
         for view in ("all", "past", "future"):
@@ -315,9 +316,10 @@ def test_the_cells_within_a_stretchs_reach_are_those_its_voxels_share(where):
     a, b = 10, 20
     stretch = cells.of_frames((np.arange(n) >= a) & (np.arange(n) < b))
     local = Cells(stretch.frame - np.int32(a), stretch.count, stretch.mean, stretch.scatter, stretch.size)
-    got = cp._with_reach(local, a, b, cells, cp._Reach.of(cells, poses, 1.0), poses, 1.0)
+    got = stretches._with_reach(local, a, b, cells, stretches._Reach.of(cells, poses, 1.0), poses, 1.0)
     other = (cells.frame < a) | (cells.frame >= b)
-    inv, _ = group_rows(np.concatenate([cp._voxel_keys(stretch, poses, 1.0), cp._voxel_keys(cells, poses, 1.0)[other]]))
+    keys = stretches._voxel_keys
+    inv, _ = group_rows(np.concatenate([keys(stretch, poses, 1.0), keys(cells, poses, 1.0)[other]]))
     near = np.flatnonzero(other)[np.isin(inv[len(stretch):], inv[:len(stretch)])]
     assert np.array_equal(got.frame, np.concatenate([stretch.frame, cells.frame[near]]))
     assert np.array_equal(got.mean, np.concatenate([stretch.mean, cells.mean[near]]))

@@ -6,8 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dm2_backend.evaluation import consistency_profile as cp
-from dm2_backend.evaluation import profile_cells
+from dm2_backend.evaluation import profile_cells, profile_stretches, profile_views
 from dm2_backend.kernel.planes import Cells
 from dm2_backend.kernel.scans import Scan, ScanSequence
 
@@ -44,7 +43,7 @@ def test_the_other_frames_map_keeps_about_its_share_of_each_frame_the_same_under
     frame = np.repeat(np.arange(len(count)), count).astype(np.int32)
     k = len(frame)
     cells = Cells(frame, np.ones(k, np.float32), np.zeros((k, 3), np.float32), np.zeros((k, 6), np.float32), 0.1)
-    one, again = cp._sampled(cells, 200, bounds, 3), cp._sampled(cells, 200, bounds, 3)
+    one, again = profile_stretches._sampled(cells, 200, bounds, 3), profile_stretches._sampled(cells, 200, bounds, 3)
     np.testing.assert_array_equal(one.frame, again.frame)
     kept = np.bincount(one.frame, minlength=len(count))
     assert kept[0] == 0 and kept[1] == 10  # a frame with fewer keeps them all
@@ -65,7 +64,7 @@ def test_only_a_flat_cell_has_a_normal(kind):
     scatter = np.array([(d[:, i] * d[:, j]).sum() for i, j in zip(*np.triu_indices(3), strict=True)])
     cells = Cells(np.zeros(1, np.int32), np.array([len(pts)], np.float32), pts.mean(0, keepdims=True),
                   scatter[None].astype(np.float32), 0.2)
-    normal = cp._flat_normals(cells)[0]
+    normal = profile_views.flat_normals(cells)[0]
     if kind == "flat":
         assert abs(normal[2]) == pytest.approx(1.0, abs=1e-3)
     else:

@@ -1,0 +1,243 @@
+"""The consistency profile a stretch of frames at a time: memory stays bounded and every frame is judged as in a
+short sequence.
+
+A sequence longer than ``MAX_CELLS`` cells is judged in stretches (:func:`stretched_views`): each frame by its own
+cells at full density against its neighbouring blocks (``profile_views``) and against the map of the stretch and
+the other frames' cells (the "all" view: leave-one-out with robust weights, which sees a revisit that does not
+line up), the other frames' cells sampled sparser (``OTHERS_PER_FRAME`` a frame at least) and found by the voxels
+the stretch reaches (:class:`_Reach`). The sets of poses (the warm start and the result) are judged side by side
+(``SIDE_BY_SIDE``) on threads; on a cluster each stretch of each set is a task (:func:`judge_stretch_task`) that
+maps the cells from files.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from functools import partial
+
+import numpy as np
+
+from dm2_backend.evaluation.profile_cells import CELLS_PER_FRAME, StoredCells
+from dm2_backend.evaluation.profile_views import CAP, flat_normals, neighbour_views, rms, window_frames
+from dm2_backend.kernel.geometry.voxels import group_rows
+from dm2_backend.kernel.planes import Cells, assign, chunks, disagreement, placed_means
+from dm2_backend.runtime import cluster
+from dm2_backend.runtime.memory import release_freed_memory, release_mapped
+from dm2_backend.runtime.progress import progress as progress_of
+from dm2_backend.runtime.threads import ordered_map
+
+#: the cells of the stretches of frames judged at once, and of the other frames' map beside a stretch, which keeps
+#: at least ``OTHERS_PER_FRAME`` of each frame
+MAX_CELLS, OTHERS_PER_FRAME = 1_500_000, 64
+
+
+#: sets of poses judged at once (the warm start and the result): a stretch holds ``MAX_CELLS / SIDE_BY_SIDE``
+#: cells (a sequence of at most ``MAX_CELLS`` is judged whole, ``SIDE_BY_SIDE`` assignments of it at once) ...
+SIDE_BY_SIDE = 2
+
+
+#: ... each on a thread of its own, as many as there are processors
+WORKERS = min(SIDE_BY_SIDE, os.cpu_count() or 1)
+
+
+def _sampled(cells: Cells, per_frame: int, bounds: np.ndarray, seed: int) -> Cells:
+    """About ``per_frame`` cells of each frame (frame i's are rows ``bounds[i]:bounds[i + 1]``), each kept with the
+    same chance (seeded), copied into memory a thousand frames at a time (a file's pages dropped after each)."""
+    rng = np.random.default_rng(seed)
+    count = np.diff(bounds)
+    chance = np.minimum(1.0, per_frame / np.maximum(count, 1))
+    kept = []
+    for a in range(0, len(count), 1000):
+        b = min(len(count), a + 1000)
+        draw = rng.random(int(bounds[b] - bounds[a])) < np.repeat(chance[a:b], count[a:b])
+        at = bounds[a] + np.flatnonzero(draw)
+        kept.append(Cells(cells.frame[at], cells.count[at], cells.mean[at], cells.scatter[at], cells.size))
+        release_mapped([cells.frame, cells.count, cells.mean, cells.scatter])  # the pages read, if files
+    return Cells(*(np.concatenate([getattr(k, f) for k in kept]) if kept else getattr(cells, f)[:0]
+                   for f in ("frame", "count", "mean", "scatter")), cells.size)
+
+
+def stretched_views(n: int, cells: Cells, candidates: dict[str, np.ndarray], voxel: float, seed: int,
+                     progress: bool) -> dict[str, tuple[dict[str, np.ndarray], float]]:
+    """The views of every frame, and the noise the planes measure (m), a stretch of frames at a time: each frame
+    is judged by its own cells at full density against the neighbouring blocks (past, future) and against the map
+    of the stretch's cells and the other frames' cells (all: at the density ``MAX_CELLS`` gives them) in the voxels
+    the stretch reaches. ``cells``: every frame's at full density, in memory or mapped from files; in memory
+    besides: a stretch's (``MAX_CELLS``) and the other frames' map (``OTHERS_PER_FRAME`` a frame at least). On a
+    cluster (:func:`cluster.current`) each stretch of each set of poses is a task (the cells stored in files)."""
+    margin = 2 * max(window_frames(poses, voxel) for poses in candidates.values())
+    whole = n * CELLS_PER_FRAME <= MAX_CELLS
+    # the SIDE_BY_SIDE sets of poses judged at once share the budget (on any number of processors: the same
+    # stretches, the same scores)
+    length = n if whole else max(MAX_CELLS // SIDE_BY_SIDE // CELLS_PER_FRAME - 2 * margin, 2 * margin)
+    bounds = np.searchsorted(cells.frame, np.arange(n + 1, dtype=cells.frame.dtype))  # cells are in frame order
+    release_mapped([cells.frame])
+    # the other frames' map: sparser (a revisit is many frames, each sampled)
+    others = cells if whole else _sampled(cells, max(OTHERS_PER_FRAME, MAX_CELLS // n), bounds, seed)
+    index = {} if whole else {name: _Reach.of(others, poses, voxel) for name, poses in candidates.items()}
+    stretches = [_Stretch((max(0, s - margin), min(n, s + length + margin)), (s, min(n, s + length)),
+                          (int(bounds[max(0, s - margin)]), int(bounds[min(n, s + length + margin)])))
+                 for s in range(0, n, length)]
+    engine = None if whole or StoredCells.of(cells) is None else cluster.current()
+    if engine is not None:
+        shared = _Shared(StoredCells.of(cells), candidates, others, index, voxel)
+        tasks = [(name, stretch) for stretch in stretches for name in candidates]
+        results = engine.map(judge_stretch_task, tasks, "profile stretches", unit="stretch", enabled=progress,
+                             shared={"shared": shared})
+    else:
+        results = _judged_here(cells, candidates, stretches, others, whole, index, voxel, progress)
+    views = {name: {view: np.full(n, np.nan) for view in ("all", "past", "future")} for name in candidates}
+    noise: dict[str, list[float]] = {name: [] for name in candidates}
+    for (name, stretch), (past, future, every, sigma) in zip(
+            ((name, stretch) for stretch in stretches for name in candidates), results, strict=True):
+        s, e = stretch.judged
+        views[name]["past"][s:e], views[name]["future"][s:e], views[name]["all"][s:e] = past, future, every
+        noise[name].append(sigma)
+    return {name: (views[name], float(np.median(noise[name]))) for name in candidates}
+
+
+def _judge_stretch(candidate: tuple[str, np.ndarray], dense: Cells, others: Cells, whole: bool,
+                   index: dict[str, _Reach], frames: tuple[int, int], judged: tuple[int, int], voxel: float,
+                   surface: np.ndarray) -> tuple[str, np.ndarray, np.ndarray, np.ndarray, float]:
+    """One set of poses over one stretch (:func:`stretched_views`): frames ``frames`` (a, b) in ``dense``,
+    those of ``judged`` (s, e) scored against the map of ``others`` (every frame's cells when the stretch is the
+    ``whole`` sequence, else the other frames' sparser ones, of which ``index`` finds those the stretch reaches),
+    ``surface`` the judged cells' :func:`flat_normals`. Its name, the past, future and all views of the judged
+    frames, and the noise its planes measure."""
+    name, poses = candidate
+    (a, b), (s, e) = frames, judged
+    local = slice(s - a, e - a)
+    past, future = neighbour_views(dense, poses[a:b], voxel, window_frames(poses, voxel), a, local, surface)
+    mixed = others if whole else _with_reach(dense, a, b, others, index[name], poses, voxel)
+    assigned = assign(mixed, poses, voxel)
+    scored = np.zeros(len(poses), bool)
+    scored[s:e] = True
+    every = rms(disagreement(assigned, poses, CAP, bounded=True, judged=scored))
+    return name, past[local], future[local], every[s:e], assigned.sigma
+
+
+@dataclass(frozen=True)
+class _Stretch:
+    """Frames ``frames`` (a, b) held to judge those of ``judged`` (s, e), their cells the rows ``rows``."""
+
+    frames: tuple[int, int]
+    judged: tuple[int, int]
+    rows: tuple[int, int]
+
+    def cells(self, cells: Cells) -> tuple[Cells, np.ndarray]:
+        """The stretch's cells (frames numbered from its first) copied into memory, and the judged cells'
+        :func:`flat_normals`."""
+        (a, b), (s, e), part = self.frames, self.judged, slice(*self.rows)
+        dense = Cells(np.asarray(cells.frame[part]) - np.int32(a), np.asarray(cells.count[part]),
+                      np.asarray(cells.mean[part]), np.asarray(cells.scatter[part]), cells.size)
+        scored = np.zeros(b - a, bool)
+        scored[s - a:e - a] = True
+        return dense, flat_normals(dense.of_frames(scored))
+
+
+def _judged_here(cells: Cells, candidates: dict[str, np.ndarray], stretches: list[_Stretch], others: Cells,
+                 whole: bool, index: dict[str, _Reach], voxel: float, progress: bool) -> list[tuple]:
+    """:func:`_judge_stretch` of every stretch and set of poses in this process (the sets side by side on
+    threads), in the order of the stretches, then the sets."""
+    workers = min(len(candidates), SIDE_BY_SIDE, WORKERS)
+    out = []
+    for stretch in progress_of(stretches, "profile stretches", total=len(stretches), unit="stretch",
+                               enabled=progress and not whole):
+        release_freed_memory()  # the last stretch's blocks
+        release_mapped([cells.frame, cells.count, cells.mean, cells.scatter])  # the last stretch's pages, if files
+        dense, surface = stretch.cells(cells)  # the candidates' shared judged cells
+        judge = partial(_judge_stretch, dense=dense, others=others, whole=whole, index=index,
+                        frames=stretch.frames, judged=stretch.judged, voxel=voxel, surface=surface)
+        # numpy's sorts, ufuncs and the KD-tree release the GIL
+        out += [result[1:] for result in ordered_map(judge, candidates.items(), workers=workers)]
+    return out
+
+
+@dataclass(frozen=True)
+class _Shared:
+    """What every stretch task reads (sent to the cluster once): where the cells are stored, the sets of poses,
+    the other frames' map and, per set, its index."""
+
+    cells: StoredCells
+    poses: dict[str, np.ndarray]
+    others: Cells
+    index: dict[str, _Reach]
+    voxel: float
+
+
+def judge_stretch_task(task: tuple[str, _Stretch], shared: _Shared) -> tuple:
+    """One stretch of one set of poses on a cluster's worker (:func:`_judge_stretch`): its views and noise."""
+    name, stretch = task
+    dense, surface = stretch.cells(shared.cells.open())
+    return _judge_stretch((name, shared.poses[name]), dense, shared.others, False, shared.index, stretch.frames,
+                          stretch.judged, shared.voxel, surface)[1:]
+
+
+@dataclass(frozen=True)
+class _Reach:
+    """Cells sorted by the voxel they fall in at some poses (one int64 key a voxel, ``BITS`` bits an axis from
+    ``low``): the cells of any set of voxels by binary search, without sorting them all again. Cells spread over
+    more voxels than the keys span keep their (K,3) voxels in ``key`` (``order`` None) and are matched by sorting."""
+
+    low: np.ndarray | None
+    key: np.ndarray
+    order: np.ndarray | None
+
+    BITS = 21
+
+    @classmethod
+    def of(cls, cells: Cells, poses: np.ndarray, voxel: float) -> _Reach:
+        keys = _voxel_keys(cells, poses, voxel)
+        if not len(keys):
+            return cls(None, keys, None)
+        low = keys.min(0)
+        if int((keys.max(0) - low).max()) >= 1 << cls.BITS:
+            return cls(None, keys, None)
+        flat = cls._flat(keys, low)
+        order = np.argsort(flat, kind="stable")
+        return cls(low, flat[order], order)
+
+    @classmethod
+    def _flat(cls, keys: np.ndarray, low: np.ndarray) -> np.ndarray:
+        """One key a row; -1 for a row outside the indexed cells' span (it meets none of them)."""
+        k = keys - low
+        inside = ((k >= 0) & (k < (1 << cls.BITS))).all(1)
+        return np.where(inside, (k[:, 0] << (2 * cls.BITS)) | (k[:, 1] << cls.BITS) | k[:, 2], -1)
+
+    def cells_in(self, keys: np.ndarray) -> np.ndarray:
+        """The indexed cells in the voxels ``keys`` (K,3), ascending."""
+        if self.order is None:
+            inv, _ = group_rows(np.concatenate([keys, self.key]))
+            return np.flatnonzero(np.isin(inv[len(keys):], inv[:len(keys)]))
+        wanted = np.unique(self._flat(keys, self.low))
+        wanted = wanted[wanted >= 0]
+        first = np.searchsorted(self.key, wanted, "left")
+        count = np.searchsorted(self.key, wanted, "right") - first
+        at = np.repeat(first - np.cumsum(count) + count, count) + np.arange(int(count.sum()))
+        return np.sort(self.order[at])
+
+
+def _with_reach(dense: Cells, a: int, b: int, others: Cells, reach: _Reach, poses: np.ndarray,
+                voxel: float) -> Cells:
+    """The cells of frames ``a..b-1`` (``dense``, numbered from ``a``) and the cells of the other frames
+    (``others``, indexed by ``reach``) that fall in a voxel one of them occupies at ``poses``: the others cannot
+    share a plane with them."""
+    dense = Cells(dense.frame + np.int32(a), dense.count, dense.mean, dense.scatter, dense.size)
+    near = reach.cells_in(_voxel_keys(dense, poses, voxel))
+    near = near[(others.frame[near] < a) | (others.frame[near] >= b)]
+    return Cells(*(np.concatenate([getattr(dense, f), getattr(others, f)[near]])
+                   for f in ("frame", "count", "mean", "scatter")), dense.size)
+
+
+def _voxel_keys(cells: Cells, poses: np.ndarray, voxel: float) -> np.ndarray:
+    """The voxel (edge ``voxel``) of each cell's mean at ``poses``, (K,3) integers."""
+    keys = np.empty((len(cells), 3), np.int64)
+    for c in chunks(len(cells)):
+        keys[c] = np.floor(placed_means(cells, poses, c) / voxel)
+    return keys
+
+
+def on_cluster(n: int) -> bool:
+    """Whether ``n`` frames are judged in stretches on a cluster (their cells then stored in files)."""
+    return n * CELLS_PER_FRAME > MAX_CELLS and cluster.current() is not None
