@@ -8,6 +8,7 @@ import contextlib
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -217,15 +218,33 @@ def test_the_consistency_profile_s_stretches_on_workers_score_as_in_this_process
     monkeypatch.setattr(cluster_module.Engine, "map", lambda self, fn, items, *a, **k: tasks.extend(items)
                         or sent(self, fn, items, *a, **k))
     monkeypatch.setattr(profile_stretches, "_judged_here", None)  # nothing judged in this process
-    with cluster(tmp_path) as address, cluster_module.engine(ClusterSpec(address=address)):
+    with cluster(tmp_path) as address, cluster_module.engine(ClusterSpec(address=address)) as engine:
         there = cp.consistency_profiles(scans, candidates, planar=True, folder=tmp_path / "cells")
+        held = engine.client.has_what()
+        # without a folder the workers share, the stretches stay in this process
+        assert profile_stretches.cluster_for(len(scans), 2, shared_folder=False) is None
     assert len(tasks) >= 4 and {name for name, _ in tasks} == set(candidates)  # two stretches or more, each set
-    assert not list((tmp_path / "cells").glob("*/*.bin"))  # the cells' files are removed after the profile
+    assert all(not keys for keys in held.values()), held  # what was sent to the workers is released
+    (mine,) = (tmp_path / "cells").iterdir()  # this machine's folder in the shared one ...
+    assert mine.name == socket.gethostname() and not list(mine.iterdir())  # ... and the cells removed from it
     for name in candidates:
         assert here[name].window > 0 and len(here[name].score_m) == 16
         for view in ("all", "past", "future"):
             np.testing.assert_array_equal(there[name].views_m[view], here[name].views_m[view])
         assert there[name].noise_m == here[name].noise_m and there[name].segments == here[name].segments
+
+
+def test_a_local_cluster_no_larger_than_the_profile_s_threads_leaves_the_profile_here(sim, monkeypatch):
+    """Tasks where the cluster runs more at once than this process would (2 sets of poses on 2 threads)."""
+    scans = open_scans(sim / "velodyne")
+    monkeypatch.setattr(profile_stretches, "MAX_CELLS", 4 * profile_cells.CELLS_PER_FRAME)
+    monkeypatch.setattr(profile_stretches, "WORKERS", 2)
+    with cluster_module.engine(ClusterSpec(workers=1)):
+        assert profile_stretches.cluster_for(len(scans), 2, False) is None  # 1 worker, 2 threads here
+        assert profile_stretches.cluster_for(len(scans), 1, False) is None  # 1 worker, 1 set of poses
+    with cluster_module.engine(ClusterSpec(workers=3)):
+        assert profile_stretches.cluster_for(len(scans), 2, False) is not None
+        assert profile_stretches.cluster_for(2, 2, False) is None  # judged whole
 
 
 @pytest.mark.parametrize("recipe", [True, False])

@@ -32,7 +32,7 @@ import numpy as np
 
 from dm2_backend.evaluation import plots
 from dm2_backend.evaluation.profile_cells import full_cells
-from dm2_backend.evaluation.profile_stretches import on_cluster, stretched_views
+from dm2_backend.evaluation.profile_stretches import cluster_for, stretched_views
 from dm2_backend.evaluation.profile_views import window_frames
 from dm2_backend.evaluation.report_writers import safe_name
 from dm2_backend.kernel.prepared import ScanScale
@@ -50,6 +50,8 @@ FLOOR = 1.0
 RESOLUTION = 0.01
 #: flagged frames this close (frames) are one segment
 GAP = 2
+
+
 @dataclass(frozen=True)
 class Segment:
     """Consecutive flagged frames ``first``..``last`` (inclusive), their stamps (s) when known, and the frame
@@ -157,16 +159,17 @@ def consistency_profiles(scans: ScanSequence, candidates: dict[str, np.ndarray],
                          progress: bool = False, folder: Path | None = None) -> dict[str, ConsistencyProfile]:
     """The profile of each set of poses (one per scan). The scans are summed into cells once, at full density
     (:func:`~dm2_backend.evaluation.profile_cells.full_cells`: in memory, or for a long sequence temporary files in
-    ``folder``), and judged a stretch at a time (:func:`stretched_views`). ``planar``: 2D scans, their lines seen
-    as vertical walls."""
+    ``folder``), and judged a stretch at a time (:func:`stretched_views`; on a cluster, :func:`cluster_for`: the
+    workers read the files, so on several machines ``folder`` must be on storage they share). ``planar``: 2D
+    scans, their lines seen as vertical walls."""
     scale = derive_scale(scans)
     voxel = voxel or profile_voxel(scans, scale)
     release_freed_memory()
     candidates = {name: np.asarray(poses, dtype=np.float64) for name, poses in candidates.items()}
     # on a cluster the stretches are tasks, which map the cells from files (in ``folder``: storage they all see)
-    stored = on_cluster(len(scans))
-    with full_cells(scans, voxel, seed, planar, progress, folder, stored) as cells:
-        views = stretched_views(len(scans), cells, candidates, voxel, seed, progress)
+    engine = cluster_for(len(scans), len(candidates), folder is not None)
+    with full_cells(scans, voxel, seed, planar, progress, folder, engine is not None) as cells:
+        views = stretched_views(len(scans), cells, candidates, voxel, seed, progress, engine)
     # the sensor's: as measured at the poses that make the sharpest planes, at least the scans' resolution
     noise = max(min(measured for _, measured in views.values()), RESOLUTION * scale.spacing_raw)
     return {name: _profile(views[name][0], noise, stamps, voxel, window_frames(poses, voxel))

@@ -4,6 +4,7 @@ time)."""
 
 from __future__ import annotations
 
+import socket
 import tempfile
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
@@ -39,9 +40,11 @@ def cells_of(scans: ScanSequence, voxel: float, budget: int, seed: int, planar: 
 
 
 def cells_folder(folder: Path | None = None) -> Path:
-    """Where a long sequence's cells are kept while it is profiled: ``folder``, by default ``dm2-profile-cells`` in
-    the system's temporary folder (dm2's alone: what an ended run left there is removed first)."""
-    parent = Path(folder) if folder is not None else Path(tempfile.gettempdir()) / "dm2-profile-cells"
+    """Where a long sequence's cells are kept while it is profiled: this machine's folder in ``folder`` (storage
+    several machines may share), by default ``dm2-profile-cells`` in the system's temporary folder; dm2's alone:
+    what an ended run of this machine left there is removed first."""
+    parent = Path(folder) / socket.gethostname() if folder is not None else (
+        Path(tempfile.gettempdir()) / "dm2-profile-cells")
     parent.mkdir(parents=True, exist_ok=True)
     clean_stale(parent)
     return parent
@@ -79,17 +82,18 @@ class StoredCells:
 def full_cells(scans: ScanSequence, voxel: float, seed: int, planar: bool, progress: bool,
                folder: Path | None = None, stored: bool = False) -> Iterator[Cells]:
     """Every frame's cells at full density (:func:`cells_of`), in frame order: in memory while ``ONE_PASS_CELLS``
-    hold them (and not ``stored``), else appended a part of the sequence at a time (each part seeded by its first
-    frame; one part where they fit: the cells held in memory otherwise) to files in :func:`cells_folder`, mapped
-    read-only (``memory.release_mapped`` drops their pages; :meth:`StoredCells.of` says where) and removed on
-    leaving. Out of disk space: one line (``InputError``)."""
+    hold them, else appended a part of the sequence at a time (each part seeded by its first frame) to files in
+    :func:`cells_folder`, mapped read-only (``memory.release_mapped`` drops their pages; :meth:`StoredCells.of`
+    says where) and removed on leaving. ``stored``: in files even where they fit in memory (then summed in one
+    part, with the same seed: the same cells). Out of disk space: one line (``InputError``)."""
     n = len(scans)
     one_pass = n * CELLS_PER_FRAME <= ONE_PASS_CELLS
     if one_pass and not stored:
         yield cells_of(scans, voxel, n * CELLS_PER_FRAME, seed, planar, progress)
         return
     part = max(1, n if one_pass else ONE_PASS_CELLS // CELLS_PER_FRAME)
-    with tempfile.TemporaryDirectory(prefix=f"{temp_prefix()}profile-", dir=cells_folder(folder)) as tmp:
+    with tempfile.TemporaryDirectory(prefix=f"{temp_prefix()}profile-", dir=cells_folder(folder),
+                                     ignore_cleanup_errors=True) as tmp:  # (a file a worker still maps, on NFS)
         path = {name: Path(tmp) / f"{name}.bin" for name, _, _ in COLUMNS}
         rows = 0
         try:

@@ -19,7 +19,7 @@ from functools import partial
 import numpy as np
 
 from dm2_backend.evaluation.profile_cells import CELLS_PER_FRAME, StoredCells
-from dm2_backend.evaluation.profile_views import CAP, flat_normals, neighbour_views, rms, window_frames
+from dm2_backend.evaluation.profile_views import CAP, flat_normals, neighbour_views, root, window_frames
 from dm2_backend.kernel.geometry.voxels import group_rows
 from dm2_backend.kernel.planes import Cells, assign, chunks, disagreement, placed_means
 from dm2_backend.runtime import cluster
@@ -30,13 +30,9 @@ from dm2_backend.runtime.threads import ordered_map
 #: the cells of the stretches of frames judged at once, and of the other frames' map beside a stretch, which keeps
 #: at least ``OTHERS_PER_FRAME`` of each frame
 MAX_CELLS, OTHERS_PER_FRAME = 1_500_000, 64
-
-
 #: sets of poses judged at once (the warm start and the result): a stretch holds ``MAX_CELLS / SIDE_BY_SIDE``
 #: cells (a sequence of at most ``MAX_CELLS`` is judged whole, ``SIDE_BY_SIDE`` assignments of it at once) ...
 SIDE_BY_SIDE = 2
-
-
 #: ... each on a thread of its own, as many as there are processors
 WORKERS = min(SIDE_BY_SIDE, os.cpu_count() or 1)
 
@@ -59,13 +55,14 @@ def _sampled(cells: Cells, per_frame: int, bounds: np.ndarray, seed: int) -> Cel
 
 
 def stretched_views(n: int, cells: Cells, candidates: dict[str, np.ndarray], voxel: float, seed: int,
-                     progress: bool) -> dict[str, tuple[dict[str, np.ndarray], float]]:
+                    progress: bool, engine: cluster.Engine | None = None
+                    ) -> dict[str, tuple[dict[str, np.ndarray], float]]:
     """The views of every frame, and the noise the planes measure (m), a stretch of frames at a time: each frame
     is judged by its own cells at full density against the neighbouring blocks (past, future) and against the map
     of the stretch's cells and the other frames' cells (all: at the density ``MAX_CELLS`` gives them) in the voxels
     the stretch reaches. ``cells``: every frame's at full density, in memory or mapped from files; in memory
-    besides: a stretch's (``MAX_CELLS``) and the other frames' map (``OTHERS_PER_FRAME`` a frame at least). On a
-    cluster (:func:`cluster.current`) each stretch of each set of poses is a task (the cells stored in files)."""
+    besides: a stretch's (``MAX_CELLS``) and the other frames' map (``OTHERS_PER_FRAME`` a frame at least). On
+    ``engine`` (:func:`cluster_for`) each stretch of each set of poses is a task (the cells stored in files)."""
     margin = 2 * max(window_frames(poses, voxel) for poses in candidates.values())
     whole = n * CELLS_PER_FRAME <= MAX_CELLS
     # the SIDE_BY_SIDE sets of poses judged at once share the budget (on any number of processors: the same
@@ -79,7 +76,7 @@ def stretched_views(n: int, cells: Cells, candidates: dict[str, np.ndarray], vox
     stretches = [_Stretch((max(0, s - margin), min(n, s + length + margin)), (s, min(n, s + length)),
                           (int(bounds[max(0, s - margin)]), int(bounds[min(n, s + length + margin)])))
                  for s in range(0, n, length)]
-    engine = None if whole or StoredCells.of(cells) is None else cluster.current()
+    engine = None if whole or StoredCells.of(cells) is None else engine
     if engine is not None:
         shared = _Shared(StoredCells.of(cells), candidates, others, index, voxel)
         tasks = [(name, stretch) for stretch in stretches for name in candidates]
@@ -113,7 +110,7 @@ def _judge_stretch(candidate: tuple[str, np.ndarray], dense: Cells, others: Cell
     assigned = assign(mixed, poses, voxel)
     scored = np.zeros(len(poses), bool)
     scored[s:e] = True
-    every = rms(disagreement(assigned, poses, CAP, bounded=True, judged=scored))
+    every = root(disagreement(assigned, poses, CAP, bounded=True, judged=scored))
     return name, past[local], future[local], every[s:e], assigned.sigma
 
 
@@ -238,6 +235,15 @@ def _voxel_keys(cells: Cells, poses: np.ndarray, voxel: float) -> np.ndarray:
     return keys
 
 
-def on_cluster(n: int) -> bool:
-    """Whether ``n`` frames are judged in stretches on a cluster (their cells then stored in files)."""
-    return n * CELLS_PER_FRAME > MAX_CELLS and cluster.current() is not None
+def cluster_for(n: int, sets: int, shared_folder: bool) -> cluster.Engine | None:
+    """The cluster that judges ``n`` frames' stretches of ``sets`` sets of poses (their cells then stored in
+    files), None to judge them in this process: a sequence judged in stretches, a cluster whose workers see the
+    files (a local one, or ``shared_folder``: a folder on their common storage), and more tasks at once than
+    this process's threads (a local cluster on as many cores as the sets judged side by side gains nothing)."""
+    engine = cluster.current()
+    if engine is None or n * CELLS_PER_FRAME <= MAX_CELLS:
+        return None
+    local = engine.spec.workers is not None
+    if not (local or shared_folder) or (local and engine.slots <= min(sets, SIDE_BY_SIDE, WORKERS)):
+        return None
+    return engine

@@ -31,16 +31,10 @@ from dm2_backend.kernel.planes import (
 #: a frame's points may lie this many noise sigmas from the others' planes before their distance is capped
 #: (a wrong frame scores high, one stray object cannot dominate it)
 CAP = 10.0
-
-
 #: planes (nearest voxel centres) a cell of a judged frame is measured against
 NEAREST_PLANES = 8
-
-
 #: the worst share of a frame's points left out of its score (surfaces the reference could not see)
 TRIM = 0.2
-
-
 #: a flat cell is measured only against a plane within this angle of its own: a plane turned further is nearer
 #: perpendicular to the cell's surface than parallel, another surface (the ground reaching into a wall's cell where
 #: the stretch never saw the wall); a misplacement turns a surface far less
@@ -55,7 +49,8 @@ def window_frames(poses: np.ndarray, voxel: float) -> int:
     return int(np.clip(np.ceil(2.0 * voxel / max(step, 1e-9)), 2, 10))
 
 
-def rms(a: np.ndarray) -> np.ndarray:
+def root(a: np.ndarray) -> np.ndarray:
+    """The square root, NaN where ``a`` is (a frame with nothing to measure)."""
     with np.errstate(invalid="ignore"):
         return np.sqrt(a)
 

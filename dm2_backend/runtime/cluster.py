@@ -96,9 +96,12 @@ class Engine:
         from distributed.scheduler import KilledWorker
 
         client = self.client
-        sent = {name: client.scatter([value], hash=False)[0] for name, value in (shared or {}).items()}
-        futures = client.map(fn, list(tasks), pure=False, **sent)
+        sent: dict[str, Any] = {}
+        futures: list = []
         try:
+            for name, value in (shared or {}).items():
+                sent[name] = client.scatter([value], hash=False)[0]
+            futures = client.map(fn, list(tasks), pure=False, **sent)
             for _ in progress(as_completed(futures), desc, total=len(futures), unit=unit, enabled=enabled):
                 pass
             return client.gather(futures)
@@ -168,7 +171,7 @@ def _client(spec: ClusterSpec) -> Iterator[Any]:
             log.warning("cluster: %d of %d worker(s) (%s) run with Dask's MALLOC_TRIM_THRESHOLD_ alone: numpy's "
                         "temporaries are mapped and unmapped each time and tasks run 2-5 times slower; start the "
                         "workers with MALLOC_MMAP_THRESHOLD_ set too (the README's cluster recipe)", len(slow),
-                        len(workers), slow[0])
+                        len(workers), ", ".join(sorted(slow)[:5]) + (", ..." if len(slow) > 5 else ""))
         yield client
 
 
