@@ -10,7 +10,8 @@ tasks sent at once. With ``--refine``: the whole ``dm2 refine`` instead, in a fr
 (``--workers 0`` and each N), with its APE, map entropy, the preparation's stages and the peak RSS of every process
 (sampled every 0.2 s). With ``--profile``: the consistency profile of the warm start and the truth (its stretches
 as tasks; a sequence of more than 732 frames is judged in stretches), in-process (two sets of poses on two threads)
-and on each cluster, every view compared with the in-process one. Writes
+and on each cluster joined by address with the cells in a shared folder (as on several machines), every view
+compared with the in-process one. Writes
 ``<out>/YYYY-MM-DD-cluster[-refine|-profile][-planar]-N.json`` (every number, the command, the
 machine, the load). Not part of the test suite.
 """
@@ -26,6 +27,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import dask
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -33,6 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_cases import run_process  # noqa: E402
 from run import commit, machine  # noqa: E402
 
+from dm2_backend.algorithms.common import repeatable_registration  # noqa: E402
 from dm2_backend.config import load as load_config  # noqa: E402
 from dm2_backend.evaluation.consistency_profile import consistency_profiles  # noqa: E402
 from dm2_backend.formats import open_scans  # noqa: E402
@@ -50,7 +53,8 @@ def nothing(x: int) -> int:
 def registration(prep, progress: bool = False):
     plugin = load_plugin("dm2.registration", prep.resolved["registration"].name)(progress=progress)
     t0 = time.perf_counter()
-    pair = plugin.run(prep.frames, starting_poses(prep.topology, prep.warm_start), prep.topology)
+    with repeatable_registration():  # as the preparation runs it
+        pair = plugin.run(prep.frames, starting_poses(prep.topology, prep.warm_start), prep.topology)
     return pair, time.perf_counter() - t0
 
 
@@ -98,22 +102,31 @@ def registration_rows(sim: Path, root: Path, workers: list[int]) -> tuple[list[d
     return rows, int((prep.topology.groups >= 0).sum())
 
 
-def profile_rows(sim: Path, workers: list[int]) -> list[dict]:
-    """The consistency profile in-process and as tasks on each local cluster (started before the clock)."""
+def profile_rows(sim: Path, root: Path, workers: list[int]) -> list[dict]:
+    """The consistency profile in-process and as tasks on each cluster, joined by its address with the cells in a
+    folder the workers share, as on several machines (a local ``--workers N`` on these cores keeps the profile in
+    its process: ``profile_stretches.cluster_for``); the clusters started before the clock."""
+    from distributed import LocalCluster
+
     scans = open_scans(sim / "velodyne")
     candidates = {name: read_trajectory(sim / f"{name}.txt").poses for name in ("warm_start", "poses")}
     t0 = time.perf_counter()
     single = consistency_profiles(scans, candidates, planar=scans.planar)
     rows = [{"mode": "in-process", "seconds": time.perf_counter() - t0}]
     for n in workers:
-        with cluster.engine(cluster.ClusterSpec(workers=n)) as engine:
+        with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}), \
+                LocalCluster(n_workers=n, threads_per_worker=1, dashboard_address=None) as local, \
+                cluster.engine(cluster.ClusterSpec(address=local.scheduler_address)) as engine:
             assert engine.slots == n
             t1 = time.perf_counter()
-            profiles = consistency_profiles(scans, candidates, planar=scans.planar)
+            profiles = consistency_profiles(scans, candidates, planar=scans.planar, folder=root / "cells")
             seconds = time.perf_counter() - t1
         rows.append({"mode": f"{n} worker(s)", "seconds": seconds,
                      "same_views": all(np.array_equal(profiles[k].views_m[v], single[k].views_m[v], equal_nan=True)
                                        for k in candidates for v in single[k].views_m)})
+    one = next((r["seconds"] for r in rows if r["mode"] == "1 worker(s)"), None)
+    for r in rows:
+        r["speed_vs_1_worker"] = None if one is None else one / r["seconds"]
     return rows
 
 
@@ -133,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.refine:
             rows, pairs = [refine_row(sim, Path(tmp), n) for n in [0, *args.workers]], None
         elif args.profile:
-            rows, pairs = profile_rows(sim, args.workers), None
+            rows, pairs = profile_rows(sim, Path(tmp), args.workers), None
         else:
             rows, pairs = registration_rows(sim, Path(tmp), args.workers)
     doc = {"command": "python benchmarks/cluster.py " + " ".join(argv if argv is not None else sys.argv[1:]),

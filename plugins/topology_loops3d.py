@@ -24,6 +24,7 @@ Every verification, accepted or not, is logged with its scores and reason.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, replace
 from typing import ClassVar
 
@@ -56,6 +57,10 @@ from dm2_backend.kernel.prepared import Frames, FramesPart, Topology
 from dm2_backend.runtime import cluster
 from dm2_backend.runtime.errors import InputError
 from dm2_backend.runtime.progress import progress
+from dm2_backend.runtime.threads import ordered_map
+
+#: threads that register side by side (each registration on one thread: ``common.repeatable_registration``)
+THREADS = min(8, os.cpu_count() or 1)
 
 
 @dataclass
@@ -179,9 +184,17 @@ class Loops3dTopology:
             return poses, []
         steps = se3.relative(poses[:-1], poses[1:])
         engine = cluster.current()
-        if engine is None:
-            bar = progress(range(len(steps)), "odometry check", unit="step", enabled=self.progress)
-            replaced = self._checked(frames, steps, bar)
+        if engine is None:  # runs of steps on threads (each registration on one: repeatable_registration)
+            size = max(2, -(-len(steps) // (4 * THREADS)))
+            runs = range(0, len(steps), size)
+
+            def run(k0: int) -> dict[int, np.ndarray]:
+                part = steps[k0 : k0 + size]
+                return self._checked(frames, part, range(len(part)), k0)
+
+            done = ordered_map(run, runs, workers=THREADS)
+            replaced = {k: T for part in progress(done, "odometry check", total=len(runs), unit="run",
+                                                  enabled=self.progress) for k, T in part.items()}
         else:  # runs of steps as tasks, each on its frames
             size = engine.run_length(len(steps), smallest=2)
             light = replace(self)  # the options; not the submaps of an earlier run (open3d clouds do not pickle)
@@ -211,13 +224,20 @@ class Loops3dTopology:
         bar = progress(range(len(keys)), f"loop closure 3d ({round_ + 1})", unit="keyframe", enabled=self.progress)
         for b in bar:
             window = min(L["max_window"], L["window"] + self.drift * (kpath[b] - last))
+            todo = []
             for a, predicted in self._candidates(estimate, kpath, b, window):
                 init = se3.relative(estimate[keys[a]], estimate[keys[b]])
                 if (a, b) in tried and (tried[(a, b)] is None or
                                         np.linalg.norm(se3.relative(tried[(a, b)], init)[:3, 3]) <= L["fine"]):
                     continue  # accepted, or verified from (nearly) this start already
                 tried[(a, b)] = init
-                entry = self._verify(a, b, init, window)
+                todo.append((a, predicted, init))
+            # a keyframe's candidates side by side (the window moves only after them), their submaps' covariances,
+            # normals and trees built first, in turn (open3d clouds are not filled from two threads at once)
+            for k in (b, *(a for a, _, _ in todo)) if todo else ():
+                self._maps[k].ensure("gicp", "both").normals  # noqa: B018
+            verified = ordered_map(lambda c, b=b, w=window: self._verify(c[0], b, c[2], w), todo, workers=THREADS)
+            for (a, predicted, _), entry in zip(todo, verified, strict=True):
                 entry.update(predicted_overlap=round(predicted, 4), round=round_ + 1)
                 log.append(entry)
                 if entry["verified"]:

@@ -7,10 +7,12 @@ import dataclasses
 import typing
 
 import numpy as np
+import open3d as o3d
 import pytest
 from click.testing import CliRunner
 from plugins_scenes import floor_2d, room_3d
 
+from dm2_backend.algorithms.common import repeatable_registration
 from dm2_backend.cli.main import cli
 from dm2_backend.kernel.geometry import se3
 from dm2_backend.kernel.prepared import Topology
@@ -123,6 +125,25 @@ def test_clouds_built_per_chunk_give_the_same_pairs(cls):
     np.testing.assert_allclose(chunked.relative, one.relative, atol=1e-9)
     np.testing.assert_array_equal(chunked.valid, one.valid)
     np.testing.assert_allclose(chunked.fitness, one.fitness, atol=1e-12)
+
+
+@pytest.mark.parametrize("cls", [IcpRegistration, GicpRegistration])
+def test_pairs_registered_side_by_side_give_the_same_bits_every_run(cls):
+    """As the preparation runs it (open3d on one thread, the pairs on threads of dm2's own), the registration is
+    the same to the last bit however many threads share the pairs, run after run."""
+    frames, truth = room_3d(count=16)
+    n = len(frames)
+    groups = np.stack([(np.arange(n) + 1) % n, (np.arange(n) + 3) % n], axis=1)
+    warm = perturb(truth, 3, 0.05, 1.0)
+    before = o3d.utility.get_max_threads()
+    with repeatable_registration():
+        assert o3d.utility.get_max_threads() == 1
+        runs = [cls(progress=False, workers=w).run(frames, warm, Topology(groups)) for w in (1, 2, 2, 4)]
+    assert o3d.utility.get_max_threads() == before
+    for other in runs[1:]:
+        np.testing.assert_array_equal(other.relative, runs[0].relative)
+        np.testing.assert_array_equal(other.fitness, runs[0].fitness)
+        np.testing.assert_array_equal(other.valid, runs[0].valid)
 
 
 def test_options_checked(floor):

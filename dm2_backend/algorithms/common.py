@@ -5,6 +5,8 @@ topology assembly. ICP is in :mod:`.icp`, alignment checks in :mod:`.gates`."""
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -277,3 +279,17 @@ def follow_thread_cap() -> None:
     cap = os.environ.get("OMP_NUM_THREADS", "")
     if cap.isdigit() and int(cap) > 0:
         o3d.utility.set_max_threads(int(cap))
+
+
+@contextmanager
+def repeatable_registration() -> Iterator[None]:
+    """open3d on one thread within the block (as before it after): a registration on several of open3d's threads
+    sums its correspondences in a different order each run, so a run's poses differ from the last one's in their
+    last bits and a long sequence's drift apart. Stages that register many pairs run them side by side on threads
+    of their own instead (open3d releases the GIL): the same speed, the same answer every run."""
+    before = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)
+    try:
+        yield
+    finally:
+        o3d.utility.set_max_threads(before)

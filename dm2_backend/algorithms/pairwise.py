@@ -97,7 +97,8 @@ class PairwiseRegistration:
     information: Literal["hessian", "isotropic"] = "isotropic"
     #: start loop pairs from the transform the descriptor topology verified
     use_loops: bool = True
-    #: threads over pairs; default: the CPU count for planar scans, 1 for 3D (open3d is multi-threaded)
+    #: threads over pairs; default: the CPU count (at most 8; each open3d registration on one thread, as the
+    #: preparation runs it: ``common.repeatable_registration``)
     workers: int | None = None
     #: report the stage's progress: a bar on a terminal, else one INFO log line when it ends; false: silent
     progress: bool = True
@@ -122,9 +123,8 @@ class PairwiseRegistration:
         if engine is not None and pairs:
             results = self._on_cluster(engine, frames, pairs, inits, fine, margin)
         else:
-            # open3d runs each 3D ICP on all cores already (threads over pairs only slow it down); the numpy/scipy
-            # planar ICP gains from threads (docs/decisions/0009-registration-and-pose-graph-defaults.md)
-            workers = self.workers or (min(8, os.cpu_count() or 1) if frames.planar else 1)
+            # pairs side by side, each on one thread (docs/decisions/0019-repeatable-registration.md)
+            workers = self.workers or min(8, os.cpu_count() or 1)
             results = self._matches(frames, pairs, inits, fine, margin, workers, self.progress)
         relative, valid = np.tile(np.eye(4), (n, k, 1, 1)), np.zeros((n, k), bool)
         fitness, rmse, reason = np.zeros((n, k)), np.full((n, k), np.inf), {}

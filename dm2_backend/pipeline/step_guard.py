@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dm2_backend.algorithms.common import fine_distance, lengths
+from dm2_backend.algorithms.common import fine_distance, lengths, repeatable_registration
 from dm2_backend.algorithms.icp import register
 from dm2_backend.evaluation.step_check import ODOMETRY, REGISTRATION, FramePairs, StepCheck, StepJudge
 from dm2_backend.kernel.geometry import se3
@@ -105,7 +105,9 @@ def hold_of(judge: StepJudge, i: int) -> Hold | None:
     if best is None:
         return None
     pairs = judge.pairs
-    match = register(pairs.cloud(i + 1), pairs.cloud(i), best[2], (pairs.distance,), "point-to-plane", hessian=True)
+    with repeatable_registration():
+        match = register(pairs.cloud(i + 1), pairs.cloud(i), best[2], (pairs.distance,), "point-to-plane",
+                         hessian=True)
     pairs.release(set())
     if match.hessian is None or not np.isfinite(match.T).all():
         return None

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from dm2_backend.algorithms.common import path_length
+from dm2_backend.algorithms.common import path_length, repeatable_registration
 from dm2_backend.config.schema import PluginSection, RunConfig
 from dm2_backend.kernel.prepared import Frames, Pairwise, Topology
 from dm2_backend.kernel.scans import DEPTH_CAMERA, ScanSequence
@@ -224,35 +224,36 @@ def prepare(
     frames = record.run(Step("frames", entry, load, _save_frames,
                              lambda hit: store.frames_from(*hit, cache.root / entry if cache.root else None)), cache)
 
-    ws = cfg.warm_start
-    given_hash = hashlib.sha1(given.poses.tobytes()).hexdigest() if given is not None else ""
-    k_ws = step_key(k_frames, ws.model_dump(), given_hash, _code("dm2.warm_start", ws))
+    with repeatable_registration():  # the same poses every run
+        ws = cfg.warm_start
+        given_hash = hashlib.sha1(given.poses.tobytes()).hexdigest() if given is not None else ""
+        k_ws = step_key(k_frames, ws.model_dump(), given_hash, _code("dm2.warm_start", ws))
 
-    def warm_start() -> tuple[np.ndarray, dict | None]:
-        plugin = _plugin("dm2.warm_start", ws, progress)
-        poses = plugin.run(frames, given)
-        return poses, getattr(plugin, "report", None)
+        def warm_start() -> tuple[np.ndarray, dict | None]:
+            plugin = _plugin("dm2.warm_start", ws, progress)
+            poses = plugin.run(frames, given)
+            return poses, getattr(plugin, "report", None)
 
-    def save_warm(c: _Cache, name: str, value: tuple[np.ndarray, dict | None]) -> tuple | None:
-        c.put(name, {"poses": value[0]}, {"report": value[1]} if value[1] else None)
-        return None  # the poses in memory are used (as read back they would be the same)
+        def save_warm(c: _Cache, name: str, value: tuple[np.ndarray, dict | None]) -> tuple | None:
+            c.put(name, {"poses": value[0]}, {"report": value[1]} if value[1] else None)
+            return None  # the poses in memory are used (as read back they would be the same)
 
-    warm, warm_report = record.run(Step("warm_start", f"warm-{k_ws}", warm_start, save_warm,
-                                        lambda hit: (hit[0]["poses"], hit[1].get("report"))), cache)
-    if warm_report and warm_report.get("summary"):
-        log.info("%s", warm_report["summary"])
+        warm, warm_report = record.run(Step("warm_start", f"warm-{k_ws}", warm_start, save_warm,
+                                            lambda hit: (hit[0]["poses"], hit[1].get("report"))), cache)
+        if warm_report and warm_report.get("summary"):
+            log.info("%s", warm_report["summary"])
 
-    pr = resolve_auto(cfg.place_recognition, scans.sensor == DEPTH_CAMERA, warm, frames.planar)
-    k_pr = step_key(k_ws, pr.model_dump(), _code("dm2.place_recognition", pr))
-    topo = record.run(Step("place_recognition", f"topology-{k_pr}",
-                           lambda: _plugin("dm2.place_recognition", pr, progress).run(frames, warm),
-                           _save_topology, store.topology_from), cache)
+        pr = resolve_auto(cfg.place_recognition, scans.sensor == DEPTH_CAMERA, warm, frames.planar)
+        k_pr = step_key(k_ws, pr.model_dump(), _code("dm2.place_recognition", pr))
+        topo = record.run(Step("place_recognition", f"topology-{k_pr}",
+                               lambda: _plugin("dm2.place_recognition", pr, progress).run(frames, warm),
+                               _save_topology, store.topology_from), cache)
 
-    reg = cfg.registration
-    k_reg = step_key(k_pr, reg.model_dump(), _code("dm2.registration", reg))
-    pair = record.run(Step("registration", f"pairwise-{k_reg}",
-                           lambda: _plugin("dm2.registration", reg, progress).run(frames, starting_poses(topo, warm),
-                                                                                  topo),
-                           _save_pairwise, store.pairwise_from), cache)
+        reg = cfg.registration
+        k_reg = step_key(k_pr, reg.model_dump(), _code("dm2.registration", reg))
+        pair = record.run(Step("registration", f"pairwise-{k_reg}",
+                               lambda: _plugin("dm2.registration", reg, progress).run(
+                                   frames, starting_poses(topo, warm), topo),
+                               _save_pairwise, store.pairwise_from), cache)
     resolved = {"warm_start": ws, "place_recognition": pr, "registration": reg}
     return Prepared(frames, warm, topo, pair, record.stages, record.cached, record.keys, resolved, warm_report)
