@@ -34,11 +34,11 @@ from dm2_backend.algorithms.common import (
     Cloud,
     assemble,
     fine_distance,
-    follow_thread_cap,
     lengths,
     loop_rows,
     orthonormal,
     path_length,
+    repeatable_registration,
     rotation_angle,
     voxel_cloud,
 )
@@ -120,7 +120,8 @@ class Loops3dTopology:
             raise InputError(None, "place recognition loops3d: planar scans; use loops")
         self._setup(frames)
         log: list[dict] = [{"plugin": self.name, **self._lengths}]
-        corrected, closures, repaired = self._close_loops(frames, poses, log)
+        with repeatable_registration():  # registrations side by side, each on one thread
+            corrected, closures, repaired = self._close_loops(frames, poses, log)
         return self._topology(frames, corrected, log, closures, repaired)
 
     # ------------------------------------------------------------------ set-up
@@ -391,7 +392,6 @@ class StepTask:
 
 
 def check_steps(task: StepTask) -> dict[int, np.ndarray]:
-    """A worker's run of :meth:`Loops3dTopology._checked` (open3d's threads capped as the worker's
-    ``OMP_NUM_THREADS``)."""
-    follow_thread_cap()
-    return task.plugin._checked(task.frames.frames(), task.steps, range(len(task.steps)), task.first)
+    """A worker's run of :meth:`Loops3dTopology._checked` (open3d on one thread)."""
+    with repeatable_registration():
+        return task.plugin._checked(task.frames.frames(), task.steps, range(len(task.steps)), task.first)

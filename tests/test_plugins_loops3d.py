@@ -11,6 +11,7 @@ from dm2_backend.algorithms.loop_graph3d import Closure3, FrameGraph
 from dm2_backend.config.schema import PluginSection
 from dm2_backend.kernel.geometry import se3
 from dm2_backend.pipeline.live import ate_rmse
+from dm2_backend.plugins import topology_loops3d as loops3d_module
 from dm2_backend.plugins.registry import load
 from dm2_backend.prepare.steps import resolve_auto
 from dm2_backend.runtime.errors import InputError
@@ -87,6 +88,21 @@ def test_loops3d_closes_the_loop_of_a_drifted_3d_sequence(two_laps):
             err = se3.relative(se3.relative(truth[e["i"]], truth[e["j"]]), np.asarray(e["z"]))
             assert np.linalg.norm(err[:3, 3]) < 0.15
     assert all(set(e) >= {"i", "j", "verified", "accepted", "reason"} for e in topo.log[1:])
+
+
+def test_loops3d_on_one_thread_or_four_gives_the_same_bits(two_laps, monkeypatch):
+    """The steps checked in runs and a keyframe's candidates verified side by side: the topology, its log (in
+    order) and the corrected poses are those of one thread, to the bit."""
+    frames, truth, warm = two_laps
+    runs = []
+    for threads in (1, 4):
+        monkeypatch.setattr(loops3d_module, "THREADS", threads)
+        runs.append(load("dm2.place_recognition", "loops3d")(repair_distance=0.01, progress=False).run(frames, warm))
+    one, four = runs
+    assert one.log[0]["closures"] >= 2 and len(one.log) > 3
+    assert one.log == four.log
+    np.testing.assert_array_equal(one.poses, four.poses)
+    np.testing.assert_array_equal(one.groups, four.groups)
 
 
 def test_loops3d_without_a_loop_keeps_the_start(two_laps):

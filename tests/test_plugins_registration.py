@@ -4,6 +4,7 @@ gates mark non-overlapping pairs invalid, verified loop transforms seed far-off 
 from __future__ import annotations
 
 import dataclasses
+import threading
 import typing
 
 import numpy as np
@@ -20,6 +21,7 @@ from dm2_backend.plugins.registration_icp import GicpRegistration, IcpRegistrati
 from dm2_backend.plugins.registration_small_gicp import SmallGicpRegistration
 from dm2_backend.plugins.registry import GROUPS, discover
 from dm2_backend.runtime.errors import InputError
+from dm2_backend.simulate.sequence import SimSettings, generate
 
 EXPECTED = {
     "dm2.warm_start": {"poses", "icp", "kiss-icp"},
@@ -144,6 +146,48 @@ def test_pairs_registered_side_by_side_give_the_same_bits_every_run(cls):
         np.testing.assert_array_equal(other.relative, runs[0].relative)
         np.testing.assert_array_equal(other.fitness, runs[0].fitness)
         np.testing.assert_array_equal(other.valid, runs[0].valid)
+
+
+def test_registration_blocks_nest_and_overlap_across_threads():
+    """open3d stays on one thread until the last block open on any thread ends, then gets its setting back."""
+    before = o3d.utility.get_max_threads()
+    inside, release = threading.Event(), threading.Event()
+
+    def other() -> None:
+        with repeatable_registration():
+            inside.set()
+            release.wait(10)
+
+    thread = threading.Thread(target=other)
+    with repeatable_registration():
+        thread.start()
+        assert inside.wait(10)
+        with repeatable_registration():
+            assert o3d.utility.get_max_threads() == 1
+        assert o3d.utility.get_max_threads() == 1
+    assert o3d.utility.get_max_threads() == 1  # the other thread's block is still open
+    release.set()
+    thread.join(10)
+    assert o3d.utility.get_max_threads() == before
+
+
+def test_a_run_registers_every_pair_on_one_of_open3d_s_threads(tmp_path, monkeypatch):
+    """Every open3d registration of a 3D run (icp warm start, loops3d, pairwise, the baseline) sees one thread."""
+    sim = tmp_path / "sim"
+    generate(SimSettings(frames=24, laps=1.0), sim, progress=False)
+    seen = []
+    for name in ("registration_icp", "registration_generalized_icp"):
+        original = getattr(o3d.pipelines.registration, name)
+
+        def spy(*args, _original=original, **kwargs):
+            seen.append(o3d.utility.get_max_threads())
+            return _original(*args, **kwargs)
+
+        monkeypatch.setattr(o3d.pipelines.registration, name, spy)
+    result = CliRunner().invoke(cli, ["baseline", "gtsam", "-s", str(sim / "velodyne"), "--warm-start", "icp",
+                                      "-o", str(tmp_path / "run"), "--no-cache", "-q"], obj={})
+    assert result.exit_code == 0, result.output
+    assert len(seen) > 50 and set(seen) == {1}, (len(seen), set(seen))
 
 
 def test_options_checked(floor):

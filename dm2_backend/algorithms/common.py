@@ -4,7 +4,7 @@ topology assembly. ICP is in :mod:`.icp`, alignment checks in :mod:`.gates`."""
 
 from __future__ import annotations
 
-import os
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
@@ -273,23 +273,27 @@ def assemble(
     return Topology(groups=groups, edges=edges, edge_kind=[kinds[e] for e in keys], log=list(log or []))
 
 
-def follow_thread_cap() -> None:
-    """open3d's threads capped as OpenMP's are (``OMP_NUM_THREADS``, which a cluster's worker processes get:
-    one task a core): open3d keeps its own pool and would otherwise run every task on every core."""
-    cap = os.environ.get("OMP_NUM_THREADS", "")
-    if cap.isdigit() and int(cap) > 0:
-        o3d.utility.set_max_threads(int(cap))
+#: the blocks of :func:`repeatable_registration` open now (on any thread) and open3d's setting before the first
+_REPEATABLE = {"open": 0, "before": 0}
+_REPEATABLE_LOCK = threading.Lock()
 
 
 @contextmanager
 def repeatable_registration() -> Iterator[None]:
-    """open3d on one thread within the block (as before it after): a registration on several of open3d's threads
-    sums its correspondences in a different order each run, so a run's poses differ from the last one's in their
-    last bits and a long sequence's drift apart. Stages that register many pairs run them side by side on threads
-    of their own instead (open3d releases the GIL): the same speed, the same answer every run."""
-    before = o3d.utility.get_max_threads()
-    o3d.utility.set_max_threads(1)
+    """open3d on one thread within the block (as before it once the last block open on any thread ends): a
+    registration on several of open3d's threads sums its correspondences in a different order each run, so a run's
+    poses differ from the last one's in their last bits and a long sequence's drift apart. Stages that register
+    many pairs run them side by side on threads of their own instead (open3d releases the GIL): the same speed,
+    the same answer every run."""
+    with _REPEATABLE_LOCK:
+        if _REPEATABLE["open"] == 0:
+            _REPEATABLE["before"] = o3d.utility.get_max_threads()
+            o3d.utility.set_max_threads(1)
+        _REPEATABLE["open"] += 1
     try:
         yield
     finally:
-        o3d.utility.set_max_threads(before)
+        with _REPEATABLE_LOCK:
+            _REPEATABLE["open"] -= 1
+            if _REPEATABLE["open"] == 0:
+                o3d.utility.set_max_threads(_REPEATABLE["before"])

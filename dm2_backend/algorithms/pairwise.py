@@ -25,10 +25,10 @@ from dm2_backend.algorithms.common import (
     Cloud,
     Match,
     fine_distance,
-    follow_thread_cap,
     lengths,
     orthonormal,
     project_planar,
+    repeatable_registration,
     resolve_method,
 )
 from dm2_backend.algorithms.gates import Gate, GateFailure, check_alignment
@@ -125,7 +125,8 @@ class PairwiseRegistration:
         else:
             # pairs side by side, each on one thread (docs/decisions/0019-repeatable-registration.md)
             workers = self.workers or min(8, os.cpu_count() or 1)
-            results = self._matches(frames, pairs, inits, fine, margin, workers, self.progress)
+            with repeatable_registration():
+                results = self._matches(frames, pairs, inits, fine, margin, workers, self.progress)
         relative, valid = np.tile(np.eye(4), (n, k, 1, 1)), np.zeros((n, k), bool)
         fitness, rmse, reason = np.zeros((n, k)), np.full((n, k), np.inf), {}
         hessian = plane_rmse = None
@@ -209,7 +210,14 @@ class PairwiseRegistration:
     def _build(self, frames: Frames, used: list[int], fine: float, pool: ThreadPoolExecutor) -> list:
         """Each of these frames' clouds (normals, KD-tree), built on the pool."""
         method = self._method
-        return list(pool.map(lambda f: Cloud(frames.points[f], frames.planar, 2.0 * fine).ensure(method), used))
+        # a 3D point-to-point match's Hessian needs the target's normals: built here, not by two pairs at once
+        normals = self._record_hessians and method == "point-to-point" and not frames.planar
+
+        def build(f: int) -> Cloud:
+            cloud = Cloud(frames.points[f], frames.planar, 2.0 * fine).ensure(method)
+            return cloud.ensure("point-to-plane") if normals else cloud
+
+        return list(pool.map(build, used))
 
     def _register_pair(self, frames: Frames, a: int, b: int, init: np.ndarray, fine: float) -> Match:
         """Frame b onto frame a from init: T_b^a with its fitness and rmse. A good initial guess (most
@@ -246,10 +254,9 @@ class PairTask:
 
 
 def register_pairs(task: PairTask) -> list[tuple[Match, float]]:
-    """A worker's run of :meth:`PairwiseRegistration._matches` on one thread (open3d's capped as the worker's
-    ``OMP_NUM_THREADS``)."""
-    follow_thread_cap()
+    """A worker's run of :meth:`PairwiseRegistration._matches` on one thread (open3d's too)."""
     registration, frames = task.registration, task.frames.frames()
     registration._check(frames)
     inits = dict(zip(task.pairs, task.inits, strict=True))
-    return registration._matches(frames, task.pairs, inits, task.fine, task.margin, 1, False)
+    with repeatable_registration():
+        return registration._matches(frames, task.pairs, inits, task.fine, task.margin, 1, False)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from dm2_backend.algorithms.common import fine_distance, lengths
+from dm2_backend.algorithms.common import fine_distance, lengths, repeatable_registration
 from dm2_backend.kernel.geometry import se3
 from dm2_backend.kernel.graph_edges import valid_pairs
 from dm2_backend.kernel.prepared import Frames, Pairwise, Topology
@@ -95,20 +95,21 @@ def multiway(frames: Frames, warm: np.ndarray, topology: Topology, pairwise: Pai
         graph.edges.append(reg.PoseGraphEdge(j, i, T, info, uncertain=uncertain))
 
     from_warm = 0
-    for i in range(len(warm) - 1):
-        e = pairs.get((i, i + 1))
-        if e is None:
-            from_warm += 1
-        add(i, i + 1, e.relative if e is not None else se3.relative(warm[i], warm[i + 1]), False)
     loops = sorted(p for p in pairs if p[1] - p[0] > 1)
-    for a, b in loops:
-        add(a, b, pairs[(a, b)].relative, True)
     criteria = reg.GlobalOptimizationConvergenceCriteria()
     criteria.max_iteration = options.max_iterations
     criteria.min_relative_residual_increment = options.relative_error_tol
     option = reg.GlobalOptimizationOption(max_correspondence_distance=distance,
                                           edge_prune_threshold=edge_prune_threshold, reference_node=0)
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+    # open3d's sums on one thread: the same graph and answer every run
+    with repeatable_registration(), o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        for i in range(len(warm) - 1):
+            e = pairs.get((i, i + 1))
+            if e is None:
+                from_warm += 1
+            add(i, i + 1, e.relative if e is not None else se3.relative(warm[i], warm[i + 1]), False)
+        for a, b in loops:
+            add(a, b, pairs[(a, b)].relative, True)
         reg.global_optimization(graph, reg.GlobalOptimizationLevenbergMarquardt(), criteria, option)
     poses = np.stack([np.asarray(node.pose) for node in graph.nodes]).reshape(-1, 4, 4)
     if frames.planar:
