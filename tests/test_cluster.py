@@ -239,9 +239,10 @@ def test_a_local_cluster_no_larger_than_the_profile_s_threads_leaves_the_profile
     scans = open_scans(sim / "velodyne")
     monkeypatch.setattr(profile_stretches, "MAX_CELLS", 4 * profile_cells.CELLS_PER_FRAME)
     monkeypatch.setattr(profile_stretches, "WORKERS", 2)
-    with cluster_module.engine(ClusterSpec(workers=1)):
+    with cluster_module.engine(ClusterSpec(workers=1)) as engine:
         assert profile_stretches.cluster_for(len(scans), 2, False) is None  # 1 worker, 2 threads here
         assert profile_stretches.cluster_for(len(scans), 1, False) is None  # 1 worker, 1 set of poses
+        assert engine._client is None  # deciding started no cluster
     with cluster_module.engine(ClusterSpec(workers=3)):
         assert profile_stretches.cluster_for(len(scans), 2, False) is not None
         assert profile_stretches.cluster_for(2, 2, False) is None  # judged whole

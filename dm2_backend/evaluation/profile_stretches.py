@@ -243,7 +243,7 @@ def cluster_for(n: int, sets: int, shared_folder: bool) -> cluster.Engine | None
     engine = cluster.current()
     if engine is None or n * CELLS_PER_FRAME <= MAX_CELLS:
         return None
-    local = engine.spec.workers is not None
-    if not (local or shared_folder) or (local and engine.slots <= min(sets, SIDE_BY_SIDE, WORKERS)):
-        return None
-    return engine
+    local = engine.spec.workers  # a local cluster's workers run a task each (known before it starts)
+    if local is None:
+        return engine if shared_folder else None
+    return engine if local > min(sets, SIDE_BY_SIDE, WORKERS) else None
