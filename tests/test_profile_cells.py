@@ -3,6 +3,8 @@ nothing behind; the other frames' sparser map; the flat cells' normals that deci
 
 from __future__ import annotations
 
+import socket
+
 import numpy as np
 import pytest
 
@@ -24,17 +26,20 @@ def test_a_long_sequences_cells_in_files_are_the_cells_in_memory_and_the_files_g
     with profile_cells.full_cells(seq, 2.0, 0, False, False) as in_memory:
         expected = Cells(*(np.array(getattr(in_memory, f)) for f in ("frame", "count", "mean", "scatter")),
                          in_memory.size)
-    stale = tmp_path / ".tmp-999999-profile-left"  # what a killed run left (no such process)
-    stale.mkdir()
+    mine = tmp_path / socket.gethostname()  # this machine's folder in a folder machines may share
+    stale = mine / ".tmp-999999-profile-left"  # what a killed run of this machine left (no such process)
+    stale.mkdir(parents=True)
+    elsewhere = tmp_path / "other-host" / ".tmp-999999-profile-live"  # another machine's: not judged here
+    elsewhere.mkdir(parents=True)
     monkeypatch.setattr(profile_cells, "ONE_PASS_CELLS", 2 * profile_cells.CELLS_PER_FRAME)  # parts of 2 frames
     with profile_cells.full_cells(seq, 2.0, 0, False, False, folder=tmp_path) as in_files:
         assert isinstance(in_files.mean, np.memmap)
-        assert [p.name.startswith(".tmp-") for p in tmp_path.iterdir()] == [True]  # its own folder only
+        assert [p.name.startswith(".tmp-") for p in mine.iterdir()] == [True]  # its own folder only
         np.testing.assert_array_equal(in_files.frame, expected.frame)
         np.testing.assert_array_equal(in_files.count, expected.count)
         np.testing.assert_allclose(in_files.mean, expected.mean)
         np.testing.assert_allclose(in_files.scatter, expected.scatter)
-    assert list(tmp_path.iterdir()) == []
+    assert list(mine.iterdir()) == [] and elsewhere.is_dir()
 
 
 def test_the_other_frames_map_keeps_about_its_share_of_each_frame_the_same_under_a_seed():

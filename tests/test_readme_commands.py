@@ -54,6 +54,8 @@ def steps(doc: Path) -> list[tuple[str, list[str]]]:
             if word == "&&":
                 out.append((line, command))
                 command = []
+            elif not command and re.fullmatch(r"[A-Z_]+=\S*", word):
+                continue  # the environment of this one command (``NAME=value program ...``)
             else:
                 command.append(re.sub(r"\$([A-Z_]+)", lambda m: variables[m.group(1)], word))
     return out
