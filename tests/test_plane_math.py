@@ -67,7 +67,7 @@ def test_moments_placed_about_a_centre_equal_t_q_t_transposed():
     T = poses[frame].copy()
     T[:, :3, 3] -= centre
     want = T @ Q @ T.transpose(0, 2, 1)
-    got = planes._expand(planes._about(poses, frame, centre, Q[:, planes._UPPER[0], planes._UPPER[1]]))
+    got = planes.expand_moments(planes.moments_about(poses, frame, centre, Q[:, planes._UPPER[0], planes._UPPER[1]]))
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-9 * np.abs(want).max())
 
 

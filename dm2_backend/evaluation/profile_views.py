@@ -85,22 +85,22 @@ def _against(judged: Cells, placed: np.ndarray, a: Assignment, planes: Planes, t
     surface = np.nan_to_num(surface)
     cos_limit = np.cos(np.radians(SAME_SURFACE_DEG))
     for c in chunks(len(judged)):  # bounded temporaries: a few (NEAREST_PLANES, chunk) arrays
-        world = placed_means(judged, placed, c) + shift[f[c]]
+        world = placed_means(judged, placed, c) + np.take(shift, f[c], axis=0)
         _, idx = tree.query(world, k=min(NEAREST_PLANES, a.voxels), distance_upper_bound=a.size.max())
         idx = idx.reshape(len(world), -1)
         x = np.ascontiguousarray(world.T)[:, None, :]  # (3,1,m) against (k,m) neighbours
         idx = np.ascontiguousarray(idx.T)
         found = idx < a.voxels
         i = np.where(found, idx, 0)
-        size = a.size[i]
+        size = np.take(a.size, i)
         # a plane reaches half its voxel's edge beyond the voxel (a shifted point still finds it, a patch
         # elsewhere does not stand in for it)
         for axis in range(3):
-            found &= np.abs(x[axis] - centre[axis][i]) <= size
-        nx, ny, nz = normal[0][i], normal[1][i], normal[2][i]
+            found &= np.abs(x[axis] - np.take(centre[axis], i)) <= size
+        nx, ny, nz = (np.take(normal[axis], i) for axis in range(3))
         n = surface[:, None, c]
         found &= ~flat[c] | (np.abs(nx * n[0] + ny * n[1] + nz * n[2]) >= cos_limit)
-        dist = np.abs(nx * x[0] + ny * x[1] + nz * x[2] - planes.offset[i])
+        dist = np.abs(nx * x[0] + ny * x[1] + nz * x[2] - np.take(planes.offset, i))
         nearest = np.where(found, dist, np.inf).min(0)
         best[c] = nearest
     on = np.isfinite(best)

@@ -217,7 +217,7 @@ def kept_scatter(scatter: np.ndarray, which: CellScatter) -> np.ndarray:
 class Assignment:
     """Which cells lie on which plane, fixed for a few rounds: per (frame, voxel) pair its ``frame`` (P,),
     ``voxel`` (P,) and ``moment`` (P,10), the robust-weighted sum of [p 1]^T [p 1] over the frame's points in
-    the voxel (sensor frame), as its distinct entries (:func:`_expand` makes the 4x4 of a few pairs at a time);
+    the voxel (sensor frame), as its distinct entries (:func:`expand_moments` makes the 4x4 of a few pairs at a time);
     ``centre`` (V,3) a point of each voxel (the fits are made about it); ``sigma`` the noise scale (m) at the
     poses of the assignment, ``cells`` the cells on planes."""
 
@@ -257,7 +257,16 @@ def _sum(inv: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
 _UPPER = np.triu_indices(4)
 
 
-def _pairs(frame: np.ndarray, voxel: np.ndarray, voxels: int) -> tuple[np.ndarray, np.ndarray]:
+def columns(a: np.ndarray, rows: np.ndarray, dtype: type | None = None) -> np.ndarray:
+    """The rows ``rows`` of ``a`` (K,C) as contiguous columns (C,k) (of ``dtype``, default ``a``'s), a column at a
+    time (``np.take``: far faster than fancy indexing a 2D array, the same values)."""
+    out = np.empty((a.shape[1], len(rows)), dtype or a.dtype)
+    for i in range(a.shape[1]):
+        out[i] = np.take(a[:, i], rows)
+    return out
+
+
+def pair_ids(frame: np.ndarray, voxel: np.ndarray, voxels: int) -> tuple[np.ndarray, np.ndarray]:
     """The (frame, voxel) pair of each cell, numbered in the order of frame, then voxel, and one cell of each
     pair (its frame and voxel stand for the pair's)."""
     _, first, inv = np.unique(frame * max(voxels, 1) + voxel, return_index=True, return_inverse=True)
@@ -272,28 +281,28 @@ def chunks(n: int) -> list[slice]:
     return [slice(i, min(i + CHUNK, n)) for i in range(0, n, CHUNK)]
 
 
-def _placed_sum(a: Assignment, poses: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
+def placed_sum(a: Assignment, poses: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
     """Each voxel's moment in the world (about its centre): the sum of its pairs' (V,4,4), in chunks; ``keep``
     (bool per pair): only those pairs."""
     M = np.zeros((a.voxels, 10))
     for c in chunks(len(a.frame)):
-        placed = _about(poses, a.frame[c], a.centre[a.voxel[c]], a.moment[c])
+        placed = moments_about(poses, a.frame[c], np.take(a.centre, a.voxel[c], axis=0), a.moment[c])
         M += _sum(a.voxel[c], placed if keep is None else placed * keep[c, None], a.voxels)
-    return _expand(M)
+    return expand_moments(M)
 
 
-def _moment_sums(cells: Cells, rows: np.ndarray, group: np.ndarray, n: int,
+def moment_sums(cells: Cells, rows: np.ndarray, group: np.ndarray, n: int,
                  weight: np.ndarray | None = None) -> np.ndarray:
     """Sums by ``group`` (into ``n``) of the homogeneous moments [p 1]^T [p 1] (sensor frame) of cells ``rows``
     (times ``weight``), as their 10 distinct entries (n,10) in the order of ``_UPPER``: one entry at a time over
     contiguous rows, no (K,10) array of every cell's moment."""
-    N = cells.count[rows].astype(np.float64)
+    N = np.take(cells.count, rows).astype(np.float64)
     if weight is not None:
         N *= weight
-    mu = np.ascontiguousarray(cells.mean[rows].T, dtype=np.float64)
-    scatter = np.ascontiguousarray(cells.scatter[rows].T)
+    mu = columns(cells.mean, rows, np.float64)
+    scatter = columns(cells.scatter, rows)
     weighted_mu = N * mu
-    out = np.empty((n, 10))
+    out = np.empty((10, n))  # an entry's sums contiguous (returned transposed: a column at a time is slow)
     for j, (r, c) in enumerate(zip(*_UPPER, strict=True)):
         if r == 3:
             v = N
@@ -302,8 +311,8 @@ def _moment_sums(cells: Cells, rows: np.ndarray, group: np.ndarray, n: int,
         else:  # the scatter about the mean plus N mu_r mu_c
             v = weighted_mu[r] * mu[c]
             v += scatter[_SCATTER_AT[r, c]] if weight is None else weight * scatter[_SCATTER_AT[r, c]]
-        out[:, j] = np.bincount(group, v, minlength=n)
-    return out
+        out[j] = np.bincount(group, v, minlength=n)
+    return out.T
 
 
 #: for each entry of a 4x4 moment (row-major), its column among the 10 distinct ones
@@ -311,7 +320,7 @@ _FULL = np.zeros((4, 4), dtype=np.int64)
 _FULL[_UPPER] = _FULL[_UPPER[1], _UPPER[0]] = np.arange(10)
 
 
-def _expand(flat: np.ndarray) -> np.ndarray:
+def expand_moments(flat: np.ndarray) -> np.ndarray:
     """(P,10) distinct entries -> (P,4,4) symmetric moments."""
     return np.take(flat, _FULL.ravel(), axis=1).reshape(-1, 4, 4)
 
@@ -321,15 +330,15 @@ def _pose_rows(poses: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(poses[:, :3, :].transpose(1, 2, 0))
 
 
-def _about(poses: np.ndarray, frame: np.ndarray, centre: np.ndarray, moment: np.ndarray) -> np.ndarray:
+def moments_about(poses: np.ndarray, frame: np.ndarray, centre: np.ndarray, moment: np.ndarray) -> np.ndarray:
     """Moments of frames ``frame`` in the world, about the points ``centre`` (P,3): T Q T^T with
     T = [R, t - centre] (no cancellation far from the origin), from and to the 10 distinct entries (P,10) of the
     moments (order of ``_UPPER``), one entry at a time over contiguous rows: with Q = [[S, b], [b^T, N]] and
     u = t - centre the result is [[R S R^T + (R b) u^T + u (R b)^T + N u u^T, R b + N u], [., N]]."""
     rows = _pose_rows(poses)
-    R = [[rows[i, j][frame] for j in range(3)] for i in range(3)]
+    R = [[np.take(rows[i, j], frame) for j in range(3)] for i in range(3)]
     c = np.ascontiguousarray(centre.T)
-    u = [rows[i, 3][frame] - c[i] for i in range(3)]
+    u = [np.take(rows[i, 3], frame) - c[i] for i in range(3)]
     m = np.ascontiguousarray(moment.T)
     S = [[m[_FULL[i, j]] for j in range(3)] for i in range(3)]
     b = [m[_FULL[i, 3]] for i in range(3)]
@@ -348,7 +357,7 @@ def _about(poses: np.ndarray, frame: np.ndarray, centre: np.ndarray, moment: np.
     return out.T
 
 
-def _plane_of(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def plane_of(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Count, mean (about the moments' origin), eigenvalues (ascending) and normal (the smallest eigenvalue's
     eigenvector) of the scatter of moments M."""
     N = M[:, 3, 3]
@@ -370,7 +379,7 @@ def rotated(vectors: np.ndarray, poses: np.ndarray, frame: np.ndarray) -> np.nda
 def _turned(v: np.ndarray, rows: np.ndarray, f: np.ndarray) -> np.ndarray:
     out = np.empty((3, len(f)))
     for i in range(3):
-        out[i] = rows[i, 0][f] * v[0] + rows[i, 1][f] * v[1] + rows[i, 2][f] * v[2]
+        out[i] = np.take(rows[i, 0], f) * v[0] + np.take(rows[i, 1], f) * v[1] + np.take(rows[i, 2], f) * v[2]
     return out
 
 
@@ -380,7 +389,7 @@ def placed_means(cells: Cells, poses: np.ndarray, part: slice) -> np.ndarray:
     rows = _pose_rows(poses)
     out = _turned(np.ascontiguousarray(cells.mean[part].T, dtype=np.float64), rows, f)
     for i in range(3):
-        out[i] += rows[i, 3][f]
+        out[i] += np.take(rows[i, 3], f)
     return out.T
 
 
@@ -404,8 +413,8 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
         if len(todo) == 0:
             break
         size = voxel / 2**level
-        on, ids, normal, offset, centre, hopeless = _flat_voxels(cells, todo, mean[todo], frame_of, ref_cell, poses,
-                                                                 size)
+        on, ids, normal, offset, centre, hopeless = _flat_voxels(cells, todo, np.take(mean, todo, axis=0), frame_of,
+                                                                 ref_cell, poses, size)
         chosen.append(todo[on])
         plane_ids.append(voxels + ids)
         normals.append(normal)
@@ -416,18 +425,18 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
         todo = todo[~on & ~hopeless]
     cell = np.concatenate(chosen) if chosen else np.zeros(0, int)
     plane = np.concatenate(plane_ids) if plane_ids else np.zeros(0, int)
-    normal = (np.concatenate(normals) if normals else np.zeros((0, 3)))[plane]
-    r = (normal * mean[cell]).sum(1) - (np.concatenate(offsets) if offsets else np.zeros(0))[plane]
+    normal = np.take(np.concatenate(normals) if normals else np.zeros((0, 3)), plane, axis=0)
+    r = (normal * np.take(mean, cell, axis=0)).sum(1) - (np.concatenate(offsets) if offsets else np.zeros(0))[plane]
     del normal, mean
     z = np.sqrt(cells.count[cell].astype(np.float64)) * np.abs(r)  # ~ |N(0, sigma^2)| on an exact plane
     z_ref = z[ref_cell[cell] > 0]
     sigma = max(1.4826 * float(np.median(z_ref)) if len(z_ref) else 0.0, 1e-6)
     weight = 1.0 / (1.0 + (z / (kernel * sigma)) ** 2)
     frames = frame_of[cell]
-    pair, first = _pairs(frames, plane, voxels)
+    pair, first = pair_ids(frames, plane, voxels)
     n = len(first)
     centre = np.concatenate(centres) if centres else np.zeros((0, 3))
-    moment = _moment_sums(cells, cell, pair, n, weight)
+    moment = moment_sums(cells, cell, pair, n, weight)
     points = np.bincount(pair, cells.count[cell].astype(np.float64), minlength=n)
     edge = np.concatenate(sizes) if sizes else np.zeros(0)
     return Assignment(frames[first], plane[first], moment, centre, sigma, len(cell), points, edge)
@@ -482,7 +491,7 @@ def _split_sides(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.
     if not split.any():
         return first
     sub = np.flatnonzero(split[first.inv])
-    second = _voxel_planes(cells, todo[sub], mean[sub], frame_of, ref_cell, poses, size, back[sub])
+    second = _voxel_planes(cells, todo[sub], np.take(mean, sub, axis=0), frame_of, ref_cell, poses, size, back[sub])
     keep = ~split
     number = np.cumsum(keep) - 1
     kept = int(keep.sum())
@@ -498,23 +507,23 @@ def _split_sides(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.
 def _voxel_planes(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.ndarray, ref_cell: np.ndarray,
                   poses: np.ndarray, size: float, back: np.ndarray | None = None) -> _VoxelPlanes:
     """The voxels of edge ``size`` of cells ``todo`` (and of their side, ``back``, where given), and their
-    candidates for a plane (points enough, seen by two reference frames; :func:`_plane_of`)."""
+    candidates for a plane (points enough, seen by two reference frames; :func:`plane_of`)."""
     key = np.floor(mean / size).astype(np.int64)
     inv, n = group_rows(key if back is None else np.concatenate([key, back[:, None].astype(np.int64)], 1))
     level_centre = np.zeros((n, 3))
     level_centre[inv] = key
     level_centre = (level_centre + 0.5) * size
     del key
-    pair, first = _pairs(frame_of[todo], inv, n)
+    pair, first = pair_ids(frame_of[todo], inv, n)
     pair_voxel = inv[first]
     level_pairs = Assignment(frame_of[todo][first], pair_voxel,
-                             _moment_sums(cells, todo, pair, len(first), ref_cell[todo]), level_centre, 1.0, 0)
+                             moment_sums(cells, todo, pair, len(first), ref_cell[todo]), level_centre, 1.0, 0)
     del pair
-    M = _placed_sum(level_pairs, poses)
+    M = placed_sum(level_pairs, poses)
     del level_pairs
     several = np.bincount(pair_voxel, ref_cell[todo][first], minlength=n) >= 2  # seen by two frames or more
     candidate = np.flatnonzero((M[:, 3, 3] >= MIN_POINTS) & several)  # (no reference frame's point: N = 0)
-    _, mu, lam, normal = _plane_of(M[candidate])
+    _, mu, lam, normal = plane_of(M[candidate])
     return _VoxelPlanes(inv, n, level_centre, candidate, mu, lam, normal)
 
 
@@ -525,14 +534,15 @@ def _behind(todo: np.ndarray, mean: np.ndarray, frame_of: np.ndarray, poses: np.
     cells' sensors (False in voxels that are not candidates)."""
     oriented = np.zeros((n, 3))
     oriented[candidate] = normal
-    facing = ((poses[frame_of[todo], :3, 3] - mean) * oriented[inv]).sum(1)
+    sensor = np.take(poses[:, :3, 3], np.take(frame_of, todo), axis=0)
+    facing = ((sensor - mean) * np.take(oriented, inv, axis=0)).sum(1)
     flip = np.bincount(inv, np.sign(facing), minlength=n) < 0
     return np.where(flip[inv], facing > 0, facing < 0)
 
 
 def fit(a: Assignment, poses: np.ndarray) -> Planes:
     """The best plane of each voxel at ``poses`` (smallest eigenvector of its points' scatter) and its cost."""
-    N, mu, lam, normal = _plane_of(_placed_sum(a, poses))
+    N, mu, lam, normal = plane_of(placed_sum(a, poses))
     return Planes(normal, (normal * (mu + a.centre)).sum(1), N * np.maximum(lam[:, 0], 0.0))
 
 
@@ -588,7 +598,7 @@ def linearise(a: Assignment, planes: Planes, poses: np.ndarray) -> Linear:
     S, g_plane = np.zeros((voxels, 3, 3)), np.zeros((voxels, 3))
     coupling = _BlockRows(a.frame, frames, 6, 3)
     for c in chunks(pairs):
-        frame, voxel, Q = a.frame[c], a.voxel[c], _expand(a.moment[c])
+        frame, voxel, Q = a.frame[c], a.voxel[c], expand_moments(a.moment[c])
         n, d = planes.normal[voxel], planes.offset[voxel]
         R, t = poses[frame, :3, :3], poses[frame, :3, 3]
         m = (n[:, None, :] @ R)[:, 0]  # R^T n: the normal in the sensor frame
@@ -666,27 +676,37 @@ def disagreement(a: Assignment, poses: np.ndarray, cap: float = KERNEL,
     points hardly count). ``judged`` (bool per frame, default all): only those frames are scored (NaN for the
     others), all still make the planes."""
     ref_pair = np.ones(len(a.frame), bool) if reference is None else reference[a.frame]
-    total = _placed_sum(a, poses, None if reference is None else ref_pair)
+    total = placed_sum(a, poses, None if reference is None else ref_pair)
     frames = int(poses.shape[0])
     sq_sum, own_sum = np.zeros(frames), np.zeros(frames)
     pairs = np.arange(len(a.frame)) if judged is None else np.flatnonzero(judged[a.frame])
     for c in chunks(len(pairs)):
         p = pairs[c]
         frame, voxel = a.frame[p], a.voxel[p]
-        M_pair = _expand(_about(poses, frame, a.centre[voxel], a.moment[p]))
-        rest = total[voxel] - M_pair * ref_pair[p, None, None]
-        keep = rest[:, 3, 3] > 0
-        N, mu, lam, normal = _plane_of(np.where(keep[:, None, None], rest, np.eye(4)))
-        if a.size is not None:  # the others' points spread across the voxel: a line or a point has no normal
-            keep &= lam[:, 1] >= (MIN_WIDTH * a.size[voxel]) ** 2
-        u = np.concatenate([normal, -(normal * mu).sum(1)[:, None]], 1)  # n . x - n . mu, centred
-        own = M_pair[:, 3, 3]
-        sq = np.einsum("pi,pij,pj->p", u, M_pair, u)
-        sq = np.minimum(np.maximum(sq, 0.0), own * (cap * a.sigma) ** 2) * keep
+        M_pair = expand_moments(moments_about(poses, frame, np.take(a.centre, voxel, axis=0),
+                                              np.take(a.moment, p, axis=0)))
+        rest = np.take(total, voxel, axis=0) - M_pair * ref_pair[p, None, None]
+        sq, keep = left_out_squares(M_pair, rest, None if a.size is None else a.size[voxel], cap * a.sigma)
         sq_sum += np.bincount(frame, sq, minlength=frames)
-        own_sum += np.bincount(frame, (a.points[p] if bounded else own) * keep, minlength=frames)
+        own_sum += np.bincount(frame, (a.points[p] if bounded else M_pair[:, 3, 3]) * keep, minlength=frames)
     with np.errstate(invalid="ignore", divide="ignore"):
         return sq_sum / own_sum
+
+
+def left_out_squares(M_pair: np.ndarray, rest: np.ndarray, size: np.ndarray | None, cap: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Per (frame, voxel) pair: the weighted sum of its points' squared distances (moments ``M_pair`` (k,4,4),
+    about the voxel's centre) to the plane the others' points make (their moments ``rest``), capped at ``cap``
+    (m) a point, and whether that plane exists: the others have points that spread over ``MIN_WIDTH`` of the
+    voxel's edge ``size`` across two directions (a line or a point has no normal; not tested where ``size`` is
+    None). 0 where it does not."""
+    keep = rest[:, 3, 3] > 0
+    _, mu, lam, normal = plane_of(np.where(keep[:, None, None], rest, np.eye(4)))
+    if size is not None:
+        keep &= lam[:, 1] >= (MIN_WIDTH * size) ** 2
+    u = np.concatenate([normal, -(normal * mu).sum(1)[:, None]], 1)  # n . x - n . mu, centred
+    sq = np.einsum("pi,pij,pj->p", u, M_pair, u)
+    return np.minimum(np.maximum(sq, 0.0), M_pair[:, 3, 3] * cap**2) * keep, keep
 
 
 def agreement_score(cells: Cells, candidates: dict[str, np.ndarray], voxel: float,
