@@ -298,29 +298,30 @@ def test_the_console_line_counts_the_stretches_and_names_the_worst_few():
     assert text.count(" peak ") == cp.NAMED and "the other 3 in consistency.csv" in text
 
 
-@pytest.mark.parametrize("where", ["near the origin", "at UTM coordinates", "spread over 10,000 km"])
-def test_the_cells_within_a_stretchs_reach_are_those_its_voxels_share(where):
-    """The index of the other frames' cells by voxel gives exactly the cells of the voxels a stretch occupies
-    (as grouping every key with the stretch's), in order, wherever the poses lie."""
-    from dm2_backend.kernel.geometry.voxels import group_rows
-    from dm2_backend.kernel.planes import Cells
+@pytest.mark.parametrize("where", ["near the origin", "at UTM coordinates", "two frames 10,000 km away"])
+def test_a_frame_judged_against_the_map_of_every_frame_scores_as_that_maps_own_leave_one_out(where):
+    """The "all" view of a long sequence judges a frame's cells against the map every frame makes
+    (``profile_map``): where that map holds every frame's cells as judged, a frame scores as the map's own
+    leave-one-out (``kernel.planes.disagreement``), on true and jumped poses, wherever the poses lie (a map wider
+    than a packed voxel key spans is matched by grouping the keys)."""
+    from dm2_backend.evaluation.profile_map import SparseMap, judged_against_map
+    from dm2_backend.evaluation.profile_views import CAP, root
+    from dm2_backend.kernel.planes import assign, disagreement
 
-    rng = np.random.default_rng(0)
-    n, k = 40, 5000
-    cells = Cells(np.sort(rng.integers(0, n, k)).astype(np.int32), np.ones(k, np.float32),
-                  (rng.normal(size=(k, 3)) * 5).astype(np.float32), np.zeros((k, 6), np.float32), 0.25)
-    poses = np.tile(np.eye(4), (n, 1, 1))
-    poses[:, :3, 3] = rng.normal(size=(n, 3)) * (1e7 if where.startswith("spread") else 3.0)
-    if where == "at UTM coordinates":
-        poses[:, :3, 3] += [5.4e5, 5.3e6, 300.0]
-    a, b = 10, 20
-    stretch = cells.of_frames((np.arange(n) >= a) & (np.arange(n) < b))
-    local = Cells(stretch.frame - np.int32(a), stretch.count, stretch.mean, stretch.scatter, stretch.size)
-    got = stretches._with_reach(local, a, b, cells, stretches._Reach.of(cells, poses, 1.0), poses, 1.0)
-    other = (cells.frame < a) | (cells.frame >= b)
-    keys = stretches._voxel_keys
-    inv, _ = group_rows(np.concatenate([keys(stretch, poses, 1.0), keys(cells, poses, 1.0)[other]]))
-    near = np.flatnonzero(other)[np.isin(inv[len(stretch):], inv[:len(stretch)])]
-    assert np.array_equal(got.frame, np.concatenate([stretch.frame, cells.frame[near]]))
-    assert np.array_equal(got.mean, np.concatenate([stretch.mean, cells.mean[near]]))
-    assert where.startswith("spread") or len(near) > 0
+    _, seq, gt = street()
+    voxel = cp.profile_voxel(seq)
+    cells = profile_cells.cells_of(seq, voxel, 10**9, 0, False, False)
+    judged = np.ones(len(gt), bool)
+    for poses in (gt, jump_from(gt, 40)):
+        poses = poses.copy()
+        if where == "at UTM coordinates":
+            poses[:, :3, 3] += [5.4e5, 5.3e6, 300.0]
+        if where.startswith("two frames"):  # they share planes there: the map spans more than a packed key
+            poses[70:72, :3, 3] += [1e7, 0.0, 0.0]
+        world_map = SparseMap.of(cells, poses, voxel)
+        assert any(level.low is None for level in world_map.levels) == where.startswith("two frames")
+        own = root(disagreement(assign(cells, poses, voxel), poses, CAP, bounded=True))
+        got = judged_against_map(cells, poses, judged, world_map, CAP)
+        assert np.array_equal(np.isfinite(got), np.isfinite(own)) and np.isfinite(got[judged]).all()
+        ratio = got[judged] / own[judged]
+        assert np.median(ratio) == pytest.approx(1.0, abs=0.02) and np.all(np.abs(ratio - 1.0) < 0.2), ratio

@@ -2,10 +2,10 @@
 short sequence.
 
 A sequence longer than ``MAX_CELLS`` cells is judged in stretches (:func:`stretched_views`): each frame by its own
-cells at full density against its neighbouring blocks (``profile_views``) and against the map of the stretch and
-the other frames' cells (the "all" view: leave-one-out with robust weights, which sees a revisit that does not
-line up), the other frames' cells sampled sparser (``OTHERS_PER_FRAME`` a frame at least) and found by the voxels
-the stretch reaches (:class:`_Reach`). The sets of poses (the warm start and the result) are judged side by side
+cells at full density against its neighbouring blocks (``profile_views``) and against the map every other frame
+makes (the "all" view: leave-one-out with robust weights, which sees a revisit that does not line up), that map
+made once per set of poses from every frame's cells sampled sparser (``OTHERS_PER_FRAME`` a frame at least;
+``profile_map``). The sets of poses (the warm start and the result) are judged side by side
 (``SIDE_BY_SIDE``) on threads; on a cluster each stretch of each set is a task (:func:`judge_stretch_task`) that
 maps the cells from files.
 """
@@ -19,16 +19,16 @@ from functools import partial
 import numpy as np
 
 from dm2_backend.evaluation.profile_cells import CELLS_PER_FRAME, StoredCells
+from dm2_backend.evaluation.profile_map import SparseMap, judged_against_map
 from dm2_backend.evaluation.profile_views import CAP, flat_normals, neighbour_views, root, window_frames
-from dm2_backend.kernel.geometry.voxels import group_rows
-from dm2_backend.kernel.planes import Cells, assign, chunks, disagreement, placed_means
+from dm2_backend.kernel.planes import Cells, assign, disagreement
 from dm2_backend.runtime import cluster
 from dm2_backend.runtime.memory import release_freed_memory, release_mapped
 from dm2_backend.runtime.progress import progress as progress_of
 from dm2_backend.runtime.threads import ordered_map
 
-#: the cells of the stretches of frames judged at once, and of the other frames' map beside a stretch, which keeps
-#: at least ``OTHERS_PER_FRAME`` of each frame
+#: the cells of the stretches of frames judged at once, and of the map every frame makes (``profile_map``), which
+#: keeps at least ``OTHERS_PER_FRAME`` of each frame
 MAX_CELLS, OTHERS_PER_FRAME = 1_500_000, 64
 #: sets of poses judged at once (the warm start and the result): a stretch holds ``MAX_CELLS / SIDE_BY_SIDE``
 #: cells (a sequence of at most ``MAX_CELLS`` is judged whole, ``SIDE_BY_SIDE`` assignments of it at once) ...
@@ -59,9 +59,9 @@ def stretched_views(n: int, cells: Cells, candidates: dict[str, np.ndarray], vox
                     ) -> dict[str, tuple[dict[str, np.ndarray], float]]:
     """The views of every frame, and the noise the planes measure (m), a stretch of frames at a time: each frame
     is judged by its own cells at full density against the neighbouring blocks (past, future) and against the map
-    of the stretch's cells and the other frames' cells (all: at the density ``MAX_CELLS`` gives them) in the voxels
-    the stretch reaches. ``cells``: every frame's at full density, in memory or mapped from files; in memory
-    besides: a stretch's (``MAX_CELLS``) and the other frames' map (``OTHERS_PER_FRAME`` a frame at least). On
+    every other frame makes (all: at the density ``MAX_CELLS`` gives them; :class:`SparseMap`). ``cells``: every
+    frame's at full density, in memory or mapped from files; in memory besides: a stretch's (``MAX_CELLS``) and
+    each set's map (``OTHERS_PER_FRAME`` a frame at least). On
     ``engine`` (:func:`cluster_for`) each stretch of each set of poses is a task (the cells stored in files)."""
     margin = 2 * max(window_frames(poses, voxel) for poses in candidates.values())
     whole = n * CELLS_PER_FRAME <= MAX_CELLS
@@ -70,20 +70,23 @@ def stretched_views(n: int, cells: Cells, candidates: dict[str, np.ndarray], vox
     length = n if whole else max(MAX_CELLS // SIDE_BY_SIDE // CELLS_PER_FRAME - 2 * margin, 2 * margin)
     bounds = np.searchsorted(cells.frame, np.arange(n + 1, dtype=cells.frame.dtype))  # cells are in frame order
     release_mapped([cells.frame])
-    # the other frames' map: sparser (a revisit is many frames, each sampled)
-    others = cells if whole else _sampled(cells, max(OTHERS_PER_FRAME, MAX_CELLS // n), bounds, seed)
-    index = {} if whole else {name: _Reach.of(others, poses, voxel) for name, poses in candidates.items()}
+    # the map every frame makes: sparser (a revisit is many frames, each sampled)
+    maps: dict[str, SparseMap] = {}
+    if not whole:
+        sampled = _sampled(cells, max(OTHERS_PER_FRAME, MAX_CELLS // n), bounds, seed)
+        maps = {name: SparseMap.of(sampled, poses, voxel) for name, poses in candidates.items()}
+        del sampled
     stretches = [_Stretch((max(0, s - margin), min(n, s + length + margin)), (s, min(n, s + length)),
                           (int(bounds[max(0, s - margin)]), int(bounds[min(n, s + length + margin)])))
                  for s in range(0, n, length)]
     engine = None if whole or StoredCells.of(cells) is None else engine
     if engine is not None:
-        shared = _Shared(StoredCells.of(cells), candidates, others, index, voxel)
+        shared = _Shared(StoredCells.of(cells), candidates, maps, voxel)
         tasks = [(name, stretch) for stretch in stretches for name in candidates]
         results = engine.map(judge_stretch_task, tasks, "profile stretches", unit="stretch", enabled=progress,
                              shared={"shared": shared})
     else:
-        results = _judged_here(cells, candidates, stretches, others, whole, index, voxel, progress)
+        results = _judged_here(cells, candidates, stretches, maps, voxel, progress)
     views = {name: {view: np.full(n, np.nan) for view in ("all", "past", "future")} for name in candidates}
     noise: dict[str, list[float]] = {name: [] for name in candidates}
     for (name, stretch), (past, future, every, sigma) in zip(
@@ -94,24 +97,26 @@ def stretched_views(n: int, cells: Cells, candidates: dict[str, np.ndarray], vox
     return {name: (views[name], float(np.median(noise[name]))) for name in candidates}
 
 
-def _judge_stretch(candidate: tuple[str, np.ndarray], dense: Cells, others: Cells, whole: bool,
-                   index: dict[str, _Reach], frames: tuple[int, int], judged: tuple[int, int], voxel: float,
+def _judge_stretch(candidate: tuple[str, np.ndarray], dense: Cells, maps: dict[str, SparseMap],
+                   frames: tuple[int, int], judged: tuple[int, int], voxel: float,
                    surface: np.ndarray) -> tuple[str, np.ndarray, np.ndarray, np.ndarray, float]:
     """One set of poses over one stretch (:func:`stretched_views`): frames ``frames`` (a, b) in ``dense``,
-    those of ``judged`` (s, e) scored against the map of ``others`` (every frame's cells when the stretch is the
-    ``whole`` sequence, else the other frames' sparser ones, of which ``index`` finds those the stretch reaches),
-    ``surface`` the judged cells' :func:`flat_normals`. Its name, the past, future and all views of the judged
-    frames, and the noise its planes measure."""
+    those of ``judged`` (s, e) scored against the map every other frame makes (their own cells when the stretch
+    is the whole sequence, else the set's map in ``maps``), ``surface`` the judged cells' :func:`flat_normals`.
+    Its name, the past, future and all views of the judged frames, and the noise its planes measure."""
     name, poses = candidate
     (a, b), (s, e) = frames, judged
     local = slice(s - a, e - a)
     past, future = neighbour_views(dense, poses[a:b], voxel, window_frames(poses, voxel), a, local, surface)
-    mixed = others if whole else _with_reach(dense, a, b, others, index[name], poses, voxel)
-    assigned = assign(mixed, poses, voxel)
     scored = np.zeros(len(poses), bool)
     scored[s:e] = True
-    every = root(disagreement(assigned, poses, CAP, bounded=True, judged=scored))
-    return name, past[local], future[local], every[s:e], assigned.sigma
+    if not maps:  # the whole sequence: every frame's cells make the map
+        assigned = assign(dense, poses, voxel)
+        every, sigma = root(disagreement(assigned, poses, CAP, bounded=True, judged=scored)), assigned.sigma
+    else:
+        numbered = Cells(dense.frame + np.int32(a), dense.count, dense.mean, dense.scatter, dense.size)
+        every, sigma = judged_against_map(numbered, poses, scored, maps[name], CAP), maps[name].assignment.sigma
+    return name, past[local], future[local], every[s:e], sigma
 
 
 @dataclass(frozen=True)
@@ -133,19 +138,19 @@ class _Stretch:
         return dense, flat_normals(dense.of_frames(scored))
 
 
-def _judged_here(cells: Cells, candidates: dict[str, np.ndarray], stretches: list[_Stretch], others: Cells,
-                 whole: bool, index: dict[str, _Reach], voxel: float, progress: bool) -> list[tuple]:
+def _judged_here(cells: Cells, candidates: dict[str, np.ndarray], stretches: list[_Stretch],
+                 maps: dict[str, SparseMap], voxel: float, progress: bool) -> list[tuple]:
     """:func:`_judge_stretch` of every stretch and set of poses in this process (the sets side by side on
     threads), in the order of the stretches, then the sets."""
     workers = min(len(candidates), SIDE_BY_SIDE, WORKERS)
     out = []
     for stretch in progress_of(stretches, "profile stretches", total=len(stretches), unit="stretch",
-                               enabled=progress and not whole):
+                               enabled=progress and len(stretches) > 1):
         release_freed_memory()  # the last stretch's blocks
         release_mapped([cells.frame, cells.count, cells.mean, cells.scatter])  # the last stretch's pages, if files
         dense, surface = stretch.cells(cells)  # the candidates' shared judged cells
-        judge = partial(_judge_stretch, dense=dense, others=others, whole=whole, index=index,
-                        frames=stretch.frames, judged=stretch.judged, voxel=voxel, surface=surface)
+        judge = partial(_judge_stretch, dense=dense, maps=maps, frames=stretch.frames, judged=stretch.judged,
+                        voxel=voxel, surface=surface)
         # numpy's sorts, ufuncs and the KD-tree release the GIL
         out += [result[1:] for result in ordered_map(judge, candidates.items(), workers=workers)]
     return out
@@ -153,13 +158,12 @@ def _judged_here(cells: Cells, candidates: dict[str, np.ndarray], stretches: lis
 
 @dataclass(frozen=True)
 class _Shared:
-    """What every stretch task reads (sent to the cluster once): where the cells are stored, the sets of poses,
-    the other frames' map and, per set, its index."""
+    """What every stretch task reads (sent to the cluster once): where the cells are stored, the sets of poses
+    and each set's map."""
 
     cells: StoredCells
     poses: dict[str, np.ndarray]
-    others: Cells
-    index: dict[str, _Reach]
+    maps: dict[str, SparseMap]
     voxel: float
 
 
@@ -167,72 +171,8 @@ def judge_stretch_task(task: tuple[str, _Stretch], shared: _Shared) -> tuple:
     """One stretch of one set of poses on a cluster's worker (:func:`_judge_stretch`): its views and noise."""
     name, stretch = task
     dense, surface = stretch.cells(shared.cells.open())
-    return _judge_stretch((name, shared.poses[name]), dense, shared.others, False, shared.index, stretch.frames,
-                          stretch.judged, shared.voxel, surface)[1:]
-
-
-@dataclass(frozen=True)
-class _Reach:
-    """Cells sorted by the voxel they fall in at some poses (one int64 key a voxel, ``BITS`` bits an axis from
-    ``low``): the cells of any set of voxels by binary search, without sorting them all again. Cells spread over
-    more voxels than the keys span keep their (K,3) voxels in ``key`` (``order`` None) and are matched by sorting."""
-
-    low: np.ndarray | None
-    key: np.ndarray
-    order: np.ndarray | None
-
-    BITS = 21
-
-    @classmethod
-    def of(cls, cells: Cells, poses: np.ndarray, voxel: float) -> _Reach:
-        keys = _voxel_keys(cells, poses, voxel)
-        if not len(keys):
-            return cls(None, keys, None)
-        low = keys.min(0)
-        if int((keys.max(0) - low).max()) >= 1 << cls.BITS:
-            return cls(None, keys, None)
-        flat = cls._flat(keys, low)
-        order = np.argsort(flat, kind="stable")
-        return cls(low, flat[order], order)
-
-    @classmethod
-    def _flat(cls, keys: np.ndarray, low: np.ndarray) -> np.ndarray:
-        """One key a row; -1 for a row outside the indexed cells' span (it meets none of them)."""
-        k = keys - low
-        inside = ((k >= 0) & (k < (1 << cls.BITS))).all(1)
-        return np.where(inside, (k[:, 0] << (2 * cls.BITS)) | (k[:, 1] << cls.BITS) | k[:, 2], -1)
-
-    def cells_in(self, keys: np.ndarray) -> np.ndarray:
-        """The indexed cells in the voxels ``keys`` (K,3), ascending."""
-        if self.order is None:
-            inv, _ = group_rows(np.concatenate([keys, self.key]))
-            return np.flatnonzero(np.isin(inv[len(keys):], inv[:len(keys)]))
-        wanted = np.unique(self._flat(keys, self.low))
-        wanted = wanted[wanted >= 0]
-        first = np.searchsorted(self.key, wanted, "left")
-        count = np.searchsorted(self.key, wanted, "right") - first
-        at = np.repeat(first - np.cumsum(count) + count, count) + np.arange(int(count.sum()))
-        return np.sort(self.order[at])
-
-
-def _with_reach(dense: Cells, a: int, b: int, others: Cells, reach: _Reach, poses: np.ndarray,
-                voxel: float) -> Cells:
-    """The cells of frames ``a..b-1`` (``dense``, numbered from ``a``) and the cells of the other frames
-    (``others``, indexed by ``reach``) that fall in a voxel one of them occupies at ``poses``: the others cannot
-    share a plane with them."""
-    dense = Cells(dense.frame + np.int32(a), dense.count, dense.mean, dense.scatter, dense.size)
-    near = reach.cells_in(_voxel_keys(dense, poses, voxel))
-    near = near[(others.frame[near] < a) | (others.frame[near] >= b)]
-    return Cells(*(np.concatenate([getattr(dense, f), getattr(others, f)[near]])
-                   for f in ("frame", "count", "mean", "scatter")), dense.size)
-
-
-def _voxel_keys(cells: Cells, poses: np.ndarray, voxel: float) -> np.ndarray:
-    """The voxel (edge ``voxel``) of each cell's mean at ``poses``, (K,3) integers."""
-    keys = np.empty((len(cells), 3), np.int64)
-    for c in chunks(len(cells)):
-        keys[c] = np.floor(placed_means(cells, poses, c) / voxel)
-    return keys
+    return _judge_stretch((name, shared.poses[name]), dense, shared.maps, stretch.frames, stretch.judged,
+                          shared.voxel, surface)[1:]
 
 
 def cluster_for(n: int, sets: int, shared_folder: bool) -> cluster.Engine | None:
