@@ -289,6 +289,29 @@ def test_the_true_poses_of_a_simulated_depth_camera_raise_no_flag(tmp_path):
     assert p.threshold_m >= cp.FLOOR * p.noise_m
 
 
+def test_a_frames_own_cells_in_the_map_do_not_judge_it():
+    """Leave-one-out on a sampled map: a frame scores against a map that holds its own sampled cells as against
+    the map of the other frames alone (where it has no pair), within what its cells change of which voxels are
+    flat (a voxel two frames see)."""
+    from dm2_backend.evaluation.profile_map import SparseMap, judged_against_map
+    from dm2_backend.evaluation.profile_stretches import _sampled
+    from dm2_backend.evaluation.profile_views import CAP, root
+    from dm2_backend.kernel.planes import Cells
+
+    _, seq, gt = street()
+    voxel = cp.profile_voxel(seq)
+    cells = profile_cells.cells_of(seq, voxel, 10**9, 0, False, False)
+    sampled = _sampled(cells, 256, np.searchsorted(cells.frame, np.arange(len(gt) + 1)), 0)
+    judged = np.zeros(len(gt), bool)
+    judged[[10, 40, 70]] = True
+    others = ~judged[sampled.frame]
+    without = Cells(*(getattr(sampled, f)[others] for f in ("frame", "count", "mean", "scatter")), sampled.size)
+    with_own = root(judged_against_map(cells, gt, judged, SparseMap.of(sampled, gt, voxel), CAP))
+    alone = root(judged_against_map(cells, gt, judged, SparseMap.of(without, gt, voxel), CAP))
+    assert np.isfinite(with_own[judged]).all()
+    np.testing.assert_allclose(with_own[judged], alone[judged], rtol=0.25)
+
+
 def test_the_console_line_counts_the_stretches_and_names_the_worst_few():
     segments = [{"first": 10 * i, "last": 10 * i + 2, "start_s": None, "end_s": None, "peak_frame": 10 * i + 1,
                  "peak_m": 0.01 * (i + 1)} for i in range(6)]
@@ -321,7 +344,7 @@ def test_a_frame_judged_against_the_map_of_every_frame_scores_as_that_maps_own_l
         world_map = SparseMap.of(cells, poses, voxel)
         assert any(level.low is None for level in world_map.levels) == where.startswith("two frames")
         own = root(disagreement(assign(cells, poses, voxel), poses, CAP, bounded=True))
-        got = judged_against_map(cells, poses, judged, world_map, CAP)
+        got = root(judged_against_map(cells, poses, judged, world_map, CAP))
         assert np.array_equal(np.isfinite(got), np.isfinite(own)) and np.isfinite(got[judged]).all()
         ratio = got[judged] / own[judged]
         assert np.median(ratio) == pytest.approx(1.0, abs=0.02) and np.all(np.abs(ratio - 1.0) < 0.2), ratio

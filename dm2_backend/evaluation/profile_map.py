@@ -1,11 +1,12 @@
 """The consistency profile's "all" view of a long sequence: each frame's cells at full density judged against the
-map that every *other* frame makes, that map made once for the whole sequence from every frame's sparser cells.
+map that every *other* frame makes, that map made once for the whole sequence from every frame's sampled cells.
 
 The map (:class:`SparseMap`) is one plane assignment (``kernel.planes``) of every frame's sampled cells at a set of
-poses. A judged cell lies on the plane of the voxel its mean falls in, the largest voxel first (as the assignment
-puts its own cells; of the two faces of a panel the nearer), weighted as the assignment weighs its cells. A frame's
-points on a plane are measured against that plane fitted without the frame's own sampled cells (leave-one-out), where
-the others' points spread across the voxel, as :func:`kernel.planes.disagreement` measures a frame of the map.
+poses. A judged cell lies where the assignment would put it: on the plane of the largest voxel its mean falls in
+whose plane faces the cell's sensor (a panel seen from both sides has a plane a face), weighted by the assignment's
+kernel on its distance to that plane. A frame's points on a plane are measured against the plane the map's points
+make without the frame's own sampled ones (leave-one-out; ``kernel.planes.left_out_squares``), as
+``kernel.planes.disagreement`` measures a frame of the map.
 """
 
 from __future__ import annotations
@@ -38,7 +39,9 @@ BITS = 21
 @dataclass(frozen=True)
 class SparseMap:
     """One set of poses' map of every frame's sampled cells: its assignment, each plane's world moment about its
-    voxel's centre (V,4,4) and fitted plane, and the keys that find a plane and a frame's own pair in it."""
+    voxel's centre (V,4,4) and its plane ``normal . x = offset`` with the normal towards the sensors that see it,
+    the planes of each voxel size (largest first) and each (frame, plane) pair's key (sorted: the assignment
+    numbers its pairs so)."""
 
     assignment: Assignment
     total: np.ndarray
@@ -46,38 +49,41 @@ class SparseMap:
     offset: np.ndarray
     levels: tuple[_Level, ...]
     pair_key: np.ndarray
-    pair_order: np.ndarray
 
     @classmethod
     def of(cls, cells: Cells, poses: np.ndarray, voxel: float) -> SparseMap:
+        """The map of ``cells`` at ``poses``: one :func:`~dm2_backend.kernel.planes.assign` with ``voxel``."""
         a = assign(cells, poses, voxel)
         total = placed_sum(a, poses)
         _, mu, _, normal = plane_of(np.where(total[:, 3:, 3:] > 0, total, np.eye(4)))
-        offset = (normal * (mu + a.centre)).sum(1)
-        levels = []
-        for size in np.unique(a.size)[::-1]:  # the largest voxels first
-            ids = np.flatnonzero(a.size == size)
-            levels.append(_Level.of(float(size), np.floor(a.centre[ids] / size).astype(np.int64), ids))
-        pair_key = a.frame.astype(np.int64) * max(a.voxels, 1) + a.voxel
-        pair_order = np.argsort(pair_key, kind="stable")
-        return cls(a, total, normal, offset, tuple(levels), pair_key[pair_order], pair_order)
+        sensor = np.take(poses[:, :3, 3], a.frame, axis=0) - np.take(a.centre, a.voxel, axis=0)
+        facing = np.bincount(a.voxel, (np.take(normal, a.voxel, axis=0) * sensor).sum(1) * a.points,
+                             minlength=a.voxels)
+        normal = np.where(facing[:, None] < 0, -normal, normal)
+        levels = tuple(_Level.of(float(size), a.centre, np.flatnonzero(a.size == size))
+                       for size in np.unique(a.size)[::-1])
+        return cls(a, total, normal, (normal * (mu + a.centre)).sum(1), levels,
+                   a.frame.astype(np.int64) * max(a.voxels, 1) + a.voxel)
 
-    def plane_of_cells(self, world: np.ndarray) -> np.ndarray:
-        """The plane (index) of each point of ``world`` (k,3), -1 where none: the largest voxel with a plane
-        first; of two planes in a voxel (a panel's two faces) the nearer."""
+    def plane_of_cells(self, world: np.ndarray, sensor: np.ndarray) -> np.ndarray:
+        """The plane (index) of each point ``world`` (k,3) seen from ``sensor`` (k,3), -1 where none: in the
+        largest voxel with a plane that faces the sensor (of two such, the nearer)."""
         out = np.full(len(world), -1)
         best = np.full(len(world), np.inf)
+        todo = np.flatnonzero(np.isfinite(world).all(1))
         for level in self.levels:
-            todo = np.flatnonzero(out < 0)
             if not len(todo):
                 break
             first, count = level.find(np.floor(world[todo] / level.size).astype(np.int64))
-            for k in range(int(count.max()) if len(count) else 0):  # (at most two faces a voxel)
+            for k in range(int(count.max())):  # (at most two faces a voxel)
                 has = np.flatnonzero(count > k)
-                at, plane = todo[has], level.ids[first[has] + k]
-                dist = np.abs((self.normal[plane] * world[at]).sum(1) - self.offset[plane])
-                nearer = dist < best[at]
-                out[at[nearer]], best[at[nearer]] = plane[nearer], dist[nearer]
+                at, plane = todo[has], np.take(level.ids, first[has] + k)
+                n = np.take(self.normal, plane, axis=0)
+                dist = (n * world[at]).sum(1) - np.take(self.offset, plane)
+                faces = (n * sensor[at]).sum(1) - np.take(self.offset, plane) >= 0.0
+                nearer = faces & (np.abs(dist) < best[at])
+                out[at[nearer]], best[at[nearer]] = plane[nearer], np.abs(dist[nearer])
+            todo = todo[out[todo] < 0]
         return out
 
     def own_pair(self, frame: np.ndarray, plane: np.ndarray) -> np.ndarray:
@@ -86,36 +92,36 @@ class SparseMap:
             return np.full(len(frame), -1)
         key = frame.astype(np.int64) * max(self.assignment.voxels, 1) + plane
         at = np.minimum(np.searchsorted(self.pair_key, key), len(self.pair_key) - 1)
-        return np.where(self.pair_key[at] == key, self.pair_order[at], -1)
+        return np.where(self.pair_key[at] == key, at, -1)
 
 
 @dataclass(frozen=True)
 class _Level:
-    """The planes of one voxel size: their voxel keys (P,3) in order, as one int64 each (``code``: ``BITS`` bits an
-    axis from ``low``), and their indices ``ids``; ``low`` None where the keys span more than ``BITS`` bits (then
-    the keys are in lexicographic order and matched by grouping)."""
+    """The planes of one voxel size, sorted by their voxel's key: their indices ``ids`` and the keys, each packed
+    into one int64 (``BITS`` bits an axis from ``low``), or, where the keys span more than that (``low`` None),
+    the (P,3) keys in lexicographic order, matched by grouping."""
 
     size: float
-    keys: np.ndarray
-    low: np.ndarray | None
-    code: np.ndarray
     ids: np.ndarray
+    low: np.ndarray | None
+    keys: np.ndarray
 
     @classmethod
-    def of(cls, size: float, keys: np.ndarray, ids: np.ndarray) -> _Level:
-        low = keys.min(0) - 1 if len(keys) else np.zeros(3, np.int64)
-        code = _packed(keys, low)
-        if (code < 0).any():
+    def of(cls, size: float, centre: np.ndarray, ids: np.ndarray) -> _Level:
+        """The planes ``ids`` of edge ``size`` (their voxels' ``centre`` rows)."""
+        keys = np.floor(centre[ids] / size).astype(np.int64)
+        low = keys.min(0)
+        packed = _packed(keys, low)
+        if (packed < 0).any():
             order = np.lexsort(keys.T[::-1])
-            return cls(size, keys[order], None, code[order], ids[order])
-        order = np.argsort(code, kind="stable")
-        return cls(size, keys[order], low, code[order], ids[order])
+            return cls(size, ids[order], None, keys[order])
+        order = np.argsort(packed, kind="stable")
+        return cls(size, ids[order], low, packed[order])
 
     def find(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For each voxel key (k,3): the first of its planes (a position in ``ids``) and how many there are."""
-        planes = self.code
         if self.low is not None:
-            code = _packed(keys, self.low)
+            planes, code = self.keys, _packed(keys, self.low)
         else:  # groups are numbered in the keys' order, as the planes are sorted
             inv, _ = group_rows(np.concatenate([self.keys, keys]))
             planes, code = inv[:len(self.keys)], inv[len(self.keys):]
@@ -132,27 +138,27 @@ def _packed(key: np.ndarray, low: np.ndarray) -> np.ndarray:
 
 def judged_against_map(cells: Cells, poses: np.ndarray, judged: np.ndarray, world_map: SparseMap, cap: float
                        ) -> np.ndarray:
-    """Per frame, the RMS distance (m) of the ``judged`` frames' ``cells`` (frames numbered as ``poses``) to the
-    planes the other frames make in ``world_map``, each (frame, plane) pair capped at ``cap`` noise sigmas and the
-    points of a frame weighed as :func:`kernel.planes.disagreement` (``bounded``) weighs them; NaN for the frames
-    not judged or with no point on such a plane."""
+    """Per frame, the mean squared distance (m^2) of the ``judged`` frames' ``cells`` (frames numbered as
+    ``poses``) to the planes the other frames make in ``world_map``, each (frame, plane) pair capped at ``cap``
+    noise sigmas, over all the frame's points on such planes (as ``disagreement(..., bounded=True)``); NaN for
+    the frames not judged or with no point on such a plane."""
     a = world_map.assignment
     n = len(poses)
-    on = np.flatnonzero(judged[cells.frame])
-    plane = np.full(len(on), -1)
-    weight = np.zeros(len(on))
-    for c in chunks(len(on)):
-        part = Cells(cells.frame[on[c]], cells.count[on[c]], cells.mean[on[c]], cells.scatter[on[c]], cells.size)
+    rows = np.flatnonzero(judged[cells.frame])
+    plane = np.full(len(rows), -1)
+    weight = np.zeros(len(rows))
+    for c in chunks(len(rows)):
+        part = Cells(*(np.take(getattr(cells, f), rows[c], axis=0) for f in ("frame", "count", "mean", "scatter")),
+                     cells.size)
         world = placed_means(part, poses, slice(None))
-        plane[c] = world_map.plane_of_cells(world)
-        hit = plane[c] >= 0
-        r = (world_map.normal[plane[c][hit]] * world[hit]).sum(1) - world_map.offset[plane[c][hit]]
-        z = np.sqrt(part.count[hit].astype(np.float64)) * np.abs(r)
-        w = np.zeros(len(world))
-        w[hit] = 1.0 / (1.0 + (z / (KERNEL * a.sigma)) ** 2)
-        weight[c] = w
-    keep = plane >= 0
-    rows, plane, weight = on[keep], plane[keep], weight[keep]
+        plane[c] = world_map.plane_of_cells(world, np.take(poses[:, :3, 3], part.frame, axis=0))
+        on = plane[c] >= 0
+        r = (np.take(world_map.normal, plane[c][on], axis=0) * world[on]).sum(1) - np.take(world_map.offset,
+                                                                                          plane[c][on])
+        z = np.sqrt(part.count[on].astype(np.float64)) * np.abs(r)  # as ``assign`` weighs a cell
+        weight[np.flatnonzero(on) + c.start] = 1.0 / (1.0 + (z / (KERNEL * a.sigma)) ** 2)
+    on = plane >= 0
+    rows, plane, weight = rows[on], plane[on], weight[on]
     frame = cells.frame[rows].astype(np.int64)
     pair, first = pair_ids(frame, plane, a.voxels)
     moment = moment_sums(cells, rows, pair, len(first), weight)
@@ -161,16 +167,16 @@ def judged_against_map(cells: Cells, poses: np.ndarray, judged: np.ndarray, worl
     own = world_map.own_pair(frame, plane)
     sq_sum, own_sum = np.zeros(n), np.zeros(n)
     for c in chunks(len(first)):
-        M_pair = expand_moments(moments_about(poses, frame[c], a.centre[plane[c]], moment[c]))
-        mine = own[c]
-        rest = world_map.total[plane[c]].copy()
-        has = mine >= 0
-        rest[has] -= expand_moments(moments_about(poses, a.frame[mine[has]], a.centre[plane[c][has]],
-                                                  a.moment[mine[has]]))
-        sq, keep = left_out_squares(M_pair, rest, a.size[plane[c]], cap * a.sigma)
+        centre = np.take(a.centre, plane[c], axis=0)
+        M_pair = expand_moments(moments_about(poses, frame[c], centre, moment[c]))
+        rest = np.take(world_map.total, plane[c], axis=0)
+        mine = np.flatnonzero(own[c] >= 0)
+        pairs = own[c][mine]
+        rest[mine] -= expand_moments(moments_about(poses, a.frame[pairs], centre[mine], a.moment[pairs]))
+        sq, keep = left_out_squares(M_pair, rest, np.take(a.size, plane[c]), cap * a.sigma)
         sq_sum += np.bincount(frame[c], sq, minlength=n)
         own_sum += np.bincount(frame[c], points[c] * keep, minlength=n)
     with np.errstate(invalid="ignore", divide="ignore"):
-        out = np.sqrt(sq_sum / own_sum)
+        out = sq_sum / own_sum
     out[~judged] = np.nan
     return out

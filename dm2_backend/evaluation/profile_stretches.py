@@ -4,7 +4,7 @@ short sequence.
 A sequence longer than ``MAX_CELLS`` cells is judged in stretches (:func:`stretched_views`): each frame by its own
 cells at full density against its neighbouring blocks (``profile_views``) and against the map every other frame
 makes (the "all" view: leave-one-out with robust weights, which sees a revisit that does not line up), that map
-made once per set of poses from every frame's cells sampled sparser (``OTHERS_PER_FRAME`` a frame at least;
+made once per set of poses from every frame's cells sampled sparser (``MAP_CELLS_PER_FRAME`` a frame at least;
 ``profile_map``). The sets of poses (the warm start and the result) are judged side by side
 (``SIDE_BY_SIDE``) on threads; on a cluster each stretch of each set is a task (:func:`judge_stretch_task`) that
 maps the cells from files.
@@ -28,8 +28,8 @@ from dm2_backend.runtime.progress import progress as progress_of
 from dm2_backend.runtime.threads import ordered_map
 
 #: the cells of the stretches of frames judged at once, and of the map every frame makes (``profile_map``), which
-#: keeps at least ``OTHERS_PER_FRAME`` of each frame
-MAX_CELLS, OTHERS_PER_FRAME = 1_500_000, 64
+#: keeps at least ``MAP_CELLS_PER_FRAME`` of each frame
+MAX_CELLS, MAP_CELLS_PER_FRAME = 1_500_000, 64
 #: sets of poses judged at once (the warm start and the result): a stretch holds ``MAX_CELLS / SIDE_BY_SIDE``
 #: cells (a sequence of at most ``MAX_CELLS`` is judged whole, ``SIDE_BY_SIDE`` assignments of it at once) ...
 SIDE_BY_SIDE = 2
@@ -61,7 +61,7 @@ def stretched_views(n: int, cells: Cells, candidates: dict[str, np.ndarray], vox
     is judged by its own cells at full density against the neighbouring blocks (past, future) and against the map
     every other frame makes (all: at the density ``MAX_CELLS`` gives them; :class:`SparseMap`). ``cells``: every
     frame's at full density, in memory or mapped from files; in memory besides: a stretch's (``MAX_CELLS``) and
-    each set's map (``OTHERS_PER_FRAME`` a frame at least). On
+    each set's map (``MAP_CELLS_PER_FRAME`` a frame at least). On
     ``engine`` (:func:`cluster_for`) each stretch of each set of poses is a task (the cells stored in files)."""
     margin = 2 * max(window_frames(poses, voxel) for poses in candidates.values())
     whole = n * CELLS_PER_FRAME <= MAX_CELLS
@@ -71,10 +71,12 @@ def stretched_views(n: int, cells: Cells, candidates: dict[str, np.ndarray], vox
     bounds = np.searchsorted(cells.frame, np.arange(n + 1, dtype=cells.frame.dtype))  # cells are in frame order
     release_mapped([cells.frame])
     # the map every frame makes: sparser (a revisit is many frames, each sampled)
-    maps: dict[str, SparseMap] = {}
+    maps: dict[str, SparseMap] | None = None
     if not whole:
-        sampled = _sampled(cells, max(OTHERS_PER_FRAME, MAX_CELLS // n), bounds, seed)
-        maps = {name: SparseMap.of(sampled, poses, voxel) for name, poses in candidates.items()}
+        sampled = _sampled(cells, max(MAP_CELLS_PER_FRAME, MAX_CELLS // n), bounds, seed)
+        built = ordered_map(lambda poses: SparseMap.of(sampled, poses, voxel), candidates.values(),
+                            workers=min(len(candidates), SIDE_BY_SIDE, WORKERS))
+        maps = dict(zip(candidates, built, strict=True))
         del sampled
     stretches = [_Stretch((max(0, s - margin), min(n, s + length + margin)), (s, min(n, s + length)),
                           (int(bounds[max(0, s - margin)]), int(bounds[min(n, s + length + margin)])))
@@ -97,12 +99,12 @@ def stretched_views(n: int, cells: Cells, candidates: dict[str, np.ndarray], vox
     return {name: (views[name], float(np.median(noise[name]))) for name in candidates}
 
 
-def _judge_stretch(candidate: tuple[str, np.ndarray], dense: Cells, maps: dict[str, SparseMap],
+def _judge_stretch(candidate: tuple[str, np.ndarray], dense: Cells, maps: dict[str, SparseMap] | None,
                    frames: tuple[int, int], judged: tuple[int, int], voxel: float,
                    surface: np.ndarray) -> tuple[str, np.ndarray, np.ndarray, np.ndarray, float]:
     """One set of poses over one stretch (:func:`stretched_views`): frames ``frames`` (a, b) in ``dense``,
-    those of ``judged`` (s, e) scored against the map every other frame makes (their own cells when the stretch
-    is the whole sequence, else the set's map in ``maps``), ``surface`` the judged cells' :func:`flat_normals`.
+    those of ``judged`` (s, e) scored against the map every other frame makes (the set's map in ``maps``; None:
+    the stretch is the whole sequence, whose cells make it), ``surface`` the judged cells' :func:`flat_normals`.
     Its name, the past, future and all views of the judged frames, and the noise its planes measure."""
     name, poses = candidate
     (a, b), (s, e) = frames, judged
@@ -110,13 +112,14 @@ def _judge_stretch(candidate: tuple[str, np.ndarray], dense: Cells, maps: dict[s
     past, future = neighbour_views(dense, poses[a:b], voxel, window_frames(poses, voxel), a, local, surface)
     scored = np.zeros(len(poses), bool)
     scored[s:e] = True
-    if not maps:  # the whole sequence: every frame's cells make the map
+    if maps is None:
+        assert frames == (0, len(poses)), frames
         assigned = assign(dense, poses, voxel)
-        every, sigma = root(disagreement(assigned, poses, CAP, bounded=True, judged=scored)), assigned.sigma
+        every, sigma = disagreement(assigned, poses, CAP, bounded=True, judged=scored), assigned.sigma
     else:
         numbered = Cells(dense.frame + np.int32(a), dense.count, dense.mean, dense.scatter, dense.size)
         every, sigma = judged_against_map(numbered, poses, scored, maps[name], CAP), maps[name].assignment.sigma
-    return name, past[local], future[local], every[s:e], sigma
+    return name, past[local], future[local], root(every[s:e]), sigma
 
 
 @dataclass(frozen=True)
@@ -139,7 +142,7 @@ class _Stretch:
 
 
 def _judged_here(cells: Cells, candidates: dict[str, np.ndarray], stretches: list[_Stretch],
-                 maps: dict[str, SparseMap], voxel: float, progress: bool) -> list[tuple]:
+                 maps: dict[str, SparseMap] | None, voxel: float, progress: bool) -> list[tuple]:
     """:func:`_judge_stretch` of every stretch and set of poses in this process (the sets side by side on
     threads), in the order of the stretches, then the sets."""
     workers = min(len(candidates), SIDE_BY_SIDE, WORKERS)
