@@ -17,10 +17,10 @@ import numpy as np
 
 from dm2_backend.kernel.geometry.voxels import group_rows
 from dm2_backend.kernel.planes import (
-    KERNEL,
     Assignment,
     Cells,
     assign,
+    cell_weight,
     chunks,
     expand_moments,
     left_out_squares,
@@ -30,6 +30,7 @@ from dm2_backend.kernel.planes import (
     placed_means,
     placed_sum,
     plane_of,
+    standard_distance,
 )
 
 #: bits of a packed voxel key per axis (a map spanning more voxels than this is matched by grouping keys)
@@ -155,8 +156,7 @@ def judged_against_map(cells: Cells, poses: np.ndarray, judged: np.ndarray, worl
         on = plane[c] >= 0
         r = (np.take(world_map.normal, plane[c][on], axis=0) * world[on]).sum(1) - np.take(world_map.offset,
                                                                                           plane[c][on])
-        z = np.sqrt(part.count[on].astype(np.float64)) * np.abs(r)  # as ``assign`` weighs a cell
-        weight[np.flatnonzero(on) + c.start] = 1.0 / (1.0 + (z / (KERNEL * a.sigma)) ** 2)
+        weight[np.flatnonzero(on) + c.start] = cell_weight(standard_distance(part.count[on], r), a.sigma)
     on = plane >= 0
     rows, plane, weight = rows[on], plane[on], weight[on]
     frame = cells.frame[rows].astype(np.int64)

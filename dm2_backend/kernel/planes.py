@@ -292,7 +292,7 @@ def placed_sum(a: Assignment, poses: np.ndarray, keep: np.ndarray | None = None)
 
 
 def moment_sums(cells: Cells, rows: np.ndarray, group: np.ndarray, n: int,
-                 weight: np.ndarray | None = None) -> np.ndarray:
+                weight: np.ndarray | None = None) -> np.ndarray:
     """Sums by ``group`` (into ``n``) of the homogeneous moments [p 1]^T [p 1] (sensor frame) of cells ``rows``
     (times ``weight``), as their 10 distinct entries (n,10) in the order of ``_UPPER``: one entry at a time over
     contiguous rows, no (K,10) array of every cell's moment."""
@@ -428,10 +428,10 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
     normal = np.take(np.concatenate(normals) if normals else np.zeros((0, 3)), plane, axis=0)
     r = (normal * np.take(mean, cell, axis=0)).sum(1) - (np.concatenate(offsets) if offsets else np.zeros(0))[plane]
     del normal, mean
-    z = np.sqrt(cells.count[cell].astype(np.float64)) * np.abs(r)  # ~ |N(0, sigma^2)| on an exact plane
+    z = standard_distance(cells.count[cell], r)
     z_ref = z[ref_cell[cell] > 0]
     sigma = max(1.4826 * float(np.median(z_ref)) if len(z_ref) else 0.0, 1e-6)
-    weight = 1.0 / (1.0 + (z / (kernel * sigma)) ** 2)
+    weight = cell_weight(z, sigma, kernel)
     frames = frame_of[cell]
     pair, first = pair_ids(frames, plane, voxels)
     n = len(first)
@@ -440,6 +440,17 @@ def assign(cells: Cells, poses: np.ndarray, voxel: float, reference: np.ndarray 
     points = np.bincount(pair, cells.count[cell].astype(np.float64), minlength=n)
     edge = np.concatenate(sizes) if sizes else np.zeros(0)
     return Assignment(frames[first], plane[first], moment, centre, sigma, len(cell), points, edge)
+
+
+def standard_distance(count: np.ndarray, distance: np.ndarray) -> np.ndarray:
+    """A cell mean's distance to its plane in the units of one point's: times the square root of the cell's
+    points (~ |N(0, sigma^2)| on an exact plane)."""
+    return np.sqrt(count.astype(np.float64)) * np.abs(distance)
+
+
+def cell_weight(z: np.ndarray, sigma: float, kernel: float = KERNEL) -> np.ndarray:
+    """A cell's robust weight from its :func:`standard_distance` ``z``: Cauchy, ``kernel`` noise sigmas wide."""
+    return 1.0 / (1.0 + (z / (kernel * sigma)) ** 2)
 
 
 def _flat_voxels(cells: Cells, todo: np.ndarray, mean: np.ndarray, frame_of: np.ndarray, ref_cell: np.ndarray,
