@@ -23,9 +23,10 @@ it replaces the odometry (:meth:`IcpWarmStart._fused_step`):
   farther than the odometry moved by more than the odometry's noise allows (an odometry glitch: a wheel slips,
   a gyro jumps); otherwise the odometry increment is used (a scan-matching failure).
 
-With ``weigh: cycles`` the scan matches are weighed against the odometry per axis by their own match cycles
-(:mod:`dm2_backend.algorithms.match_noise`), for logs whose odometry is more precise than their scans
-(docs/decisions/0015-scan-weights-from-match-cycles.md).
+The scan matching's own match cycles (:mod:`dm2_backend.algorithms.match_noise`) measure how precise it is against the
+odometry; by default (``weigh: auto``) a log whose odometry they find the more precise source on every axis has its
+scan matches weighed against the odometry per axis by them (as ``weigh: cycles``), any other log takes them whole
+(``weigh: whole``): docs/decisions/0015-scan-weights-from-match-cycles.md.
 
 Then the steps are checked where drift shows (``windows``, :mod:`dm2_backend.algorithms.drift_windows`): over
 windows one median scan range long, the warm start's relative pose is compared with the odometry's; a
@@ -126,8 +127,9 @@ class IcpWarmStart:
     #: (fuse) "whole": scan matches are taken whole; "cycles": each is weighed against the odometry per axis by how
     #: much of its disagreement with the odometry the scan matching's own inconsistency explains (measured on match
     #: cycles, :mod:`dm2_backend.algorithms.match_noise`), the window check's odometry noise is that share and an
-    #: undecidable window takes the more precise source (docs/decisions/0015-scan-weights-from-match-cycles.md)
-    weigh: str = "whole"
+    #: undecidable window takes the more precise source; "auto": "cycles" where the cycles find the odometry the
+    #: more precise source on every axis, else "whole" (docs/decisions/0015-scan-weights-from-match-cycles.md)
+    weigh: str = "auto"
     #: report the stage's progress: a bar on a terminal, else one INFO log line when it ends; false: silent
     progress: bool = True
 
@@ -181,12 +183,20 @@ class IcpWarmStart:
         return poses
 
     def _match_weights(self, frames: Frames, given: Trajectory, fine: float) -> MatchWeights:
-        if self.weigh not in ("cycles", "whole"):
-            raise InputError(None, f"icp warm start: unknown weigh {self.weigh!r} (whole, cycles)")
+        """The weights the scan matches are taken with; ``_measured`` keeps what the cycles found (None: not
+        measured) and ``_weighed`` how the matches were taken ("whole" or "cycles")."""
+        if self.weigh not in ("auto", "cycles", "whole"):
+            raise InputError(None, f"icp warm start: unknown weigh {self.weigh!r} (auto, whole, cycles)")
+        self._measured: MatchWeights | None = None
+        self._weighed = "whole"
         if self.weigh == "whole":
             return MatchWeights.whole()
         odometry = np.array([project_planar(T) for T in given.poses])
-        return match_weights(frames.points, odometry, fine, self.iterations)
+        self._measured = match_weights(frames.points, odometry, fine, self.iterations)
+        if self.weigh == "auto" and self._measured.more_precise != "odometry":
+            return MatchWeights.whole(self._measured.triples)
+        self._weighed = "cycles"
+        return self._measured
 
     def _check_windows(self, frames: Frames, poses: np.ndarray, odometry: np.ndarray, fine: float) -> np.ndarray:
         """:func:`check_windows` over windows one median scan range long, the odometry's per-step noise from the
@@ -382,10 +392,13 @@ class IcpWarmStart:
         summary = (f"icp warm start: {counts['scan']} of {len(src)} steps from the scan match, "
                    + ", ".join(f"{v} {k}" for k, v in list(counts.items())[1:]) + "; "
                    + (", ".join(f"{k}: {v}" for k, v in reasons.items()) or "no fallback"))
-        w = self._weights
-        if w.triples >= MIN_TRIPLES:
-            summary += ("; scan matches weighed " + ", ".join(f"{x:.2f} {a}" for x, a in zip(w.weights, AXES))
-                        + f" against the odometry ({w.triples} match cycles)")
+        w = self._measured
+        if w is not None and w.triples >= MIN_TRIPLES:
+            measured = ", ".join(f"{x:.2f} {a}" for x, a in zip(w.weights, AXES))
+            summary += (f"; scan matches weighed {measured} against the odometry ({w.triples} match cycles)"
+                        if self._weighed == "cycles" else
+                        f"; scan matches taken whole (their {w.triples} match cycles weigh them {measured}: the "
+                        "odometry is not the more precise source on every axis)")
         fallback = [v for v in self.verdicts if v.source == "odometry"]
         if self.verdicts:
             summary += (f"; windows of {self._reach:.1f} m: {len(fallback)} of {len(self.verdicts)} from the odometry"
@@ -398,7 +411,7 @@ class IcpWarmStart:
             "sources": counts,
             "reasons": reasons,
             "windows": [asdict(v) for v in self.verdicts],
-            "match_weights": self._weights.as_dict(),
+            "match_weights": (self._measured or self._weights).as_dict() | {"weighed": self._weighed},
             "settings": {"min_fitness": self.min_fitness, "min_constraint": self.min_constraint,
                          "gate": self.gate, "better_fitness": self.better_fitness, "windows": self.windows,
                          "weigh": self.weigh, "unjudged_windows": self._weights.more_precise,
