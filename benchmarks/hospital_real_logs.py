@@ -41,12 +41,13 @@ def cases() -> dict[str, HospitalTraits]:
             "pauses": dataclasses.replace(plain, gaps=full.gaps), "all": full}
 
 
-def warm_start_errors(seq, rel, windows: str = "auto", save: Path | None = None) -> dict:
+def warm_start_errors(seq, rel, windows: str = "auto", save: Path | None = None, weigh: str = "auto") -> dict:
     """The odometry's and the fused warm start's mean relation errors (m), the warm start's time and windows;
-    ``save``: also write the warm start's poses there (``.npy``, for ``benchmarks/hospital_closures.py``)."""
+    ``save``: also write the warm start's poses there (``.npy``, for ``benchmarks/hospital_closures.py``); ``weigh``:
+    the warm start's option of that name."""
     odometry = seq.trajectories["odometry"]
     t0 = time.perf_counter()
-    ws = IcpWarmStart(progress=False, windows=windows)
+    ws = IcpWarmStart(progress=False, windows=windows, weigh=weigh)
     poses = ws.run(load_frames(seq, 1024, None, 0, False), odometry)
     seconds = time.perf_counter() - t0
     if save is not None:
@@ -61,17 +62,17 @@ def warm_start_errors(seq, rel, windows: str = "auto", save: Path | None = None)
 
 
 def measure(log: Path, relations: Path, out: Path, name: str, traits: HospitalTraits | None, count: int | None = None,
-            windows: str = "auto") -> dict:
+            windows: str = "auto", weigh: str = "auto") -> dict:
     """Rewrite (``traits``; None: the original log as it is), read, warm-start: :func:`warm_start_errors`."""
     if traits is None:
         seq = open_carmen_scans(log)
         if count is not None:
             raise ValueError("the original log is measured whole")
         out.mkdir(parents=True, exist_ok=True)
-        return warm_start_errors(seq, load_relations(relations), windows, out / f"{name}.warm.npy")
+        return warm_start_errors(seq, load_relations(relations), windows, out / f"{name}.warm.npy", weigh)
     write_rewritten(out, log, relations, traits, name, count=count)
     return warm_start_errors(open_carmen_scans(out / f"{name}.clf"), load_relations(out / f"{name}.relations"),
-                             windows, out / f"{name}.warm.npy")
+                             windows, out / f"{name}.warm.npy", weigh)
 
 
 def table(results: dict) -> str:

@@ -1,5 +1,6 @@
-"""The fused ``icp`` warm start on the real Freiburg logs with its scan matches taken whole (the default) and weighed
-by their own match cycles (``weigh: cycles``): the mean translational relation error against each log's
+"""The fused ``icp`` warm start on the real Freiburg logs with its scan matches taken whole (``weigh: whole``), weighed
+by their own match cycles (``weigh: cycles``) and as the default picks (``weigh: auto``: cycles where they find the
+odometry the more precise source on every axis): the mean translational relation error against each log's
 ``.relations`` over all relations and over those at most ``SHORT`` scans apart, the odometry's beside them, the
 weights and the time (docs/decisions/0015-scan-weights-from-match-cycles.md).
 
@@ -48,22 +49,24 @@ def measure(name: str) -> dict:
     gap = np.abs(np.searchsorted(ts, rel[:, 1] - 1e-3) - np.searchsorted(ts, rel[:, 0] - 1e-3))
     row = {"log": name, "scans": len(frames), "relations": len(rel), "short_relations": int((gap <= SHORT).sum()),
            "odometry": errors(odometry.poses, odometry, rel, gap <= SHORT)}
-    for weigh in ("whole", "cycles"):
+    for weigh in ("whole", "cycles", "auto"):
         t0 = time.perf_counter()
         ws = IcpWarmStart(weigh=weigh, progress=False)
         poses = ws.run(frames, odometry)
         row[weigh] = errors(poses, odometry, rel, gap <= SHORT) | {
             "seconds": round(time.perf_counter() - t0, 1), "weights": ws.report["match_weights"]["weights"],
-            "sources": ws.report["sources"], "reasons": ws.report["reasons"]}
+            "weighed": ws.report["match_weights"]["weighed"], "sources": ws.report["sources"],
+            "reasons": ws.report["reasons"]}
     return row
 
 
 def table(rows: list[dict]) -> str:
-    lines = ["| log | scans | odometry (m) | whole (m) | cycles (m) | short: odometry / whole / cycles (m) | weights "
-             "(along, across, yaw) |", "|---|---:|---:|---:|---:|---|---|"]
+    lines = ["| log | scans | odometry (m) | whole (m) | cycles (m) | default (m) | short: odometry / whole / cycles "
+             "(m) | weights (along, across, yaw) |", "|---|---:|---:|---:|---:|---:|---|---|"]
     for r in rows:
-        o, w, c = r["odometry"], r["whole"], r["cycles"]
+        o, w, c, a = r["odometry"], r["whole"], r["cycles"], r["auto"]
         lines.append(f"| {r['log']} | {r['scans']} | {o['mean_m']:.4f} | {w['mean_m']:.4f} | {c['mean_m']:.4f} | "
+                     f"{a['mean_m']:.4f} ({a['weighed']}) | "
                      f"{o['short_mean_m']:.4f} / {w['short_mean_m']:.4f} / {c['short_mean_m']:.4f} | "
                      f"{', '.join(f'{x:.2f}' for x in c['weights'])} |")
     return "\n".join(lines)

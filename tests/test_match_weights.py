@@ -53,6 +53,13 @@ def test_sharp_scans_over_a_slipping_odometry_are_taken_whole(truth):
     assert min(w.weights) > 0.8, w
     # the cycles close far more tightly than the matches agree with the odometry
     assert all(c < 0.5 * d for c, d in zip(w.cycle_spread, w.disagreement_spread, strict=True))
+    # by default (weigh: auto) such matches are taken whole: the same poses as weigh: whole, the weights reported
+    auto = IcpWarmStart(progress=False)
+    poses = auto.run(frames, Trajectory(odometry))
+    np.testing.assert_array_equal(poses, IcpWarmStart(weigh="whole", progress=False).run(frames, Trajectory(odometry)))
+    assert auto.report["match_weights"]["weighed"] == "whole"
+    assert auto.report["match_weights"]["weights"] == [round(x, 6) for x in w.weights]
+    assert "scan matches taken whole" in auto.report["summary"]
 
 
 def test_noisy_scans_over_a_precise_odometry_lean_on_it(truth):
@@ -62,12 +69,14 @@ def test_noisy_scans_over_a_precise_odometry_lean_on_it(truth):
     assert max(w.weights) < 0.5, w
     ws = IcpWarmStart(weigh="cycles", progress=False)
     poses = ws.run(frames, Trajectory(odometry))
-    whole = IcpWarmStart(progress=False).run(frames, Trajectory(odometry))
+    whole = IcpWarmStart(weigh="whole", progress=False).run(frames, Trajectory(odometry))
     # the weighed warm start keeps (nearly) what the odometry got right step by step; taken whole it does not
     assert rpe(poses, truth) < 0.5 * rpe(whole, truth)
     assert rpe(poses, truth) < rpe(odometry, truth) + 0.01
     assert ws.report["match_weights"]["weights"] == [round(x, 6) for x in ws._weights.weights]
     assert "scan matches weighed" in ws.report["summary"]
+    # by default (weigh: auto) the cycles weigh such matches
+    np.testing.assert_array_equal(IcpWarmStart(progress=False).run(frames, Trajectory(odometry)), poses)
 
 
 def test_blend_and_no_evidence():
