@@ -58,6 +58,7 @@ def warm_start_errors(seq, rel, windows: str = "auto", save: Path | None = None,
 
     from_odometry = [v for v in ws.verdicts if v.source == "odometry"]
     return {"scans": len(seq), "relations": len(rel), "odometry": error(odometry.poses), "warm_start": error(poses),
+            "weighed": ws.report["match_weights"]["weighed"],
             "seconds": round(seconds, 1), "windows": len(ws.verdicts), "windows_from_odometry": len(from_odometry)}
 
 

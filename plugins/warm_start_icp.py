@@ -184,7 +184,8 @@ class IcpWarmStart:
 
     def _match_weights(self, frames: Frames, given: Trajectory, fine: float) -> MatchWeights:
         """The weights the scan matches are taken with; ``_measured`` keeps what the cycles found (None: not
-        measured) and ``_weighed`` how the matches were taken ("whole" or "cycles")."""
+        measured) and ``_weighed`` how the matches were taken ("whole" or "cycles"), which the report gives as
+        ``match_weights.weights`` (measured) and ``match_weights.weighed``."""
         if self.weigh not in ("auto", "cycles", "whole"):
             raise InputError(None, f"icp warm start: unknown weigh {self.weigh!r} (auto, whole, cycles)")
         self._measured: MatchWeights | None = None
@@ -193,7 +194,7 @@ class IcpWarmStart:
             return MatchWeights.whole()
         odometry = np.array([project_planar(T) for T in given.poses])
         self._measured = match_weights(frames.points, odometry, fine, self.iterations)
-        if self.weigh == "auto" and self._measured.more_precise != "odometry":
+        if self._measured.triples < MIN_TRIPLES or (self.weigh == "auto" and self._measured.more_precise != "odometry"):
             return MatchWeights.whole(self._measured.triples)
         self._weighed = "cycles"
         return self._measured
