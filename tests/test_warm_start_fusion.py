@@ -122,3 +122,15 @@ def test_degraded_odometry_never_beats_the_fused_warm_start():
     assert ate(odometry, truth) > 10.0
     assert ate(poses, truth) < 0.05 * ate(odometry, truth) and ate(poses, truth) < 1.0
     assert ws.report["sources"]["scan across, odometry along"] > 0.3 * ws.report["steps"]
+
+
+def test_the_truth_as_odometry_is_a_fixed_point(corridor):
+    """Given the true poses as its odometry, the default warm start keeps them: the match cycles find that odometry
+    the more precise source on every axis and weigh every match 0. Taken whole, the matches walk off (here 0.16 m)."""
+    _, frames, truth, _ = corridor
+    ws = IcpWarmStart(progress=False)
+    poses = ws.run(frames, Trajectory(truth))
+    assert ws.report["match_weights"]["weighed"] == "cycles" and max(ws.report["match_weights"]["weights"]) == 0.0
+    np.testing.assert_allclose(poses, truth, atol=1e-9)
+    whole = IcpWarmStart(weigh="whole", progress=False).run(frames, Trajectory(truth))
+    assert ate(whole, truth) > 0.05
