@@ -86,7 +86,8 @@ SETS: dict[str, dict] = {
     "depth": {
         "cases": {"redkitchen": ["dm2 refine", "gtsam"], "redkitchen-500": ["dm2 refine", "gtsam"],
                   "redkitchen-drift": ["dm2 refine", "from truth"], "redkitchen-drift-100hz": ["dm2 refine"],
-                  "redkitchen-0-drift": ["dm2 refine", "from truth"], "sim-room-walk-drift": ["dm2 refine"]},
+                  "redkitchen-0-drift": ["dm2 refine", "from truth"], "sim-room-walk-drift": ["dm2 refine"],
+                  "sim-room-hall": ["dm2 refine", "gtsam"]},
         "epochs": None,
         "timeout": 3600,
     },

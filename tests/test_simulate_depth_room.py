@@ -12,7 +12,7 @@ from click.testing import CliRunner
 from dm2_backend.cli.main import cli
 from dm2_backend.formats import open_scans, read_trajectory
 from dm2_backend.kernel.geometry import se3
-from dm2_backend.simulate.depth_room import DepthCamera, camera_path, room_mesh, write_depth_room
+from dm2_backend.simulate.depth_room import HALL, DepthCamera, camera_path, room_mesh, write_depth_room
 
 
 def invoke(args: list[str]):
@@ -56,9 +56,44 @@ def test_rpy_turns_in_place_and_walk_goes_round():
             len(poses), 0), atol=1e-9)
 
 
+def test_a_kinect_v1_reports_depth_in_disparity_steps():
+    camera = DepthCamera(disparity_step=0.125)
+    z = np.array([0.0, 1.0, 4.0, 4.01, 7.0])
+    q = camera.quantise(z)
+    k = camera.fx * camera.baseline / camera.disparity_step
+    assert q[0] == 0.0 and np.allclose(k / q[1:], np.rint(k / q[1:]))  # every depth on a disparity step ...
+    assert np.all(np.abs(q - z) <= z**2 / k / 2 + 1e-12)  # ... the nearest one: half a step (z^2 / k) off at most
+    assert 0.04 < 16.0 / k < 0.05 and q[2] == q[3]  # 4.6 cm steps at 4 m: 1 cm apart reads the same
+    assert np.array_equal(DepthCamera().quantise(z), z)  # the other paths' camera: only the millimetre rounding
+
+
+def test_the_hall_is_far_noisy_and_quantised_and_its_depth_agrees_with_the_true_poses(tmp_path):
+    path = camera_path("hall", 450, 1.0, 0)
+    steps = np.linalg.norm(np.diff(path[:, :3, 3], axis=0), axis=1)
+    assert 2.0 < steps.sum() < 3.0 and np.abs(path[:, :2, 3]).max() < min(HALL[:2]) / 2  # a few metres, inside
+    pan = np.degrees(se3.rotation_angle(se3.relative(path[:1], path)[:, :3, :3]))
+    assert pan.max() > 60  # panning across the hall
+    out = tmp_path / "hall"
+    info = write_depth_room(out, 4, "hall", 0.01, seed=1, progress=False)
+    assert info["room_m"] == list(HALL) and info["camera"]["disparity_step"] == 0.125
+    scans, truth = open_scans(out), read_trajectory(out / "truth.tum").poses
+    camera = DepthCamera(**info["camera"])
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(room_mesh(1, HALL)))
+    k = camera.fx * camera.baseline / camera.disparity_step
+    for i in range(4):
+        points = scans[i].points.astype(np.float64)
+        depth = points[:, 2]
+        assert np.percentile(depth, 90) > 6.0 and depth.max() < camera.max_depth + 0.5  # far, to 8 m + noise
+        far = depth > 5.0  # millimetre depths on the disparity steps beyond 5 m
+        assert np.abs(k / depth[far] - np.rint(k / depth[far])).max() < 0.02
+        gap = scene.compute_distance(o3d.core.Tensor(se3.transform_points(truth[i], points).astype(np.float32)))
+        assert np.mean(gap.numpy() < 4 * camera.sigma(depth) + depth**2 / k / 2 + 0.001) > 0.99
+
+
 def test_a_path_of_another_scene_is_refused(tmp_path):
     result = invoke(["simulate", "--scene", "room", "--path", "loop", "-n", "3", "-o", str(tmp_path / "r")])
-    assert result.exit_code == 2 and "a room has walk, rpy, across" in result.output
+    assert result.exit_code == 2 and "a room has walk, rpy, across, hall" in result.output
     result = invoke(["simulate", "--path", "rpy", "-n", "3", "-o", str(tmp_path / "s")])
     assert result.exit_code == 2 and "a street has loop or eight" in result.output
     assert not (tmp_path / "r").exists() or not any((tmp_path / "r").glob("frame-*"))

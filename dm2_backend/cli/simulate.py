@@ -15,10 +15,11 @@ from dm2_backend.pipeline.run_folder import run_folder
 @click.option("--out", "-o", type=click.Path(path_type=Path), required=True, help="Folder to write.")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
               help="Scene, path, noise and drift seed.")
-@click.option("--path", "path_kind", type=Choice(["loop", "eight", "walk", "rpy", "across"]), default=None,
+@click.option("--path", "path_kind", type=Choice(["loop", "eight", "walk", "rpy", "across", "hall"]), default=None,
               help="street: laps of a loop or of a figure-eight [default: loop]; room: walk round the table "
                    "looking at the walls, turn the camera in place (rpy) or go round near the walls looking across "
-                   "the room (across) [default: walk].")
+                   "the room (across), or walk a few metres in a large hall, panning across it (hall; a Kinect v1's "
+                   "range and quantised depth) [default: walk].")
 @click.option("--scene", type=Choice(["street", "corridors", "hospital", "room"]), default="street",
               show_default=True,
               help="street: buildings, walls, poles and cars along a street; corridors: a ring of featureless "

@@ -10,7 +10,10 @@ chairs. Two paths:
 - ``rpy``: the camera held at one place and turned about all three axes, tens of degrees a second, a few
   centimetres of hand motion (TUM fr1_rpy-like): almost no translation, so little parallax to hold it;
 - ``across``: round the room near the walls, looking across it at the table (median depth about 2.7 m, up to
-  4 m: the noisiest depth).
+  4 m: the noisiest depth);
+- ``hall``: a few metres walked slowly in a large, sparsely furnished hall (18 x 12 x 5 m), the camera panning
+  across it: the range reaches 8 m, where a Kinect v1's depth is several centimetres off and quantised (its
+  disparity in steps of 1/8 pixel), and the near returns are mostly floor.
 
 Written: ``frame-NNNNNN.depth.png`` (16-bit, millimetres), ``frame-NNNNNN.pose.txt`` (the true camera-to-world
 pose), ``camera-intrinsics.txt``, ``truth.tum``, ``warm_start.tum`` (a drifting visual odometry), ``info.json``
@@ -40,8 +43,9 @@ from dm2_backend.simulate.path import drifting_odometry
 from dm2_backend.simulate.scene import _box
 from dm2_backend.simulate.sequence import _ate
 
-PATHS = ("walk", "rpy", "across")
+PATHS = ("walk", "rpy", "across", "hall")
 ROOM = (6.0, 5.0, 2.8)  # x, y, height (m); the floor at z = 0, the room centred on x = y = 0
+HALL = (18.0, 12.0, 5.0)
 
 
 @dataclass
@@ -57,10 +61,22 @@ class DepthCamera:
     min_depth: float = 0.4
     max_depth: float = 4.0
     dropout: float = 0.03
+    #: depth from disparity in steps of this many pixels over a baseline (m) of ``baseline``: a depth step of
+    #: z^2 * step / (fx * baseline) (a Kinect v1: 1/8 pixel over 7.5 cm, 5 cm at 4 m); 0: depth rounded to the mm
+    disparity_step: float = 0.0
+    baseline: float = 0.075
 
     def sigma(self, z: np.ndarray) -> np.ndarray:
         """Axial noise (m) at depth ``z`` (Nguyen, Izadi, Lovell 2012, for a Kinect v1)."""
         return 0.0012 + 0.0019 * (z - 0.4) ** 2
+
+    def quantise(self, z: np.ndarray) -> np.ndarray:
+        """Depth ``z`` (m, 0 where invalid) as the camera reports it: through disparity steps, if any."""
+        if not self.disparity_step:
+            return z
+        k = self.fx * self.baseline / self.disparity_step  # depth = k / disparity in steps
+        steps = np.rint(k / np.where(z > 0, z, np.inf))
+        return np.where((z > 0) & (steps > 0), k / np.maximum(steps, 1), 0.0)
 
     def rays(self) -> np.ndarray:
         """(H * W, 3) camera-frame directions with z = 1 (x right, y down, z forward), row-major."""
@@ -68,9 +84,9 @@ class DepthCamera:
         return np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones_like(u, float)], -1).reshape(-1, 3)
 
 
-def _along_walls(rng: np.random.Generator) -> list[o3d.geometry.TriangleMesh]:
+def _along_walls(rng: np.random.Generator, room: tuple[float, float, float]) -> list[o3d.geometry.TriangleMesh]:
     """Cabinets, shelves and things on them along every wall, picture frames on the walls between them."""
-    X, Y, _ = ROOM
+    X, Y, _ = room
     parts = []
     for wall in range(4):
         length = X if wall % 2 == 0 else Y
@@ -99,15 +115,17 @@ def _along_walls(rng: np.random.Generator) -> list[o3d.geometry.TriangleMesh]:
     return parts
 
 
-def room_mesh(seed: int) -> o3d.geometry.TriangleMesh:
+def room_mesh(seed: int, room: tuple[float, float, float] = ROOM) -> o3d.geometry.TriangleMesh:
     """Floor, ceiling, four walls, furniture along them and a table with chairs in the middle, placed from
-    ``seed`` (the layout varies, the kind of room not)."""
+    ``seed`` (the layout varies, the kind of room not); a hall (larger than ``ROOM``) also has pillars."""
     rng = np.random.default_rng([seed, 31])
-    X, Y, H = ROOM
+    X, Y, H = room
     parts = [_box((0, 0, -0.05), (X + 0.2, Y + 0.2, 0.1)), _box((0, 0, H + 0.05), (X + 0.2, Y + 0.2, 0.1)),
              _box((X / 2 + 0.05, 0, H / 2), (0.1, Y, H)), _box((-X / 2 - 0.05, 0, H / 2), (0.1, Y, H)),
              _box((0, Y / 2 + 0.05, H / 2), (X, 0.1, H)), _box((0, -Y / 2 - 0.05, H / 2), (X, 0.1, H))]
-    parts += _along_walls(rng)
+    parts += _along_walls(rng, room)
+    if room != ROOM:  # a hall: two rows of pillars
+        parts += [_box((x, y, H / 2), (0.4, 0.4, H)) for x in (-X / 4, X / 4) for y in (-Y / 4, Y / 4)]
     tx, ty, yaw = rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), rng.uniform(-0.3, 0.3)
     c, s = np.cos(yaw), np.sin(yaw)
     parts.append(_box((tx, ty, 0.74), (1.2, 0.7, 0.04), yaw))                # table top
@@ -152,6 +170,16 @@ def camera_path(kind: str, frames: int, laps: float, seed: int) -> np.ndarray:
         poses[:, :3, :3] = base @ turn
         poses[:, :3, 3] = eye
         return poses
+    if kind == "hall":  # 2.5 m a lap walked towards the hall's middle, swaying, the camera panning across the hall
+        u = laps * np.arange(frames) / max(frames, 1)
+        eye = np.stack([-6.0 + 2.5 * u + 0.05 * np.sin(1.3 * t + phase[0]), -1.0 + 0.3 * np.sin(2 * np.pi * u),
+                        1.45 + 0.05 * np.sin(0.9 * t + phase[1])], -1)
+        look = 0.9 * np.sin(2 * np.pi * t / 12.0 + phase[2])
+        target = eye + np.stack([6.0 * np.cos(look), 6.0 * np.sin(look), -0.6 + 0.3 * np.sin(0.4 * t + phase[3])], -1)
+        for i in range(frames):
+            poses[i, :3, :3] = _look(eye[i], target[i])
+        poses[:, :3, 3] = eye
+        return poses
     a = np.linspace(0, 2 * np.pi * laps, frames, endpoint=False)
     rx, ry = (1.1, 0.8) if kind == "walk" else (1.9, 1.5)
     eye = np.stack([rx * np.cos(a), ry * np.sin(a), 1.45 + 0.1 * np.sin(0.7 * t + phase[0])], -1)
@@ -177,6 +205,7 @@ def depth_image(scene: o3d.t.geometry.RaycastingScene, camera: DepthCamera, rays
     valid = np.isfinite(z) & (z > camera.min_depth) & (z < camera.max_depth)
     valid &= rng.uniform(size=len(z)) >= camera.dropout
     z = np.where(valid, z + rng.normal(0, 1, len(z)) * camera.sigma(np.where(valid, z, 1.0)), 0.0)
+    z = camera.quantise(z)
     return np.clip(np.rint(z * 1000), 0, 65534).astype(np.uint16).reshape(camera.height, camera.width)
 
 
@@ -185,9 +214,11 @@ def write_depth_room(out: Path, frames: int, path: str = "walk", laps: float = 1
     """Simulate ``frames`` depth frames along ``path`` into ``out`` (the 7-Scenes layout); returns the info."""
     out = Path(out)
     t0 = time.perf_counter()
-    camera = DepthCamera()
+    hall = path == "hall"
+    camera = DepthCamera(max_depth=8.0, disparity_step=0.125) if hall else DepthCamera()
+    room = HALL if hall else ROOM
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(room_mesh(seed)))
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(room_mesh(seed, room)))
     gt = camera_path(path, frames, laps, seed)
     times = np.arange(frames) / 30.0
     steps = np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1)
@@ -212,7 +243,7 @@ def write_depth_room(out: Path, frames: int, path: str = "walk", laps: float = 1
     write_tum(Trajectory(warm, times), out / "warm_start.tum", ReadOptions())
     info = {"simulated": True, "generator": f"dm2 simulate --scene room (dm2 {__version__})",
             "frames": frames, "path": path, "laps": laps, "seed": seed, "camera": asdict(camera),
-            "room_m": list(ROOM), "valid_pixels": float(valid.mean()),
+            "room_m": list(room), "valid_pixels": float(valid.mean()),
             "path_length_m": float(steps.sum()), "median_step_m": float(np.median(steps)) if frames > 1 else 0.0,
             "median_turn_deg": float(np.degrees(np.median(turn))) if frames > 1 else 0.0,
             "warm_start": {"ate_rmse_m": _ate(gt, warm)}, "seconds": round(time.perf_counter() - t0, 3)}
@@ -226,11 +257,14 @@ def write_depth_room(out: Path, frames: int, path: str = "walk", laps: float = 1
 def _readme(info: dict) -> str:
     """``README.txt`` of a room folder: labelled SIMULATED, what made it, what each file holds."""
     cam = info["camera"]
+    quantised = (f", depth in disparity steps of 1/{1 / cam['disparity_step']:g} pixel over {cam['baseline']:g} m"
+                 if cam["disparity_step"] else "")
+    room = " x ".join(f"{v:g}" for v in info["room_m"])
     return f"""SIMULATED DATA - not recorded by a real sensor.
 
 Generated by {info['generator']}: a hand-held depth camera ({cam['width']} x {cam['height']}, fx {cam['fx']:g},
 {cam['min_depth']:g}-{cam['max_depth']:g} m, axial noise 1.2 mm + 1.9 mm x (z - 0.4 m)^2, {100 * cam['dropout']:g} % of
-the pixels dropped) in a furnished {' x '.join(f'{v:g}' for v in info['room_m'])} m room, path '{info['path']}',
+the pixels dropped{quantised}) in a furnished {room} m room, path '{info['path']}',
 {info['frames']} frames at 30 Hz, seed {info['seed']}, {info['path_length_m']:.1f} m.
 
 frame-NNNNNN.depth.png  depth, 16-bit millimetres, 0 where nothing valid (the 7-Scenes layout)
