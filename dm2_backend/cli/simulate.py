@@ -30,7 +30,8 @@ from dm2_backend.pipeline.run_folder import run_folder
                    "every 0.2 m; --seed only); room: a hand-held depth camera (Kinect-like, 30 Hz) in a furnished "
                    "room, written as a 7-Scenes folder (--path, --laps and --seed apply).")
 @click.option("--laps", type=click.FloatRange(min=0, min_open=True), default=None,
-              help="Laps of the path [default: 2; room: one lap around the table per 600 frames].")
+              help="Laps of the path [default: 2; room: one lap per 600 frames (around the table; the hall: 2.5 m "
+                   "walked)].")
 @click.option("--extent", type=click.FloatRange(min=10), default=40.0, show_default=True,
               help="Half size of the scene (m); the street's radius is 0.7 x extent.")
 @click.option("--rate", type=click.FloatRange(min=0, min_open=True), default=10.0, show_default=True,

@@ -3,7 +3,7 @@
 The narrow sensor the 3D simulations lacked: a Kinect-like pinhole camera (640 x 480, fx = fy = 585, 0.4-4 m,
 axial noise 1.2 mm + 1.9 mm x (z - 0.4 m)^2 (Nguyen et al. 2012), depth rounded to the millimetre) ray-cast with
 open3d into a room with cabinets, shelves and picture frames along the walls, a table with things on it and
-chairs. Two paths:
+chairs. Four paths:
 
 - ``walk``: laps around the table, the camera at head height looking ahead at the furniture along the walls
   (RedKitchen-like);
@@ -11,9 +11,9 @@ chairs. Two paths:
   centimetres of hand motion (TUM fr1_rpy-like): almost no translation, so little parallax to hold it;
 - ``across``: round the room near the walls, looking across it at the table (median depth about 2.7 m, up to
   4 m: the noisiest depth);
-- ``hall``: a few metres walked slowly in a large, sparsely furnished hall (18 x 12 x 5 m), the camera panning
-  across it: the range reaches 8 m, where a Kinect v1's depth is several centimetres off and quantised (its
-  disparity in steps of 1/8 pixel), and the near returns are mostly floor.
+- ``hall``: 2.5 m a lap walked slowly in a large hall with pillars (18 x 12 x 5 m), the camera panning across it:
+  the range reaches 8 m, where a Kinect v1's depth is 4-11 cm noisy (the same noise model, extrapolated) and comes
+  in steps of 5-18 cm (its disparity in steps of 1/8 pixel), and the near returns are mostly floor.
 
 Written: ``frame-NNNNNN.depth.png`` (16-bit, millimetres), ``frame-NNNNNN.pose.txt`` (the true camera-to-world
 pose), ``camera-intrinsics.txt``, ``truth.tum``, ``warm_start.tum`` (a drifting visual odometry), ``info.json``
@@ -62,7 +62,8 @@ class DepthCamera:
     max_depth: float = 4.0
     dropout: float = 0.03
     #: depth from disparity in steps of this many pixels over a baseline (m) of ``baseline``: a depth step of
-    #: z^2 * step / (fx * baseline) (a Kinect v1: 1/8 pixel over 7.5 cm, 5 cm at 4 m); 0: depth rounded to the mm
+    #: z^2 * step / (fx * baseline) (a Kinect v1: 1/8 pixel over 7.5 cm, 4.6 cm at 4 m); 0: no steps (the depth is
+    #: rounded to the millimetre either way)
     disparity_step: float = 0.0
     baseline: float = 0.075
 
@@ -115,16 +116,17 @@ def _along_walls(rng: np.random.Generator, room: tuple[float, float, float]) -> 
     return parts
 
 
-def room_mesh(seed: int, room: tuple[float, float, float] = ROOM) -> o3d.geometry.TriangleMesh:
+def room_mesh(seed: int, hall: bool = False) -> o3d.geometry.TriangleMesh:
     """Floor, ceiling, four walls, furniture along them and a table with chairs in the middle, placed from
-    ``seed`` (the layout varies, the kind of room not); a hall (larger than ``ROOM``) also has pillars."""
+    ``seed`` (the layout varies, the kind of room not); the ``hall`` (``HALL``, not ``ROOM``) also has pillars."""
     rng = np.random.default_rng([seed, 31])
+    room = HALL if hall else ROOM
     X, Y, H = room
     parts = [_box((0, 0, -0.05), (X + 0.2, Y + 0.2, 0.1)), _box((0, 0, H + 0.05), (X + 0.2, Y + 0.2, 0.1)),
              _box((X / 2 + 0.05, 0, H / 2), (0.1, Y, H)), _box((-X / 2 - 0.05, 0, H / 2), (0.1, Y, H)),
              _box((0, Y / 2 + 0.05, H / 2), (X, 0.1, H)), _box((0, -Y / 2 - 0.05, H / 2), (X, 0.1, H))]
     parts += _along_walls(rng, room)
-    if room != ROOM:  # a hall: two rows of pillars
+    if hall:  # two rows of pillars
         parts += [_box((x, y, H / 2), (0.4, 0.4, H)) for x in (-X / 4, X / 4) for y in (-Y / 4, Y / 4)]
     tx, ty, yaw = rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), rng.uniform(-0.3, 0.3)
     c, s = np.cos(yaw), np.sin(yaw)
@@ -218,7 +220,7 @@ def write_depth_room(out: Path, frames: int, path: str = "walk", laps: float = 1
     camera = DepthCamera(max_depth=8.0, disparity_step=0.125) if hall else DepthCamera()
     room = HALL if hall else ROOM
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(room_mesh(seed, room)))
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(room_mesh(seed, hall)))
     gt = camera_path(path, frames, laps, seed)
     times = np.arange(frames) / 30.0
     steps = np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1)
