@@ -32,6 +32,8 @@ import open3d as o3d
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from reference_check import registration_cloud  # noqa: E402
+
 from dm2_backend.algorithms.common import Cloud, fine_distance, lengths  # noqa: E402
 from dm2_backend.algorithms.icp import register  # noqa: E402
 from dm2_backend.config.schema import FramesSection  # noqa: E402
@@ -49,12 +51,6 @@ def step_error(truth: np.ndarray, steps: dict[int, np.ndarray]) -> float:
     """Median translation (m) of the registered steps from the true ones."""
     return float(np.median([np.linalg.norm(se3.relative(se3.relative(truth[i], truth[i + 1]), T)[:3, 3])
                             for i, T in steps.items()]))
-
-
-def full_cloud(points: np.ndarray, voxel: float) -> o3d.geometry.PointCloud:
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64))).voxel_down_sample(voxel)
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=30))
-    return cloud
 
 
 def point_to_plane(source, target, start: np.ndarray, distance: float) -> np.ndarray:
@@ -76,7 +72,7 @@ def measure(folder: Path, every: int, voxel: float) -> dict:
     pairs = range(0, len(gt) - 1, every)
     prepared = {i: register(Cloud(frames.points[i + 1], False, 2 * fine), Cloud(frames.points[i], False, 2 * fine),
                             se3.relative(gt[i], gt[i + 1]), (4 * fine, fine), "gicp").T for i in pairs}
-    clouds = [full_cloud(scans[i].points, voxel) for i in range(len(gt))]
+    clouds = [registration_cloud(scans[i].points, voxel) for i in range(len(gt))]
     full = {i: point_to_plane(clouds[i + 1], clouds[i], se3.relative(gt[i], gt[i + 1]), 8 * voxel) for i in pairs}
     chained = [gt[0]]
     for i in range(len(gt) - 1):

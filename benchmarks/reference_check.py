@@ -43,7 +43,8 @@ MIN_FITNESS = 0.5
 ICP = o3d.pipelines.registration
 
 
-def _cloud(points: np.ndarray, voxel: float) -> o3d.geometry.PointCloud:
+def registration_cloud(points: np.ndarray, voxel: float) -> o3d.geometry.PointCloud:
+    """``points`` voxel-down-sampled, with normals for point-to-plane ICP."""
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)[:, :3]))
     pcd = pcd.voxel_down_sample(voxel)
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel, max_nn=30))
@@ -66,7 +67,7 @@ def check(scans, trajectories: dict[str, np.ndarray], gaps: list[int], every: in
 
     def cloud(i: int) -> o3d.geometry.PointCloud:
         if i not in clouds:
-            clouds[i] = _cloud(scans[i].points, voxel)
+            clouds[i] = registration_cloud(scans[i].points, voxel)
         return clouds[i]
 
     result: dict = {"voxel_m": voxel, "distance_m": distance, "gaps": {}}
