@@ -52,6 +52,21 @@ def test_3d_trajectory_has_a_side_view_with_the_flat_axis_up():
     assert top.get_aspect() == side.get_aspect() == 1.0
 
 
+def test_a_title_of_several_lines_stays_above_the_views():
+    pos = tall_loop(planar=False)
+    title = "aligned at the first pose\nSE(3) alignment not meaningful for A\nSE(3) alignment not meaningful for B"
+    errors = {"APE": (np.ones(len(pos)), "m"), "RPE": (np.ones(len(pos)), "m")}
+    figures = [plots.trajectory_figure(pos, {"estimate": pos + 0.1}, title),
+               plots.error_map_figure("estimate", pos, errors, pos, title)]
+    for fig in figures:
+        renderer = FigureCanvasAgg(fig).get_renderer()
+        fig.draw(renderer)
+        bottom = fig._suptitle.get_window_extent(renderer).y0
+        for ax in fig.axes:
+            if ax.get_title():  # every view's own title (the colour bars have none) lies wholly under it
+                assert ax.title.get_window_extent(renderer).y1 <= bottom
+
+
 def test_camera_frame_is_seen_from_above_x_right_z_up():
     """KITTI camera frame (y down, flat): x right, z (forward) up."""
     cam = tall_loop()[:, [0, 2, 1]]

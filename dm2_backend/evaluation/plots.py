@@ -78,7 +78,7 @@ def trajectory_figure(gt: np.ndarray | None, estimates: dict[str, np.ndarray], t
     basis = gt if gt is not None else np.concatenate([np.asarray(p).reshape(-1, 3) for p in estimates.values()])
     top, side = view_axes(basis)
     views = [(top, "top view")] + ([(side, "side view")] if side is not None else [])
-    fig = Figure(figsize=(6.5 * len(views), 6))
+    fig = Figure(figsize=(6.5 * len(views), 6), layout="constrained")  # room for a title of several lines
     for k, (axes, name) in enumerate(views):
         ax = fig.add_subplot(1, len(views), k + 1)
         if gt is not None:
@@ -103,7 +103,7 @@ def error_map_figure(label: str, positions: np.ndarray, errors: dict[str, tuple[
     """Per-frame errors (name -> (values, unit)) coloured along the top view of ``positions``; ``gt``
     (drawn dashed) must be in the same frame as ``positions`` (e.g. the estimate after its alignment)."""
     top, _ = view_axes(gt if gt is not None else positions)
-    fig = Figure(figsize=(6.5 * len(errors), 6))
+    fig = Figure(figsize=(6.5 * len(errors), 6), layout="constrained")
     for i, (name, (values, unit)) in enumerate(errors.items()):
         ax = fig.add_subplot(1, len(errors), i + 1)
         if gt is not None:
