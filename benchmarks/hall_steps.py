@@ -34,7 +34,7 @@ sys.path.insert(0, str(REPO))
 
 from reference_check import registration_cloud  # noqa: E402
 
-from dm2_backend.algorithms.common import Cloud, fine_distance, lengths  # noqa: E402
+from dm2_backend.algorithms.common import Cloud, fine_distance, lengths, path_length  # noqa: E402
 from dm2_backend.algorithms.icp import register  # noqa: E402
 from dm2_backend.config.schema import FramesSection  # noqa: E402
 from dm2_backend.evaluation.ape_rpe import evaluate_poses  # noqa: E402
@@ -61,7 +61,7 @@ def point_to_plane(source, target, start: np.ndarray, distance: float) -> np.nda
 
 def path_and_ape(truth: Trajectory, poses: np.ndarray) -> dict:
     ape = evaluate_poses(truth, Trajectory(poses, truth.timestamps)).metrics["ape_trans"].stats["rmse"]
-    return {"path_m": float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum()), "ape_m": float(ape)}
+    return {"path_m": float(path_length(poses)[-1]), "ape_m": float(ape)}
 
 
 def measure(folder: Path, every: int, voxel: float) -> dict:
@@ -79,7 +79,7 @@ def measure(folder: Path, every: int, voxel: float) -> dict:
         chained.append(chained[-1] @ point_to_plane(clouds[i + 1], clouds[i], np.eye(4), 8 * voxel))
     warm = IcpWarmStart(progress=False).run(frames, None)
     return {
-        "scans": str(folder), "frames": len(gt), "true_path_m": path_and_ape(truth, gt)["path_m"],
+        "scans": str(folder), "frames": len(gt), "true_path_m": float(path_length(gt)[-1]),
         "prepared": {"points": int(np.median([len(p) for p in frames.points])), "voxel_m": frames.scale.voxel,
                      "step_error_from_truth_m": step_error(gt, prepared)},
         "full_frames": {"voxel_m": voxel, "step_error_from_truth_m": step_error(gt, full)},
