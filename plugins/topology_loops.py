@@ -5,18 +5,21 @@
 2. Keyframes are visited in order on an iSAM2 pose graph (odometry = the warm start). Candidates are the
    earlier keyframes within reach of the current estimate; the search window (translation and yaw)
    grows with the distance travelled since the last accepted closure, so a loop that drifted many
-   metres is still searched.
+   metres is still searched: at guessed rates until closures are accepted, then at a multiple of the
+   rates they measured (their corrections over the path before each), since a window far wider than the
+   drift makes a building's repeated halls ambiguous.
 3. Verification is global inside that window: correlative scan matching with branch and bound
    (``correlative.py``), rejected when a clearly different alignment scores nearly as well, unless every
    such alignment lies on one line at the same heading (a corridor): then the closure fixes only the
    direction across that line and yaw, and the graph settles the position along it. Then a fine
    correlative pass and ICP on the submaps, gated on overlap, translation constraint (not for a corridor
    closure) and (planar) free space of the two keyframe scans.
+   A match whose score lies a little under the gate and that passes every other test is weak.
    A verified closure is measured again on short submaps (the median range either side), which the warm
    start's drift bends less; that measurement replaces the first where the two differ beyond its own noise.
 4. A verified closure is trusted only once a second one agrees with it around a cycle through the
-   odometry; a weak one (overlap a little under the gate, every other test passed: two visits that share
-   only part of their submaps) only once two others agree, or one that passed every gate. Trusted closures
+   odometry; a weak one (overlap or score a little under the gate, every other test passed: two visits that
+   share only part of their submaps) only once two others agree, or one that passed every gate. Trusted closures
    correct the graph at once. A final robust batch solve drops closures the
    rest of the graph disagrees with.
 5. The loop-closed keyframe poses correct every frame (interpolated between keyframes); the topology is
@@ -94,6 +97,11 @@ class LoopsTopology:
     #: ``yaw_drift`` degrees per metre travelled since the last accepted closure, capped
     window: float | None = None
     drift: float = 0.1
+    #: once closures are accepted, the window grows by this many times the drift rates they measured (their
+    #: corrections over the path travelled before each, pooled), at most by ``drift`` and ``yaw_drift``: the
+    #: warm start's own drift, not a guess, sizes the search for later loops
+    #: (docs/decisions/0021-loop-search-learns-the-drift.md)
+    drift_margin: float = 3.0
     #: yaw search window at a fresh closure (degrees either side of the estimate); see ``window``
     yaw_window: float = 10.0
     #: growth of the yaw window (degrees per metre travelled since the last accepted closure), capped at 180 degrees
@@ -107,6 +115,9 @@ class LoopsTopology:
     #: acceptance: correlation score, ambiguity (runner-up / best), overlap, translation constraint,
     #: free space (planar keyframe scans)
     min_score: float = 0.5
+    #: a match scoring in [weak_score, min_score) that passes every other test is weak, as for ``weak_fitness``:
+    #: two visits that share only part of their submaps score low at the right place
+    weak_score: float = 0.4
     #: ambiguity gate: a match is rejected when a clearly different alignment scores more than this share of the
     #: best (runner-up / best, in (0, 1]), unless it is a closure across a corridor (``across_corridors``)
     max_ambiguity: float = 0.9
@@ -167,9 +178,12 @@ class LoopsTopology:
                 if self.short_half_length is not None and not self.short_half_length >= 0 else [])
         bad += [f"short_gate={self.short_gate} (a probability in (0, 1))"] if not 0 < self.short_gate < 1 else []
         bad += [f"{n}={getattr(self, n)}" for n in ("candidates", "consistency_window") if getattr(self, n) < 1]
-        bad += [f"{n}={getattr(self, n)}" for n in ("drift", "yaw_drift", "cycle_drift") if getattr(self, n) < 0]
+        bad += [f"{n}={getattr(self, n)}" for n in ("drift", "yaw_drift", "cycle_drift", "drift_margin")
+                if getattr(self, n) < 0]
         if not 0 < self.max_ambiguity <= 1:
             bad.append(f"max_ambiguity={self.max_ambiguity} (a ratio in (0, 1])")
+        if not 0 <= self.weak_score <= self.min_score:
+            bad.append(f"weak_score={self.weak_score} (between 0 and min_score={self.min_score})")
         if not 0 <= self.weak_fitness <= self.min_fitness:
             bad.append(f"weak_fitness={self.weak_fitness} (between 0 and min_fitness={self.min_fitness})")
         if bad:
@@ -214,15 +228,18 @@ class LoopsTopology:
                              + [0.002 * steps + 0.25 * L["resolution"] / L["reach"]], axis=1)
         graph = KeyframeGraph(odo, odo_sigma, np.array([L["resolution"]] * 2 + [L["resolution"] / L["reach"]]))
         pending: list[Closure] = []
+        learnt = DriftRates()
         last = 0.0
         bar = progress(range(len(keys)), "loop closure", unit="keyframe", enabled=self.progress)
         for b in bar:
             graph.extend(b)
             travelled = kpath[b] - last
-            window = min(L["max_window"], L["window"] + self.drift * travelled)
-            yaw_window = np.radians(min(180.0, self.yaw_window + self.yaw_drift * travelled))
+            drift, yaw_drift = learnt.rates(self.drift, self.yaw_drift, self.drift_margin)
+            window = min(L["max_window"], L["window"] + drift * travelled)
+            yaw_window = np.radians(min(180.0, self.yaw_window + yaw_drift * travelled))
             for a in self._candidates(graph.estimate[: b + 1], kpath, b, window):
                 entry = self._verify(a, b, graph.estimate, window, yaw_window)
+                entry["travelled"] = round(float(travelled), 2)
                 log.append(entry)
                 if not entry["verified"]:
                     continue
@@ -242,6 +259,7 @@ class LoopsTopology:
                     for c in promote:
                         c.entry.update(accepted=True, reason=f"{c.entry['reason']}; confirmed by a later closure")
                     graph.close(promote + [new])
+                    learnt.add(promote + [new])
                     last = kpath[b]
                 else:
                     pending.append(new)
@@ -285,21 +303,22 @@ class LoopsTopology:
             return {"i": int(self._keys[a]), "j": int(self._keys[b]), "score": 0.0, "verified": False,
                     "accepted": False, "reason": "fewer than 10 points in a submap"}
         coarse = cm.match(kf.thin(src, coarse_res, 400, self._rng), self._grid(a, coarse_res), tuple(init),
-                          window, yaw_window, ratio=self.max_ambiguity, floor=self.min_score)
+                          window, yaw_window, ratio=self.max_ambiguity, floor=self.weak_score)
         entry = {"i": int(self._keys[a]), "j": int(self._keys[b]), "window": round(window, 2),
                  "yaw_window_deg": round(float(np.degrees(yaw_window)), 1), "score": round(coarse.score, 4),
                  "ambiguity": round(coarse.runner_up / max(coarse.score, 1e-9), 4), "verified": False,
                  "accepted": False}
-        low_score = coarse.score < self.min_score
+        low_score = coarse.score < self.weak_score
+        weak_score = not low_score and coarse.score < self.min_score
         ambiguous = coarse.runner_up > self.max_ambiguity * coarse.score
         reasons = []
-        if low_score:
-            reasons.append(f"score {coarse.score:.2f} < {self.min_score:.2f}")
+        if low_score or (weak_score and ambiguous):
+            reasons.append(f"score {coarse.score:.2f} < {self.weak_score if low_score else self.min_score:.2f}")
         if ambiguous:
             reasons.append(f"ambiguous: a different alignment scores {entry['ambiguity']:.2f} of the best")
         # ambiguous only along one line (a corridor): certain across it and in yaw; the position along it is
         # the prediction's, and the graph settles it
-        across = self.across_corridors and coarse.axis is not None and ambiguous and not low_score
+        across = self.across_corridors and coarse.axis is not None and ambiguous and not (low_score or weak_score)
         axis = np.array(coarse.axis) if across else None
         if reasons and not across:
             entry["reason"] = "; ".join(reasons)
@@ -316,9 +335,13 @@ class LoopsTopology:
             m = self._icp(a, b, planar_pose(fine.x, fine.y, fine.yaw))
         z = se3.to_xy_yaw(m.T)
         entry.update(z=[float(v) for v in z], fitness=round(m.fitness, 4), rmse=round(m.rmse, 5),
-                     offset=round(float(np.linalg.norm(z[:2] - init[:2])), 3))
+                     offset=round(float(np.linalg.norm(z[:2] - init[:2])), 3),
+                     offset_deg=round(float(np.degrees(abs(se3.wrap_angle(z[2] - init[2])))), 3))
         failed = self._gates(a, b, m, entry, across)
-        weak = len(failed) == 1 and failed[0].gate is Gate.OVERLAP and entry["overlap"] >= self.weak_fitness
+        if weak_score and not failed:
+            failed = [GateFailure(Gate.SCORE, coarse.score, self.min_score)]
+        weak = len(failed) == 1 and (failed[0].gate is Gate.SCORE or (
+            failed[0].gate is Gate.OVERLAP and entry["overlap"] >= self.weak_fitness and not weak_score))
         entry["verified"] = not failed or weak
         if entry["verified"] and L["short_half_length"] > 0:
             self._measure_short(a, b, m.T, entry, axis)
@@ -461,6 +484,28 @@ class LoopsTopology:
         topo = assemble(rows, self.k, self.temporal_fill, log)
         poses = corrected if closures else None  # loop-closed only when a loop was closed
         return replace(topo, closures=closures, poses=poses, loop_closed=poses is not None)
+
+
+class DriftRates:
+    """The warm start's drift measured by the accepted closures: translation (m) and yaw (degrees) of their
+    corrections over the path each was searched after (m), pooled over all of them."""
+
+    def __init__(self) -> None:
+        self.offset_m = self.offset_deg = self.travelled = 0.0
+
+    def add(self, closures: list[Closure]) -> None:
+        for c in closures:
+            self.offset_m += c.entry["offset"]
+            self.offset_deg += c.entry["offset_deg"]
+            self.travelled += c.entry["travelled"]
+
+    def rates(self, drift: float, yaw_drift: float, margin: float) -> tuple[float, float]:
+        """Window growth (m and degrees per metre): ``margin`` times the pooled rates, at most the priors
+        ``drift`` and ``yaw_drift``; the priors until a closure has been searched over some path."""
+        if self.travelled <= 0:
+            return drift, yaw_drift
+        return (min(drift, margin * self.offset_m / self.travelled),
+                min(yaw_drift, margin * self.offset_deg / self.travelled))
 
 
 def _shared(cloud: Cloud, sample: int = 200) -> float:

@@ -189,3 +189,51 @@ def test_loops_rejects_invalid_options(floor):
         load("dm2.place_recognition", "loops")(short_half_length=-1.0, progress=False).run(frames, truth)
     with pytest.raises(InputError, match="short_gate=1.0"):
         load("dm2.place_recognition", "loops")(short_gate=1.0, progress=False).run(frames, truth)
+    with pytest.raises(InputError, match="weak_score=0.6"):
+        load("dm2.place_recognition", "loops")(weak_score=0.6, progress=False).run(frames, truth)
+    with pytest.raises(InputError, match="drift_margin=-1"):
+        load("dm2.place_recognition", "loops")(drift_margin=-1.0, progress=False).run(frames, truth)
+
+
+def test_the_search_window_grows_at_the_drift_the_closures_measured(floor):
+    """Until a closure is accepted the window grows at the guessed rates; afterwards at ``drift_margin`` times
+    the rates the accepted closures measured (their corrections over the path before each), never faster than
+    the guess."""
+    from dm2_backend.plugins.topology_loops import DriftRates
+
+    frames, truth = floor
+    drifted = drifting_odometry(truth, 1, 0.001, 0.01, 0.0015)
+    lt = load("dm2.place_recognition", "loops")(progress=False)
+    topo = lt.run(frames, drifted)
+    L, entries = topo.log[0], [e for e in topo.log[1:] if "travelled" in e]
+    # the first closure trusted when it was verified (one confirmed later was pending until then)
+    first = next(k for k, e in enumerate(entries) if e.get("accepted") and "confirmed by a later" not in e["reason"])
+    for e in entries[: first + 1]:  # the guess, up to and with the first accepted closure
+        assert e["window"] == pytest.approx(min(L["max_window"], L["window"] + lt.drift * e["travelled"]), abs=0.01)
+    learnt = DriftRates()
+    learnt.add([Closure(0, 1, np.zeros(3), e) for e in entries if e.get("accepted")])
+    rate_m, rate_deg = learnt.rates(lt.drift, lt.yaw_drift, lt.drift_margin)
+    assert 0 < rate_m < lt.drift and 0 < rate_deg <= lt.yaw_drift  # it drifts less than the guess in translation
+    later = [e for e in entries if e["j"] > entries[first]["j"] and e["travelled"] > 1.0]
+    assert later and all(e["window"] < L["window"] + lt.drift * e["travelled"] for e in later)
+    assert DriftRates().rates(0.1, 0.5, 3.0) == (0.1, 0.5)  # no closure yet: the guess
+    capped = DriftRates()
+    capped.add([Closure(0, 1, np.zeros(3), {"offset": 5.0, "offset_deg": 50.0, "travelled": 10.0})])
+    assert capped.rates(0.1, 0.5, 3.0) == (0.1, 0.5)  # never faster than the guess
+    assert capped.rates(1.0, 10.0, 2.0) == pytest.approx((1.0, 10.0))
+
+
+def test_a_match_scoring_a_little_under_the_gate_is_a_weak_closure(floor):
+    """With the score gate above every true revisit's score, the revisits that pass every other test are weak
+    closures (trusted when others agree around a cycle) and still true; without the weak tier none is taken."""
+    frames, truth = floor
+    drifted = drifting_odometry(truth, 1, 0.001, 0.01, 0.0015)
+    loops = load("dm2.place_recognition", "loops")
+    weak = loops(progress=False, min_score=0.99, weak_score=0.4).run(frames, drifted)
+    accepted = [e for e in weak.log[1:] if e.get("accepted")]
+    assert accepted and all(e["weak"] and "weak: score" in e["reason"] for e in accepted)
+    for e in accepted:
+        truth_z = se3.to_xy_yaw(se3.relative(truth[e["i"]][None], truth[e["j"]][None]))[0]
+        assert np.hypot(*(truth_z[:2] - e["z"][:2])) < 0.15
+    none = loops(progress=False, min_score=0.99, weak_score=0.99).run(frames, drifted)
+    assert none.closures == 0 and all(not e.get("verified") for e in none.log[1:])

@@ -21,6 +21,7 @@ class Gate(enum.Enum):
     FREE_SPACE = "free space {value:.2f} > {limit:.2f}"
     #: the loop-closure gates (``loops``, ``loops3d``): submap overlap, the translation constraint, walls
     OVERLAP = "overlap {value:.2f} < {limit:.2f}"
+    SCORE = "score {value:.2f} < {limit:.2f}"
     CORRIDOR = "constraint {value:.3f} < {limit:.3f} (degenerate: a corridor?)"
     DEGENERATE = "constraint {value:.3f} < {limit:.3f} (degenerate)"
     WALLS = "free space {value:.2f} > {limit:.2f} (walls where the other saw none)"
