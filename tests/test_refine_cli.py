@@ -334,3 +334,23 @@ def test_default_warm_start_fuses_a_logs_odometry(tmp_path):
     yaml_file.write_text("warm_start:\n  name: poses\n")
     assert config.sets(yaml_file, "warm_start") and not config.sets(yaml_file, "optimiser")
     assert not config.sets(None, "warm_start")
+
+
+def test_plugin_options_reach_the_plugin_as_the_types_they_declare(tmp_path):
+    """YAML reads ``1.0e9`` (no sign in the exponent) as a string: the option is checked as a float and the plugin
+    gets the float, not the string its comparisons would fail on."""
+    path = tmp_path / "c.yaml"
+    path.write_text("place_recognition: {name: loops, options: {drift_margin: 1.0e9, k: '6'}}\n")
+    options = config.load(path).place_recognition.options
+    assert options == {"drift_margin": 1e9, "k": 6} and isinstance(options["drift_margin"], float)
+
+
+def test_auto_place_recognition_checks_its_options_once_resolved():
+    from dm2_backend.config.schema import PluginSection
+    from dm2_backend.prepare.steps import resolve_auto
+    from dm2_backend.runtime.errors import InputError
+
+    section = PluginSection(name="auto", options={"drift_margin": "1.0e9"})
+    assert resolve_auto(section, camera=False).options == {"drift_margin": 1e9}
+    with pytest.raises(InputError, match="loops3d has no option 'drift_margin'"):
+        resolve_auto(section, camera=True)

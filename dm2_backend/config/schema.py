@@ -108,7 +108,9 @@ def one_line(exc: ValidationError) -> str:
 
 
 def check_plugin_options(section: str, group: str, name: str, options: dict) -> None:
-    """The options against the plugin class's dataclass fields: unknown names and wrong types."""
+    """The options against the plugin class's dataclass fields: unknown names and wrong types. A value pydantic
+    converts (YAML's ``1.0e9`` is a string, ``"3"`` for a float) is replaced in ``options`` by its conversion, so the
+    plugin receives the type it declares."""
     from dm2_backend.plugins.registry import load
 
     cls = load(group, name)
@@ -129,7 +131,7 @@ def check_plugin_options(section: str, group: str, name: str, options: dict) -> 
         except (PydanticSchemaGenerationError, PydanticUserError):  # a type pydantic cannot check: names only
             continue
         try:
-            adapter.validate_python(value, strict=False)
+            options[key] = adapter.validate_python(value, strict=False)
         except ValidationError as exc:
             raise ConfigError(f"{section}.options.{key}: {exc.errors()[0]['msg']} (got {value!r})") from None
 

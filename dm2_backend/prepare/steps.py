@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from dm2_backend.algorithms.common import path_length, repeatable_registration
-from dm2_backend.config.schema import PluginSection, RunConfig
+from dm2_backend.config.schema import ConfigError, PluginSection, RunConfig, check_plugin_options
 from dm2_backend.kernel.prepared import Frames, Pairwise, Topology
 from dm2_backend.kernel.scans import DEPTH_CAMERA, ScanSequence
 from dm2_backend.kernel.trajectory import Trajectory
@@ -93,7 +93,12 @@ def resolve_auto(section: PluginSection, camera: bool, poses: np.ndarray | None 
     if section.name != "auto":
         return section
     ground = poses is None or moves_like_a_ground_vehicle(poses, planar)
-    return PluginSection(name="loops3d" if camera or not ground else "loops", options=dict(section.options))
+    resolved = PluginSection(name="loops3d" if camera or not ground else "loops", options=dict(section.options))
+    try:  # the options against the plugin now named, as a named one is checked at load
+        check_plugin_options("place_recognition", "dm2.place_recognition", resolved.name, resolved.options)
+    except ConfigError as exc:
+        raise InputError(None, f"{exc} (place recognition auto resolved to {resolved.name})") from None
+    return resolved
 
 
 def default_cache_dir() -> Path:
