@@ -93,18 +93,20 @@ class LoopsTopology:
     #: isolated returns (glass, open doors) match nothing and let different alignments score alike; 0 keeps all
     #: (docs/decisions/0011-loop-closure-overlap-and-support.md)
     support: float | None = None
-    #: search window: translation (m) and yaw (degrees) at a fresh closure, growing by ``drift`` m and
-    #: ``yaw_drift`` degrees per metre travelled since the last accepted closure, capped
+    #: search window: translation (m) and yaw (degrees) at a fresh closure, growing with the path travelled since
+    #: the last accepted closure: by ``drift`` m and ``yaw_drift`` degrees per metre until a closure is accepted,
+    #: then at the rates ``drift_margin`` sets (never faster), capped
     window: float | None = None
     drift: float = 0.1
     #: once closures are accepted, the window grows by this many times the drift rates they measured (their
     #: corrections over the path travelled before each, pooled), at most by ``drift`` and ``yaw_drift``: the
-    #: warm start's own drift, not a guess, sizes the search for later loops
-    #: (docs/decisions/0021-loop-search-learns-the-drift.md)
+    #: warm start's own drift, not a guess, sizes the search for later loops; a closure across a corridor measures
+    #: yaw only. A margin of 1e9 keeps the guessed rates (docs/decisions/0021-loop-search-learns-the-drift.md)
     drift_margin: float = 3.0
     #: yaw search window at a fresh closure (degrees either side of the estimate); see ``window``
     yaw_window: float = 10.0
-    #: growth of the yaw window (degrees per metre travelled since the last accepted closure), capped at 180 degrees
+    #: growth of the yaw window (degrees per metre travelled since the last accepted closure) until a closure is
+    #: accepted and at most afterwards (see ``drift_margin``), capped at 180 degrees
     yaw_drift: float = 0.5
     #: cap of the translation window (m); default 4 times the 90th-percentile range
     max_window: float | None = None
@@ -233,13 +235,13 @@ class LoopsTopology:
         bar = progress(range(len(keys)), "loop closure", unit="keyframe", enabled=self.progress)
         for b in bar:
             graph.extend(b)
-            travelled = kpath[b] - last
+            travelled = kpath[b] - last  # the window's; a closure accepted at b resets it for b's later candidates
             drift, yaw_drift = learnt.rates(self.drift, self.yaw_drift, self.drift_margin)
             window = min(L["max_window"], L["window"] + drift * travelled)
             yaw_window = np.radians(min(180.0, self.yaw_window + yaw_drift * travelled))
             for a in self._candidates(graph.estimate[: b + 1], kpath, b, window):
                 entry = self._verify(a, b, graph.estimate, window, yaw_window)
-                entry["travelled"] = round(float(travelled), 2)
+                entry["travelled"] = round(float(kpath[b] - last), 2)
                 log.append(entry)
                 if not entry["verified"]:
                     continue
@@ -303,22 +305,22 @@ class LoopsTopology:
             return {"i": int(self._keys[a]), "j": int(self._keys[b]), "score": 0.0, "verified": False,
                     "accepted": False, "reason": "fewer than 10 points in a submap"}
         coarse = cm.match(kf.thin(src, coarse_res, 400, self._rng), self._grid(a, coarse_res), tuple(init),
-                          window, yaw_window, ratio=self.max_ambiguity, floor=self.weak_score)
+                          window, yaw_window, ratio=self.max_ambiguity, floor=self.max_ambiguity * self.weak_score)
         entry = {"i": int(self._keys[a]), "j": int(self._keys[b]), "window": round(window, 2),
                  "yaw_window_deg": round(float(np.degrees(yaw_window)), 1), "score": round(coarse.score, 4),
                  "ambiguity": round(coarse.runner_up / max(coarse.score, 1e-9), 4), "verified": False,
                  "accepted": False}
         low_score = coarse.score < self.weak_score
-        weak_score = not low_score and coarse.score < self.min_score
+        under_gate = not low_score and coarse.score < self.min_score  # a weak closure at best
         ambiguous = coarse.runner_up > self.max_ambiguity * coarse.score
         reasons = []
-        if low_score or (weak_score and ambiguous):
-            reasons.append(f"score {coarse.score:.2f} < {self.weak_score if low_score else self.min_score:.2f}")
+        if low_score or (under_gate and ambiguous):
+            reasons.append(str(GateFailure(Gate.SCORE, coarse.score, self.weak_score if low_score else self.min_score)))
         if ambiguous:
             reasons.append(f"ambiguous: a different alignment scores {entry['ambiguity']:.2f} of the best")
         # ambiguous only along one line (a corridor): certain across it and in yaw; the position along it is
         # the prediction's, and the graph settles it
-        across = self.across_corridors and coarse.axis is not None and ambiguous and not (low_score or weak_score)
+        across = self.across_corridors and coarse.axis is not None and ambiguous and not (low_score or under_gate)
         axis = np.array(coarse.axis) if across else None
         if reasons and not across:
             entry["reason"] = "; ".join(reasons)
@@ -338,10 +340,10 @@ class LoopsTopology:
                      offset=round(float(np.linalg.norm(z[:2] - init[:2])), 3),
                      offset_deg=round(float(np.degrees(abs(se3.wrap_angle(z[2] - init[2])))), 3))
         failed = self._gates(a, b, m, entry, across)
-        if weak_score and not failed:
-            failed = [GateFailure(Gate.SCORE, coarse.score, self.min_score)]
+        if under_gate:
+            failed.insert(0, GateFailure(Gate.SCORE, coarse.score, self.min_score))
         weak = len(failed) == 1 and (failed[0].gate is Gate.SCORE or (
-            failed[0].gate is Gate.OVERLAP and entry["overlap"] >= self.weak_fitness and not weak_score))
+            failed[0].gate is Gate.OVERLAP and entry["overlap"] >= self.weak_fitness))
         entry["verified"] = not failed or weak
         if entry["verified"] and L["short_half_length"] > 0:
             self._measure_short(a, b, m.T, entry, axis)
@@ -488,24 +490,25 @@ class LoopsTopology:
 
 class DriftRates:
     """The warm start's drift measured by the accepted closures: translation (m) and yaw (degrees) of their
-    corrections over the path each was searched after (m), pooled over all of them."""
+    corrections over the path each was searched after (m), pooled over all of them. A closure across a corridor
+    holds the prediction along its axis: it measures yaw only."""
 
     def __init__(self) -> None:
-        self.offset_m = self.offset_deg = self.travelled = 0.0
+        self.offset_m = self.offset_deg = self.path_m = self.path_deg = 0.0
 
     def add(self, closures: list[Closure]) -> None:
         for c in closures:
-            self.offset_m += c.entry["offset"]
+            if c.axis is None:
+                self.offset_m += c.entry["offset"]
+                self.path_m += c.entry["travelled"]
             self.offset_deg += c.entry["offset_deg"]
-            self.travelled += c.entry["travelled"]
+            self.path_deg += c.entry["travelled"]
 
     def rates(self, drift: float, yaw_drift: float, margin: float) -> tuple[float, float]:
         """Window growth (m and degrees per metre): ``margin`` times the pooled rates, at most the priors
-        ``drift`` and ``yaw_drift``; the priors until a closure has been searched over some path."""
-        if self.travelled <= 0:
-            return drift, yaw_drift
-        return (min(drift, margin * self.offset_m / self.travelled),
-                min(yaw_drift, margin * self.offset_deg / self.travelled))
+        ``drift`` and ``yaw_drift``; each the prior until a closure has measured it over some path."""
+        return (drift if self.path_m <= 0 else min(drift, margin * self.offset_m / self.path_m),
+                yaw_drift if self.path_deg <= 0 else min(yaw_drift, margin * self.offset_deg / self.path_deg))
 
 
 def _shared(cloud: Cloud, sample: int = 200) -> float:

@@ -220,7 +220,14 @@ def test_the_search_window_grows_at_the_drift_the_closures_measured(floor):
     capped = DriftRates()
     capped.add([Closure(0, 1, np.zeros(3), {"offset": 5.0, "offset_deg": 50.0, "travelled": 10.0})])
     assert capped.rates(0.1, 0.5, 3.0) == (0.1, 0.5)  # never faster than the guess
-    assert capped.rates(1.0, 10.0, 2.0) == pytest.approx((1.0, 10.0))
+    pooled = DriftRates()  # pooled over the path (3 x 1.5 m / 100 m), not the mean of each closure's rate
+    pooled.add([Closure(0, 1, np.zeros(3), {"offset": 1.0, "offset_deg": 2.0, "travelled": 20.0}),
+                Closure(0, 1, np.zeros(3), {"offset": 0.5, "offset_deg": 1.0, "travelled": 80.0})])
+    assert pooled.rates(1.0, 10.0, 3.0) == pytest.approx((0.045, 0.09))
+    across = DriftRates()  # a closure across a corridor holds the along-axis prediction: it measures yaw only
+    across.add([Closure(0, 1, np.zeros(3), {"offset": 0.1, "offset_deg": 1.0, "travelled": 50.0},
+                        axis=np.array([1.0, 0.0]))])
+    assert across.rates(0.1, 0.5, 3.0) == pytest.approx((0.1, 0.06))
 
 
 def test_a_match_scoring_a_little_under_the_gate_is_a_weak_closure(floor):

@@ -346,6 +346,8 @@ def test_plugin_options_reach_the_plugin_as_the_types_they_declare(tmp_path):
 
 
 def test_auto_place_recognition_checks_its_options_once_resolved():
+    """``auto`` names no class at load: its options are converted and checked against the plugin it resolves to,
+    an option the resolved plugin lacks is one line naming both."""
     from dm2_backend.config.schema import PluginSection
     from dm2_backend.prepare.steps import resolve_auto
     from dm2_backend.runtime.errors import InputError

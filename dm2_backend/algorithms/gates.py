@@ -19,7 +19,8 @@ class Gate(enum.Enum):
     FITNESS = "fitness {value:.2f} < {limit:.2f}"
     RMSE = "rmse {value:.3f} > {limit:.3f}"
     FREE_SPACE = "free space {value:.2f} > {limit:.2f}"
-    #: the loop-closure gates (``loops``, ``loops3d``): submap overlap, the translation constraint, walls
+    #: the loop-closure gates (``loops``, ``loops3d``): submap overlap, the correlative score (``loops``), the
+    #: translation constraint, walls
     OVERLAP = "overlap {value:.2f} < {limit:.2f}"
     SCORE = "score {value:.2f} < {limit:.2f}"
     CORRIDOR = "constraint {value:.3f} < {limit:.3f} (degenerate: a corridor?)"
