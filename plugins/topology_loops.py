@@ -5,9 +5,9 @@
 2. Keyframes are visited in order on an iSAM2 pose graph (odometry = the warm start). Candidates are the
    earlier keyframes within reach of the current estimate; the search window (translation and yaw)
    grows with the distance travelled since the last accepted closure, so a loop that drifted many
-   metres is still searched: at guessed rates until closures are accepted, then at a multiple of the
-   rates they measured (their corrections over the path before each), since a window far wider than the
-   drift makes a building's repeated halls ambiguous.
+   metres is still searched (guessed rates). A candidate ambiguous there is searched again in the window
+   that a multiple of the drift rates the accepted closures measured allows (their corrections over the
+   path before each): a window far wider than the drift makes a building's repeated halls ambiguous.
 3. Verification is global inside that window: correlative scan matching with branch and bound
    (``correlative.py``), rejected when a clearly different alignment scores nearly as well, unless every
    such alignment lies on one line at the same heading (a corridor): then the closure fixes only the
@@ -93,20 +93,18 @@ class LoopsTopology:
     #: isolated returns (glass, open doors) match nothing and let different alignments score alike; 0 keeps all
     #: (docs/decisions/0011-loop-closure-overlap-and-support.md)
     support: float | None = None
-    #: search window: translation (m) and yaw (degrees) at a fresh closure, growing with the path travelled since
-    #: the last accepted closure: by ``drift`` m and ``yaw_drift`` degrees per metre until a closure is accepted,
-    #: then at the rates ``drift_margin`` sets (never faster), capped
+    #: search window: translation (m) and yaw (degrees) at a fresh closure, growing by ``drift`` m and ``yaw_drift``
+    #: degrees per metre travelled since the last accepted closure, capped (an ambiguous match: see ``drift_margin``)
     window: float | None = None
     drift: float = 0.1
-    #: once closures are accepted, the window grows by this many times the drift rates they measured (their
-    #: corrections over the path travelled before each, pooled), at most by ``drift`` and ``yaw_drift``: the
-    #: warm start's own drift, not a guess, sizes the search for later loops; a closure across a corridor measures
-    #: yaw only. A margin of 1e9 keeps the guessed rates (docs/decisions/0021-loop-search-learns-the-drift.md)
+    #: a candidate ambiguous in that window is searched again in one grown by this many times the drift rates the
+    #: accepted closures measured (their corrections over the path travelled before each, pooled; a closure across
+    #: a corridor measures yaw only), where narrower: the warm start's own drift, not a guess, bounds the search.
+    #: 1e9 turns it off (docs/decisions/0021-loop-search-learns-the-drift.md)
     drift_margin: float = 3.0
     #: yaw search window at a fresh closure (degrees either side of the estimate); see ``window``
     yaw_window: float = 10.0
-    #: growth of the yaw window (degrees per metre travelled since the last accepted closure) until a closure is
-    #: accepted and at most afterwards (see ``drift_margin``), capped at 180 degrees
+    #: growth of the yaw window (degrees per metre travelled since the last accepted closure), capped at 180 degrees
     yaw_drift: float = 0.5
     #: cap of the translation window (m); default 4 times the 90th-percentile range
     max_window: float | None = None
@@ -235,12 +233,14 @@ class LoopsTopology:
         bar = progress(range(len(keys)), "loop closure", unit="keyframe", enabled=self.progress)
         for b in bar:
             graph.extend(b)
-            travelled = kpath[b] - last  # the window's; a closure accepted at b resets it for b's later candidates
-            drift, yaw_drift = learnt.rates(self.drift, self.yaw_drift, self.drift_margin)
-            window = min(L["max_window"], L["window"] + drift * travelled)
-            yaw_window = np.radians(min(180.0, self.yaw_window + yaw_drift * travelled))
+            travelled = kpath[b] - last  # the windows'; a closure accepted at b resets it for b's later candidates
+            window, yaw_window = self._window(self.drift, self.yaw_drift, travelled)
+            narrow = self._window(*learnt.rates(self.drift, self.yaw_drift, self.drift_margin), travelled)
             for a in self._candidates(graph.estimate[: b + 1], kpath, b, window):
                 entry = self._verify(a, b, graph.estimate, window, yaw_window)
+                if entry.get("ambiguous") and narrow < (window, yaw_window):  # searched again where the drift allows
+                    wide = {k: entry[k] for k in ("window", "yaw_window_deg", "score", "ambiguity", "reason")}
+                    entry = {**self._verify(a, b, graph.estimate, *narrow), "wide": wide}
                 entry["travelled"] = round(float(kpath[b] - last), 2)
                 log.append(entry)
                 if not entry["verified"]:
@@ -272,6 +272,12 @@ class LoopsTopology:
         for c in dropped:
             c.entry.update(accepted=False, dropped=True, reason="dropped by the final robust solve")
         return correct(poses, keys, odo, key_poses), len(kept)
+
+    def _window(self, drift: float, yaw_drift: float, travelled: float) -> tuple[float, float]:
+        """Search window (m, rad) after ``travelled`` metres at the growth rates (m and degrees per metre)."""
+        L = self._lengths
+        return (min(L["max_window"], L["window"] + drift * travelled),
+                float(np.radians(min(180.0, self.yaw_window + yaw_drift * travelled))))
 
     def _candidates(self, estimate: np.ndarray, kpath: np.ndarray, b: int, window: float) -> list[int]:
         """Earlier keyframes that may overlap keyframe b: one (the nearest) per earlier visit."""
@@ -309,7 +315,7 @@ class LoopsTopology:
         entry = {"i": int(self._keys[a]), "j": int(self._keys[b]), "window": round(window, 2),
                  "yaw_window_deg": round(float(np.degrees(yaw_window)), 1), "score": round(coarse.score, 4),
                  "ambiguity": round(coarse.runner_up / max(coarse.score, 1e-9), 4), "verified": False,
-                 "accepted": False}
+                 "accepted": False, "ambiguous": False}
         low_score = coarse.score < self.weak_score
         under_gate = not low_score and coarse.score < self.min_score  # a weak closure at best
         ambiguous = coarse.runner_up > self.max_ambiguity * coarse.score
@@ -323,7 +329,7 @@ class LoopsTopology:
         across = self.across_corridors and coarse.axis is not None and ambiguous and not (low_score or under_gate)
         axis = np.array(coarse.axis) if across else None
         if reasons and not across:
-            entry["reason"] = "; ".join(reasons)
+            entry.update(reason="; ".join(reasons), ambiguous=ambiguous)
             return entry
         if across:
             along = float((init[:2] - (coarse.x, coarse.y)) @ axis)
