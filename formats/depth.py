@@ -2,7 +2,9 @@
 
 Points are in the camera frame (x right, y down, z forward; pinhole ``X = (u - cx) Z / fx``,
 ``Y = (v - cy) Z / fy``); depth 0 and 65535 are invalid. ``ReadOptions.stride`` keeps every
-n-th pixel in u and v (default 2: at most 320 x 240 points from a 640 x 480 image; 1 keeps all).
+n-th pixel in u and v (default 2: at most 320 x 240 points from a 640 x 480 image; 1 keeps all). The depth is
+smoothed over each pixel's neighbours on the same surface, by the camera's noise measured on its own images
+(:mod:`.depth_noise`); ``ReadOptions.smooth_depth = False`` back-projects it as recorded.
 
 Layouts:
 
@@ -33,6 +35,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from dm2_backend.formats import depth_noise
+from dm2_backend.formats.depth_noise import DepthNoise
 from dm2_backend.formats.registry import (
     ReadOptions,
     ScanSource,
@@ -53,6 +57,8 @@ SEVEN_SCENES_DEFAULT, TUM_DEFAULT = "7-Scenes default", "TUM RGB-D default"
 ASSUMED = (SEVEN_SCENES_DEFAULT, TUM_DEFAULT)
 TUM_MAX_DIFF = 0.02
 DEFAULT_STRIDE = 2
+#: images the depth noise is measured on
+NOISE_SAMPLE = 10
 _FRAME = re.compile(r"frame-(\d+)\.depth\.png")
 
 
@@ -270,10 +276,15 @@ def _rays(shape: tuple[int, int], intrinsics: tuple[float, ...], stride: int) ->
 
 
 def back_project(
-    depth: np.ndarray, intrinsics: tuple[float, float, float, float], scale: float, stride: int = 1
+    depth: np.ndarray, intrinsics: tuple[float, float, float, float], scale: float, stride: int = 1,
+    noise: DepthNoise | None = None,
 ) -> np.ndarray:
-    """Camera-frame points (M, 3) float32 of the valid pixels (not 0, not 65535) of a depth image."""
-    d = np.asarray(depth)[::stride, ::stride]
+    """Camera-frame points (M, 3) float32 of the valid pixels (not 0, not 65535) of a depth image; with ``noise``,
+    each pixel's depth smoothed over its neighbours on the same surface (:mod:`.depth_noise`)."""
+    if noise is not None:
+        d, scale = depth_noise.smooth(depth, scale, noise, stride), 1.0
+    else:
+        d = np.asarray(depth)[::stride, ::stride]
     valid = (d > 0) & (d < 65535) if d.dtype == np.uint16 else (d > 0) & np.isfinite(d)
     rx, ry = _rays(tuple(depth.shape), tuple(float(v) for v in intrinsics), stride)
     z = d[valid].astype(np.float32) / np.float32(scale)
@@ -291,13 +302,20 @@ def _stride(options: ReadOptions) -> int:
     return stride
 
 
+def measure_noise(folder: DepthFolder) -> DepthNoise | None:
+    """The folder's depth noise, measured on :data:`NOISE_SAMPLE` images spread over the sequence."""
+    picks = np.unique(np.linspace(0, len(folder.images) - 1, min(NOISE_SAMPLE, len(folder.images))).astype(int))
+    return depth_noise.measure((read_depth_image(folder.images[i]) for i in picks), folder.scale)
+
+
 def open_depth(path: Path, options: ReadOptions) -> ScanSequence:
     folder = load_folder(path, options)
     stride = _stride(options)
+    noise = measure_noise(folder) if options.smooth_depth else None
 
     def load(i: int) -> Scan:
         image = folder.images[i]
-        points = back_project(read_depth_image(image), folder.intrinsics, folder.scale, stride)
+        points = back_project(read_depth_image(image), folder.intrinsics, folder.scale, stride, noise)
         if len(points) == 0:
             raise InputError(image, "empty scan (no valid depth)")
         return Scan(points=points, timestamp=float(folder.timestamps[i]))
@@ -310,7 +328,9 @@ def open_depth(path: Path, options: ReadOptions) -> ScanSequence:
               "intrinsics_from": folder.intrinsics_from, "depth_scale_from": folder.scale_from,
               "assumed": [name for name, given in (("intrinsics", folder.intrinsics_from), ("depth_scale",
                                                    folder.scale_from)) if given in ASSUMED],
-              "stride": stride, "files": folder.images, **folder.notes},
+              "stride": stride, "depth_noise": noise.summary() if noise is not None else None,
+              "depth_noise_line": noise.describe() if noise is not None else None,
+              "files": folder.images, **folder.notes},
     )
 
 

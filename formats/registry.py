@@ -35,6 +35,8 @@ class ReadOptions:
     duplicate_times: str = "keep"
     #: depth sequences: every ``stride``-th pixel in each direction (None: the reader's default)
     stride: int | None = None
+    #: depth sequences: smooth each pixel's depth over its neighbours on the same surface (False: as recorded)
+    smooth_depth: bool = True
     #: CARMEN: the laser's pose in the robot frame (x, y, theta; None: the log's PARAMs or messages), ranges
     #: beyond ``max_range`` (m; None: the message's own) and below ``min_range`` (m) dropped
     laser_offset: tuple[float, float, float] | None = None

@@ -104,7 +104,9 @@ def depth_sensor(scans: ScanSequence) -> dict | None:
     sources = {"intrinsics": str(meta.get("intrinsics_from", "")), "depth_scale": str(meta.get("depth_scale_from", ""))}
     return {"layout": meta.get("layout"), "intrinsics": {"fx": fx, "fy": fy, "cx": cx, "cy": cy},
             "depth_scale": float(meta["depth_scale"]), "stride": meta.get("stride"),
-            "from": sources, "assumed": list(meta.get("assumed", []))}
+            "from": sources, "assumed": list(meta.get("assumed", [])),
+            "smoothed": meta.get("depth_noise") is not None, "depth_noise": meta.get("depth_noise"),
+            "depth_noise_line": meta.get("depth_noise_line")}
 
 
 def log_sensor(sensor: dict | None) -> None:
@@ -115,6 +117,9 @@ def log_sensor(sensor: dict | None) -> None:
     log.info("depth camera: fx %g fy %g cx %g cy %g (%s), depth scale %g units per metre (%s), pixel stride %s",
              k["fx"], k["fy"], k["cx"], k["cy"], sensor["from"]["intrinsics"], sensor["depth_scale"],
              sensor["from"]["depth_scale"], sensor["stride"])
+    if sensor.get("depth_noise_line"):
+        log.info("%s; each pixel's depth smoothed over its neighbours on the same surface (--raw-depth: as "
+                 "recorded)", sensor["depth_noise_line"])
     if sensor["assumed"]:
         log.warning("depth camera: %s assumed from the %s layout's defaults; give --intrinsics / --depth-scale if "
                     "your camera differs", " and ".join(a.replace("_", " ") for a in sensor["assumed"]),
