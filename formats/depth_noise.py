@@ -50,7 +50,8 @@ class DepthNoise:
 
     def summary(self) -> dict:
         return {"ranges_m": list(self.ranges_m), "steps_m": list(self.steps_m), "sigmas_m": list(self.sigmas_m),
-                "images": self.images, "tolerance_steps": TOLERANCE, "spatial_sigma_px": SPATIAL_SIGMA}
+                "images": self.images, "tolerance_steps": TOLERANCE, "spatial_sigma_px": SPATIAL_SIGMA,
+                "half_width_px": HALF_WIDTH}
 
     def describe(self) -> str:
         picks = sorted({0, len(self.ranges_m) // 2, len(self.ranges_m) - 1})
