@@ -2,9 +2,9 @@
 
 Points are in the camera frame (x right, y down, z forward; pinhole ``X = (u - cx) Z / fx``,
 ``Y = (v - cy) Z / fy``); depth 0 and 65535 are invalid. ``ReadOptions.stride`` keeps every
-n-th pixel in u and v (default 2: at most 320 x 240 points from a 640 x 480 image; 1 keeps all). The depth is
-smoothed over each pixel's neighbours on the same surface, by the camera's noise measured on its own images
-(:mod:`.depth_noise`); ``ReadOptions.smooth_depth = False`` back-projects it as recorded.
+n-th pixel in u and v (default 2: at most 320 x 240 points from a 640 x 480 image; 1 keeps all). The camera's
+noise is measured on its own images and stated (``meta["depth_noise"]``, :mod:`.depth_noise`);
+``ReadOptions.smooth_depth`` smooths each pixel's depth by it over its neighbours on the same surface.
 
 Layouts:
 
@@ -311,11 +311,12 @@ def measure_noise(folder: DepthFolder) -> DepthNoise | None:
 def open_depth(path: Path, options: ReadOptions) -> ScanSequence:
     folder = load_folder(path, options)
     stride = _stride(options)
-    noise = measure_noise(folder) if options.smooth_depth else None
+    noise = measure_noise(folder)
+    smoothing = noise if options.smooth_depth else None
 
     def load(i: int) -> Scan:
         image = folder.images[i]
-        points = back_project(read_depth_image(image), folder.intrinsics, folder.scale, stride, noise)
+        points = back_project(read_depth_image(image), folder.intrinsics, folder.scale, stride, smoothing)
         if len(points) == 0:
             raise InputError(image, "empty scan (no valid depth)")
         return Scan(points=points, timestamp=float(folder.timestamps[i]))
@@ -329,6 +330,7 @@ def open_depth(path: Path, options: ReadOptions) -> ScanSequence:
               "assumed": [name for name, given in (("intrinsics", folder.intrinsics_from), ("depth_scale",
                                                    folder.scale_from)) if given in ASSUMED],
               "stride": stride, "depth_noise": noise.summary() if noise is not None else None,
+              "smoothed": smoothing is not None,
               "depth_noise_line": noise.describe() if noise is not None else None,
               "files": folder.images, **folder.notes},
     )

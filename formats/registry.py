@@ -36,7 +36,7 @@ class ReadOptions:
     #: depth sequences: every ``stride``-th pixel in each direction (None: the reader's default)
     stride: int | None = None
     #: depth sequences: smooth each pixel's depth over its neighbours on the same surface (False: as recorded)
-    smooth_depth: bool = True
+    smooth_depth: bool = False
     #: CARMEN: the laser's pose in the robot frame (x, y, theta; None: the log's PARAMs or messages), ranges
     #: beyond ``max_range`` (m; None: the message's own) and below ``min_range`` (m) dropped
     laser_offset: tuple[float, float, float] | None = None
@@ -193,7 +193,7 @@ def write_trajectory(
 
 
 #: read options whose effective value a scan source reports in its ``meta`` (its default when not given)
-EFFECTIVE_OPTIONS = ("intrinsics", "depth_scale", "stride", "depth_noise")
+EFFECTIVE_OPTIONS = ("intrinsics", "depth_scale", "stride", "depth_noise", "smoothed")
 
 
 def _plain(value):

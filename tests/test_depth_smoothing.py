@@ -96,9 +96,9 @@ def test_a_simulated_kinect_step_is_held_once_smoothed(step):
     assert errors[0] > 0.02 and errors[1] < 0.005
 
 
-def test_raw_depth_reads_as_recorded(tmp_path):
-    """--raw-depth (ReadOptions.smooth_depth False): the points are the recorded depth, nothing measured; by
-    default the noise is measured and stated in the sequence's meta."""
+def test_depth_is_read_as_recorded_unless_smoothing_is_asked(tmp_path):
+    """By default the points are the recorded depth and the noise is measured and stated in the sequence's meta;
+    --smooth-depth (ReadOptions.smooth_depth) smooths them by it."""
     from PIL import Image
 
     raw, _ = tilted_wall(0.002)
@@ -107,12 +107,12 @@ def test_raw_depth_reads_as_recorded(tmp_path):
     for i in range(2):
         Image.fromarray(raw).save(folder / f"frame-{i:06d}.depth.png")
         np.savetxt(folder / f"frame-{i:06d}.pose.txt", np.eye(4))
-    as_recorded = open_scans(folder, options=ReadOptions(smooth_depth=False))
-    assert as_recorded.meta["depth_noise"] is None
+    as_recorded = open_scans(folder)
+    assert as_recorded.meta["depth_noise"]["images"] == 2 and not as_recorded.meta["smoothed"]
+    assert "depth noise measured on 2 images" in as_recorded.meta["depth_noise_line"]
     assert np.array_equal(as_recorded[0].points, back_project(raw, INTRINSICS, 1000.0, 2))
-    smoothed = open_scans(folder)
-    assert smoothed.meta["depth_noise"]["images"] == 2 and "depth noise measured on 2 images" in \
-        smoothed.meta["depth_noise_line"]
+    smoothed = open_scans(folder, options=ReadOptions(smooth_depth=True))
+    assert smoothed.meta["smoothed"] and smoothed.read_spec != as_recorded.read_spec  # cached apart
     assert not np.array_equal(smoothed[0].points, as_recorded[0].points)
 
 

@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from PIL import Image
 from test_formats_depth import tum_layout
 
 from dm2_backend.cli.main import cli
@@ -60,6 +61,21 @@ def test_read_options_key_the_cache_in_one_spelling(depth_folder):
     assert key(intrinsics=" 525, 525 ,319.5, 239.5 ") == commas  # the layout's default scale, left out
     assert key() == commas  # TUM's default intrinsics and scale, given or not: the same scans
     assert key(intrinsics="525 525 319.5 239.6") != commas
+    assert key(smooth_depth=True) != commas  # smoothed depth: other points, another cache entry
+
+
+def test_eval_smooth_depth_reaches_the_reader(depth_folder, tmp_path):
+    """--smooth-depth scores the smoothed scans (refine's option, parsed by the same function): noisy walls score
+    sharper smoothed (a plane is smoothed onto itself, so the fixture's exact walls get noise first)."""
+    folder, est = depth_folder
+    rng = np.random.default_rng(0)
+    for png in sorted((folder / "depth").glob("*.png")):
+        depth = np.asarray(Image.open(png), dtype=np.float64)
+        Image.fromarray((depth + rng.normal(0, 0.01 * 5000, depth.shape)).astype(np.uint16)).save(png)
+    default = entropy(run("eval", "--scans", folder, "--est", est, "--json", tmp_path / "a.json"), tmp_path / "a.json")
+    smoothed = entropy(run("eval", "--scans", folder, "--est", est, "--smooth-depth", "--json", tmp_path / "s.json"),
+                       tmp_path / "s.json")
+    assert smoothed < default - 0.1
 
 
 def test_eval_labels(depth_folder, tmp_path):

@@ -265,7 +265,7 @@ def test_the_depth_camera_in_use_is_stated_and_defaults_are_named(tmp_path, capl
     lines = [r.getMessage() for r in caplog.records]
     assert "fx 585 fy 585 cx 320 cy 240 (7-Scenes default)" in lines[0] and "1000 units per metre (7-Scenes" in lines[0]
     assert len(lines) == 3 and "intrinsics and depth scale assumed" in lines[2]
-    assert lines[1].startswith("depth noise measured on 3 images: step 1.0 mm") and "smoothed" in lines[1]
+    assert lines[1].startswith("depth noise measured on 3 images: step 1.0 mm") and "as recorded" in lines[1]
     (folder / "camera-intrinsics.txt").write_text("500 0 320\n0 500 240\n0 0 1\n")
     given = depth_sensor(open_scans(folder, options=ReadOptions(depth_scale=5000.0)))
     assert given["from"] == {"intrinsics": "camera-intrinsics.txt", "depth_scale": "--depth-scale"}

@@ -21,7 +21,8 @@ _HELP = "\n".join(f"  {name:<9} {text}" for name, text in METHODS.items())
 
 #: options of a run from scans that mean nothing for an existing graph (refused, not ignored, with --graph)
 SCAN_ONLY = ("poses", "scans_format", "poses_format", "config_path", "relations", "warm_start",
-             "place_recognition", "registration", "topic", "times", "calib", "intrinsics", "depth_scale", "raw_depth")
+             "place_recognition", "registration", "topic", "times", "calib", "intrinsics", "depth_scale",
+             "smooth_depth")
 
 
 def check_graph_options(kw: dict) -> None:

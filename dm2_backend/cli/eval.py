@@ -10,8 +10,8 @@ from dm2_backend.cli.options import (
     depth_scale_option,
     duplicate_times_option,
     intrinsics_option,
-    raw_depth_option,
     read_options,
+    smooth_depth_option,
 )
 from dm2_backend.cli.suggest import Choice
 from dm2_backend.evaluation.ape_rpe import ALIGN_MODES, DELTA_UNITS
@@ -137,7 +137,7 @@ def _alignment(align: str | None, align_flag: bool, scale_flag: bool, align_orig
 @click.option("--scans-times", type=path_type, default=None, help="KITTI times.txt for --scans.")
 @intrinsics_option
 @depth_scale_option
-@raw_depth_option
+@smooth_depth_option
 @click.option("--profile", "profile_dir", type=path_type, default=None,
               help="With --scans: write each estimate's consistency profile into this folder (consistency.json, "
                    ".csv, .png): per frame, how far its points lie from the planes the other frames make, and "
@@ -170,7 +170,7 @@ def _alignment(align: str | None, align_flag: bool, scale_flag: bool, align_orig
               help="Write evo result archives (.zip, readable by evo_res) into this folder.")
 @duplicate_times_option
 def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topics, gt_times, est_times,
-            scans_path, scans_format, scans_topic, scans_times, intrinsics, depth_scale, raw_depth, profile_dir,
+            scans_path, scans_format, scans_topic, scans_times, intrinsics, depth_scale, smooth_depth, profile_dir,
             relations_path, relations_max_dt, align, align_origin, align_flag, scale_flag, max_diff, by_index, labels,
             delta, delta_unit, json_path, csv_path, md_path, plot_dir, run_report, evo_dir, duplicate_times) -> None:
     """Evaluate one or more estimated trajectories against a ground truth, relations and/or the map they make.
@@ -197,7 +197,7 @@ def command(files, gt_path, est_paths, gt_format, est_format, gt_topic, est_topi
     topics = _topics(est_topics, len(est_paths))
     est_labels = _labels(est_paths, labels, topics)
     # the scans are read as refine reads them (the same options, parsed by the same function)
-    scan_options = read_options(scans_topic, scans_times, None, intrinsics, depth_scale, duplicate_times, raw_depth)
+    scan_options = read_options(scans_topic, scans_times, None, intrinsics, depth_scale, duplicate_times, smooth_depth)
 
     options = EvalOptions(align=align, align_origin=align_origin, max_diff=max_diff, by_index=by_index,
                           delta=delta, delta_unit=delta_unit, relations_max_dt=relations_max_dt)

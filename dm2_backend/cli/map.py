@@ -10,8 +10,8 @@ from dm2_backend.cli.options import (
     calib_option,
     depth_scale_option,
     intrinsics_option,
-    raw_depth_option,
     read_options,
+    smooth_depth_option,
     times_option,
     topic_option,
 )
@@ -28,7 +28,7 @@ def scan_options(f):
         click.option("--format", "scans_format", default=None, help="Scan source format (else detected)."),
         click.option("--max-diff", type=float, default=0.01, show_default=True,
                      help="Seconds allowed between a scan and the run's pose when matching by time."),
-        topic_option, times_option, calib_option, intrinsics_option, depth_scale_option, raw_depth_option,
+        topic_option, times_option, calib_option, intrinsics_option, depth_scale_option, smooth_depth_option,
     ]
     for d in reversed(decorators):
         f = d(f)
@@ -69,7 +69,7 @@ def run_scans(run: Path, kw: dict, required: bool = True):
             raise InputError(run, f"{why}: give --scans")
         path, fmt = Path(src), fmt or recorded.get("format")
     options = read_options(kw["topic"], kw["times"], kw["calib"], kw["intrinsics"], kw["depth_scale"],
-                           raw_depth=kw["raw_depth"])
+                           smooth_depth=kw["smooth_depth"])
     scans = open_scans(path, fmt, options)
     traj = run_trajectory(run)
     scans, matched = associate_scans(scans, traj, kw["max_diff"])

@@ -17,7 +17,7 @@ def read_options(
     intrinsics: str | None = None,
     depth_scale: float | None = None,
     duplicate_times: str = "keep",
-    raw_depth: bool = False,
+    smooth_depth: bool = False,
 ) -> ReadOptions:
     fx_fy_cx_cy = None
     if intrinsics:
@@ -30,7 +30,7 @@ def read_options(
         fx_fy_cx_cy = values
     return ReadOptions(
         topic=topic, times=times, calib=calib, intrinsics=fx_fy_cx_cy, depth_scale=depth_scale,
-        duplicate_times=duplicate_times, smooth_depth=not raw_depth,
+        duplicate_times=duplicate_times, smooth_depth=smooth_depth,
     )
 
 
@@ -49,10 +49,10 @@ depth_scale_option = click.option(
     "--depth-scale", type=float, default=None,
     help="Depth units per metre [default: 1000 for 7-Scenes, 5000 for TUM RGB-D].",
 )
-raw_depth_option = click.option(
-    "--raw-depth", is_flag=True, default=False,
-    help="Back-project depth images as recorded [default: each pixel smoothed over its neighbours on the same "
-         "surface, by the camera's noise measured on its own images].",
+smooth_depth_option = click.option(
+    "--smooth-depth", is_flag=True, default=False,
+    help="Smooth each depth pixel over its neighbours on the same surface, by the camera's noise measured on its "
+         "own images (docs/decisions/0022-depth-smoothing-available-off.md) [default: depth as recorded].",
 )
 duplicate_times_option = click.option(
     "--duplicate-times", type=Choice(["keep", "keep-first", "error"]), default="keep", show_default=True,

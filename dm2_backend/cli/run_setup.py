@@ -15,8 +15,8 @@ from dm2_backend.cli.options import (
     depth_scale_option,
     duplicate_times_option,
     intrinsics_option,
-    raw_depth_option,
     read_options,
+    smooth_depth_option,
     times_option,
     topic_option,
 )
@@ -75,7 +75,7 @@ def run_options(f=None, *, scans_required: bool = True):
                           "(tcp://host:8786; default $DASK_SCHEDULER_ADDRESS). Its workers read the frames from "
                           "the cache folder (put it on storage they share; with --no-cache the frames travel with "
                           "the tasks)."),
-        topic_option, times_option, calib_option, intrinsics_option, depth_scale_option, raw_depth_option,
+        topic_option, times_option, calib_option, intrinsics_option, depth_scale_option, smooth_depth_option,
         duplicate_times_option,
     ]
     for d in reversed(decorators):
@@ -94,7 +94,7 @@ def prepare_run(kw: dict, overrides: dict):
                    | {"--cache-dir": cache})
     calib = kw["calib"] or kitti_calibration(kw)
     options = read_options(kw["topic"], kw["times"], calib, kw["intrinsics"], kw["depth_scale"],
-                           kw["duplicate_times"], kw["raw_depth"])
+                           kw["duplicate_times"], kw["smooth_depth"])
     inputs = load_inputs(kw["scans"], kw["scans_format"], kw["poses"], kw["poses_format"], options,
                          kw["gt"], kw["gt_format"], kw["relations"], kw["max_diff"])
     if calib is None and not inputs.scans.planar:

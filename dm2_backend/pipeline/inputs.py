@@ -105,7 +105,7 @@ def depth_sensor(scans: ScanSequence) -> dict | None:
     return {"layout": meta.get("layout"), "intrinsics": {"fx": fx, "fy": fy, "cx": cx, "cy": cy},
             "depth_scale": float(meta["depth_scale"]), "stride": meta.get("stride"),
             "from": sources, "assumed": list(meta.get("assumed", [])),
-            "smoothed": meta.get("depth_noise") is not None, "depth_noise": meta.get("depth_noise"),
+            "smoothed": bool(meta.get("smoothed")), "depth_noise": meta.get("depth_noise"),
             "depth_noise_line": meta.get("depth_noise_line")}
 
 
@@ -118,8 +118,8 @@ def log_sensor(sensor: dict | None) -> None:
              k["fx"], k["fy"], k["cx"], k["cy"], sensor["from"]["intrinsics"], sensor["depth_scale"],
              sensor["from"]["depth_scale"], sensor["stride"])
     if sensor.get("depth_noise_line"):
-        log.info("%s; each pixel's depth smoothed over its neighbours on the same surface (--raw-depth: as "
-                 "recorded)", sensor["depth_noise_line"])
+        log.info("%s; %s", sensor["depth_noise_line"], "each pixel's depth smoothed by it over its neighbours on "
+                 "the same surface (--smooth-depth)" if sensor["smoothed"] else "depth as recorded")
     if sensor["assumed"]:
         log.warning("depth camera: %s assumed from the %s layout's defaults; give --intrinsics / --depth-scale if "
                     "your camera differs", " and ".join(a.replace("_", " ") for a in sensor["assumed"]),

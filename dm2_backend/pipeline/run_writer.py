@@ -125,8 +125,8 @@ def sensor_comment(sensor: dict | None) -> str:
     return (f"# depth camera as read (--intrinsics, --depth-scale): fx {k['fx']:g} fy {k['fy']:g} cx {k['cx']:g} "
             f"cy {k['cy']:g} ({sensor['from']['intrinsics']}); depth scale {sensor['depth_scale']:g} units per metre "
             f"({sensor['from']['depth_scale']}); stride {sensor['stride']}\n"
-            + (f"# {sensor['depth_noise_line']}; depth smoothed by it (--raw-depth: as recorded)\n"
-               if sensor.get("depth_noise_line") else "# depth as recorded (--raw-depth)\n"))
+            + (f"# {sensor['depth_noise_line']}\n" if sensor.get("depth_noise_line") else "")
+            + ("# depth smoothed by the noise measured (--smooth-depth)\n" if sensor.get("smoothed") else ""))
 
 
 def write_run(out: Path, cfg: RunConfig, inputs: RunInputs, prep: Prepared, final: np.ndarray, method: str,
