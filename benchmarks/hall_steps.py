@@ -10,7 +10,7 @@ On a folder with its true poses (``truth.tum``), measured:
 - a trajectory that never moves (the APE it scores, as ``dm2 eval`` cautions);
 
 each on the depth as recorded (dm2's default) and smoothed by the camera's measured noise (``--smooth-depth``,
-``formats/depth_noise.py``).
+``formats/depth_image_noise.py``).
 
 APE: translation RMSE after the SE(3) alignment (evo, ``evaluate_poses``).
 

@@ -3,7 +3,7 @@
 Points are in the camera frame (x right, y down, z forward; pinhole ``X = (u - cx) Z / fx``,
 ``Y = (v - cy) Z / fy``); depth 0 and 65535 are invalid. ``ReadOptions.stride`` keeps every
 n-th pixel in u and v (default 2: at most 320 x 240 points from a 640 x 480 image; 1 keeps all). The camera's
-noise is measured on its own images and stated (``meta["depth_noise"]``, :mod:`.depth_noise`);
+noise is measured on its own images and stated (``meta["image_noise"]``, :mod:`.depth_image_noise`);
 ``ReadOptions.smooth_depth`` smooths each pixel's depth by it over its neighbours on the same surface.
 
 Layouts:
@@ -35,8 +35,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from dm2_backend.formats import depth_noise
-from dm2_backend.formats.depth_noise import DepthNoise
+from dm2_backend.formats import depth_image_noise
+from dm2_backend.formats.depth_image_noise import DepthImageNoise
 from dm2_backend.formats.registry import (
     ReadOptions,
     ScanSource,
@@ -277,12 +277,12 @@ def _rays(shape: tuple[int, int], intrinsics: tuple[float, ...], stride: int) ->
 
 def back_project(
     depth: np.ndarray, intrinsics: tuple[float, float, float, float], scale: float, stride: int = 1,
-    noise: DepthNoise | None = None,
+    noise: DepthImageNoise | None = None,
 ) -> np.ndarray:
     """Camera-frame points (M, 3) float32 of the valid pixels (not 0, not 65535) of a depth image; with ``noise``,
-    each pixel's depth smoothed over its neighbours on the same surface (:mod:`.depth_noise`)."""
+    each pixel's depth smoothed over its neighbours on the same surface (:mod:`.depth_image_noise`)."""
     if noise is not None:
-        d, scale = depth_noise.smooth(depth, scale, noise, stride), 1.0
+        d, scale = depth_image_noise.smooth(depth, scale, noise, stride), 1.0
     else:
         d = np.asarray(depth)[::stride, ::stride]
     valid = (d > 0) & (d < 65535) if d.dtype == np.uint16 else (d > 0) & np.isfinite(d)
@@ -302,16 +302,19 @@ def _stride(options: ReadOptions) -> int:
     return stride
 
 
-def measure_noise(folder: DepthFolder) -> DepthNoise | None:
+def measure_noise(folder: DepthFolder) -> DepthImageNoise | None:
     """The folder's depth noise, measured on :data:`NOISE_SAMPLE` images spread over the sequence."""
     picks = np.unique(np.linspace(0, len(folder.images) - 1, min(NOISE_SAMPLE, len(folder.images))).astype(int))
-    return depth_noise.measure((read_depth_image(folder.images[i]) for i in picks), folder.scale)
+    return depth_image_noise.measure((read_depth_image(folder.images[i]) for i in picks), folder.scale)
 
 
 def open_depth(path: Path, options: ReadOptions) -> ScanSequence:
     folder = load_folder(path, options)
     stride = _stride(options)
     noise = measure_noise(folder)
+    if options.smooth_depth and noise is None:
+        raise InputError(path, f"--smooth-depth: too few valid depth pixels to measure the noise on (at least "
+                               f"{depth_image_noise.MIN_PIXELS} over {NOISE_SAMPLE} images)")
     smoothing = noise if options.smooth_depth else None
 
     def load(i: int) -> Scan:
@@ -329,9 +332,10 @@ def open_depth(path: Path, options: ReadOptions) -> ScanSequence:
               "intrinsics_from": folder.intrinsics_from, "depth_scale_from": folder.scale_from,
               "assumed": [name for name, given in (("intrinsics", folder.intrinsics_from), ("depth_scale",
                                                    folder.scale_from)) if given in ASSUMED],
-              "stride": stride, "depth_noise": noise.summary() if noise is not None else None,
+              "stride": stride, "image_noise": noise.summary() if noise is not None else None,
               "smoothed": smoothing is not None,
-              "depth_noise_line": noise.describe() if noise is not None else None,
+              "smoothing": smoothing.summary() if smoothing is not None else None,
+              "image_noise_line": noise.describe() if noise is not None else None,
               "files": folder.images, **folder.notes},
     )
 

@@ -193,7 +193,7 @@ def write_trajectory(
 
 
 #: read options whose effective value a scan source reports in its ``meta`` (its default when not given)
-EFFECTIVE_OPTIONS = ("intrinsics", "depth_scale", "stride", "depth_noise", "smoothed")
+EFFECTIVE_OPTIONS = ("intrinsics", "depth_scale", "stride", "smoothing")
 
 
 def _plain(value):

@@ -58,9 +58,11 @@ def run_scans(run: Path, kw: dict, required: bool = True):
     from dm2_backend.kernel.scans import associate_scans
     from dm2_backend.maps.run_maps import read_summary
 
-    path, fmt = kw["scans"], kw["scans_format"]
-    if path is None:
-        recorded = read_summary(run).get("scans", {})
+    path, fmt, smooth = kw["scans"], kw["scans_format"], kw["smooth_depth"]
+    if path is None:  # the recorded source, read as the run read it
+        recorded = read_summary(run).get("scans")
+        recorded = recorded if isinstance(recorded, dict) else {}
+        smooth = smooth or recorded.get("smoothed") is True
         src = recorded.get("source")
         if not src or not Path(src).exists():
             if not required:
@@ -69,7 +71,7 @@ def run_scans(run: Path, kw: dict, required: bool = True):
             raise InputError(run, f"{why}: give --scans")
         path, fmt = Path(src), fmt or recorded.get("format")
     options = read_options(kw["topic"], kw["times"], kw["calib"], kw["intrinsics"], kw["depth_scale"],
-                           smooth_depth=kw["smooth_depth"])
+                           smooth_depth=smooth)
     scans = open_scans(path, fmt, options)
     traj = run_trajectory(run)
     scans, matched = associate_scans(scans, traj, kw["max_diff"])

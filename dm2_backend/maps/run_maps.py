@@ -103,7 +103,7 @@ def write_run_maps(out: Path, scans: ScanSequence, poses: np.ndarray, planar: bo
     planar = scans.planar if planar is None else planar
     say = echo or (log.info if progress else (lambda _msg: None))
     summary: dict = {"planar": planar, "scans": {"source": _source(scans.source), "format": scans.meta.get("format"),
-                                                 "count": len(scans)},
+                                                 "count": len(scans), "smoothed": bool(scans.meta.get("smoothed"))},
                      "files": [], "skipped": {}, "seconds": {}}
     t0 = time.perf_counter()
     data = gather(scans, np.asarray(poses, np.float64), planar)

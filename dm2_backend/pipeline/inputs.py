@@ -105,8 +105,8 @@ def depth_sensor(scans: ScanSequence) -> dict | None:
     return {"layout": meta.get("layout"), "intrinsics": {"fx": fx, "fy": fy, "cx": cx, "cy": cy},
             "depth_scale": float(meta["depth_scale"]), "stride": meta.get("stride"),
             "from": sources, "assumed": list(meta.get("assumed", [])),
-            "smoothed": bool(meta.get("smoothed")), "depth_noise": meta.get("depth_noise"),
-            "depth_noise_line": meta.get("depth_noise_line")}
+            "smoothed": bool(meta.get("smoothed")), "image_noise": meta.get("image_noise"),
+            "image_noise_line": meta.get("image_noise_line")}
 
 
 def log_sensor(sensor: dict | None) -> None:
@@ -117,8 +117,8 @@ def log_sensor(sensor: dict | None) -> None:
     log.info("depth camera: fx %g fy %g cx %g cy %g (%s), depth scale %g units per metre (%s), pixel stride %s",
              k["fx"], k["fy"], k["cx"], k["cy"], sensor["from"]["intrinsics"], sensor["depth_scale"],
              sensor["from"]["depth_scale"], sensor["stride"])
-    if sensor.get("depth_noise_line"):
-        log.info("%s; %s", sensor["depth_noise_line"], "each pixel's depth smoothed by it over its neighbours on "
+    if sensor.get("image_noise_line"):
+        log.info("%s; %s", sensor["image_noise_line"], "each pixel's depth smoothed by it over its neighbours on "
                  "the same surface (--smooth-depth)" if sensor["smoothed"] else "depth as recorded")
     if sensor["assumed"]:
         log.warning("depth camera: %s assumed from the %s layout's defaults; give --intrinsics / --depth-scale if "

@@ -125,7 +125,7 @@ def sensor_comment(sensor: dict | None) -> str:
     return (f"# depth camera as read (--intrinsics, --depth-scale): fx {k['fx']:g} fy {k['fy']:g} cx {k['cx']:g} "
             f"cy {k['cy']:g} ({sensor['from']['intrinsics']}); depth scale {sensor['depth_scale']:g} units per metre "
             f"({sensor['from']['depth_scale']}); stride {sensor['stride']}\n"
-            + (f"# {sensor['depth_noise_line']}\n" if sensor.get("depth_noise_line") else "")
+            + (f"# {sensor['image_noise_line']}\n" if sensor.get("image_noise_line") else "")
             + ("# depth smoothed by the noise measured (--smooth-depth)\n" if sensor.get("smoothed") else ""))
 
 

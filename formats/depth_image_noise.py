@@ -3,15 +3,17 @@
 Structured-light and stereo cameras measure depth through disparity in whole sub-pixel steps: a Kinect v1 reports
 depth in steps of about z^2 / 350 m (3 mm at 1 m, 4.6 cm at 4 m; RedKitchen's images: 2 mm at 0.9 m, 31 mm at 3 m),
 with noise of a similar size on top. A wall seen from afar becomes a staircase locked to the camera, and registering
-two such frames pulls their relative pose towards the one that keeps the staircases aligned: standing still
-(docs/decisions/0022-depth-images-smoothed-by-their-noise.md). Each kept pixel's depth is therefore replaced by the
-mean inverse depth of its image neighbours (a Gaussian window of :data:`SPATIAL_SIGMA` pixels) that lie within
-:data:`TOLERANCE` noise steps of it: a bilateral filter's range test, as KinectFusion's front end smooths its depth,
-which removes the staircase and keeps the surfaces' edges.
+two such frames pulls their relative pose towards the one that keeps the staircases aligned: standing still.
+:func:`smooth` (``--smooth-depth``; off by default: docs/decisions/0022-depth-smoothing-available-off.md) replaces
+each kept pixel's depth by the harmonic mean of its image neighbours' depths (the mean of their inverse depths,
+weighed by a Gaussian window of :data:`SPATIAL_SIGMA` pixels) over those that lie within :data:`TOLERANCE` noise
+steps of it: a bilateral filter's range test, as KinectFusion's front end smooths its depth. Inverse depth is affine
+in the pixel coordinates on a plane, so a plane keeps its place, and a depth edge larger than the tolerance stays.
 
 The noise is measured per range decile on a sample of the sequence's images (:func:`measure`):
 
-- the step: the median gap between consecutive distinct depth values (the depth unit where depth is not quantised);
+- the step: the median gap between consecutive distinct depth values (the depth unit where depth is not quantised;
+  a bin holding fewer than two distinct values is left out);
 - the scatter: the robust spread of the second difference along image rows (sqrt(6) sigma for independent noise).
 
 The range tolerance at depth z is ``TOLERANCE x sqrt(step(z)^2 + sigma(z)^2)``, interpolated between the deciles.
@@ -33,7 +35,7 @@ BINS, MIN_PIXELS = 10, 10_000
 
 
 @dataclass(frozen=True)
-class DepthNoise:
+class DepthImageNoise:
     """Per range bin (``ranges_m``, the bins' median depths): the depth step and the scatter (m), measured on
     ``images`` images."""
 
@@ -48,53 +50,56 @@ class DepthNoise:
         sigma = np.interp(z, self.ranges_m, self.sigmas_m)
         return TOLERANCE * np.sqrt(step**2 + sigma**2)
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, object]:
+        """The measurement and the smoothing's constants, as JSON-ready values (``report.json``, the cache key)."""
         return {"ranges_m": list(self.ranges_m), "steps_m": list(self.steps_m), "sigmas_m": list(self.sigmas_m),
                 "images": self.images, "tolerance_steps": TOLERANCE, "spatial_sigma_px": SPATIAL_SIGMA,
                 "half_width_px": HALF_WIDTH}
 
     def describe(self) -> str:
+        """One line: the step and the scatter at the nearest, the middle and the farthest bin."""
         picks = sorted({0, len(self.ranges_m) // 2, len(self.ranges_m) - 1})
         parts = [f"step {1e3 * self.steps_m[i]:.1f} mm, scatter {1e3 * self.sigmas_m[i]:.1f} mm at "
                  f"{self.ranges_m[i]:.1f} m" for i in picks]
         return f"depth noise measured on {self.images} images: " + "; ".join(parts)
 
 
-def measure(depths: Iterable[np.ndarray], scale: float) -> DepthNoise | None:
-    """The noise of depth images ``depths`` (raw units, ``scale`` units per metre); None when they hold fewer than
-    :data:`MIN_PIXELS` valid pixels with valid row neighbours."""
-    zs, second, count = [], [], 0
+def measure(depths: Iterable[np.ndarray], scale: float) -> DepthImageNoise | None:
+    """The noise of depth images ``depths`` (raw units, ``scale`` units per metre; a float image's steps have no
+    floor); None when they hold fewer than :data:`MIN_PIXELS` valid pixels with valid row neighbours."""
+    zs, second, count, unit = [], [], 0, 0.0
     for depth in depths:
+        depth = np.asarray(depth)
+        unit = 1.0 / scale if np.issubdtype(depth.dtype, np.integer) else 0.0
         z = _metres(depth, scale)
         d2 = z[:, :-2] - 2.0 * z[:, 1:-1] + z[:, 2:]
         ok = np.isfinite(d2)
-        zs.append(z[:, 1:-1][ok])
-        second.append(d2[ok])
-        count += 1
+        if ok.any():
+            zs.append(z[:, 1:-1][ok])
+            second.append(d2[ok])
+            count += 1
     if not zs or sum(len(z) for z in zs) < MIN_PIXELS:
         return None
     z, d2 = np.concatenate(zs), np.abs(np.concatenate(second))
     edges = np.quantile(z, np.linspace(0.0, 1.0, BINS + 1))
     bins = np.clip(np.searchsorted(edges, z, side="right") - 1, 0, BINS - 1)
-    unit = 1.0 / scale
     ranges, steps, sigmas = [], [], []
     for b in range(BINS):
         inside = bins == b
-        if inside.sum() < MIN_PIXELS // BINS:
+        gaps = np.diff(np.unique(z[inside]))
+        if inside.sum() < MIN_PIXELS // BINS or len(gaps) == 0:
             continue
-        distinct = np.unique(z[inside])
-        gaps = np.diff(distinct)
         ranges.append(float(np.median(z[inside])))
-        steps.append(float(max(np.median(gaps), unit)) if len(gaps) else unit)
+        steps.append(float(max(np.median(gaps), unit)))
         sigmas.append(float(1.4826 * np.median(d2[inside]) / np.sqrt(6.0)))
     if not ranges:
         return None
-    return DepthNoise(tuple(ranges), tuple(steps), tuple(sigmas), count)
+    return DepthImageNoise(tuple(ranges), tuple(steps), tuple(sigmas), count)
 
 
-def smooth(depth: np.ndarray, scale: float, noise: DepthNoise, stride: int = 1) -> np.ndarray:
-    """Depth (m, float32; 0 where invalid) at every ``stride``-th pixel of ``depth`` (raw units), each the mean
-    inverse depth of its neighbours on the same surface (the module's rule)."""
+def smooth(depth: np.ndarray, scale: float, noise: DepthImageNoise, stride: int = 1) -> np.ndarray:
+    """Depth (m, float32; 0 where invalid) at every ``stride``-th pixel of ``depth`` (raw units), each the harmonic
+    mean of its neighbours' depths on the same surface (the module's rule)."""
     z = _metres(depth, scale)
     z[~np.isfinite(z)] = np.inf
     h, (rows, cols) = HALF_WIDTH, z.shape
