@@ -285,7 +285,7 @@ def back_project(
         d, scale = depth_image_noise.smooth(depth, scale, noise, stride), 1.0
     else:
         d = np.asarray(depth)[::stride, ::stride]
-    valid = (d > 0) & (d < 65535) if d.dtype == np.uint16 else (d > 0) & np.isfinite(d)
+    valid = depth_image_noise.valid_depth(d)
     rx, ry = _rays(tuple(depth.shape), tuple(float(v) for v in intrinsics), stride)
     z = d[valid].astype(np.float32) / np.float32(scale)
     out = np.empty((len(z), 3), dtype=np.float32)

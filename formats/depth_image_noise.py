@@ -121,8 +121,13 @@ def smooth(depth: np.ndarray, scale: float, noise: DepthImageNoise, stride: int 
     return out
 
 
-def _metres(depth: np.ndarray, scale: float) -> np.ndarray:
-    """Depth in metres, NaN where invalid (0, 65535 in 16 bits, not finite)."""
+def valid_depth(depth: np.ndarray) -> np.ndarray:
+    """Where a depth image holds a depth: not 0, not 65535 in 16 bits, finite."""
     d = np.asarray(depth)
-    valid = (d > 0) & (d < 65535) if d.dtype == np.uint16 else (d > 0) & np.isfinite(d)
-    return np.where(valid, d.astype(np.float64) / scale, np.nan)
+    return (d > 0) & (d < 65535) if d.dtype == np.uint16 else (d > 0) & np.isfinite(d)
+
+
+def _metres(depth: np.ndarray, scale: float) -> np.ndarray:
+    """Depth in metres, NaN where invalid (:func:`valid_depth`)."""
+    d = np.asarray(depth)
+    return np.where(valid_depth(d), d.astype(np.float64) / scale, np.nan)
