@@ -84,8 +84,8 @@ def main(sim: str, out: str, rounds: int = 30) -> None:
     report = {"frames": n, "cells_cap": 1_500_000, "voxel": voxel, "rounds": len(result.history),
               "stopped": result.stopped.detail, "stages": stages.rows, "agreement": agreement,
               "poses_sum": float(result.poses.sum()),
-              "profiles": {k: {"level_m": p.level_m, "flagged": int(p.flagged.sum()),
-                               "score_sum": float(np.nansum(p.score_m))} for k, p in profiles.items()}}
+              "profiles": {k: {"levels_m": p.levels_m, "flagged": int(p.flagged.sum()),
+                               "score_sum": float(np.nansum(p.score))} for k, p in profiles.items()}}
     with open(out, "w") as fh:
         json.dump(report, fh, indent=1)
 

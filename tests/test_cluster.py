@@ -228,7 +228,7 @@ def test_the_consistency_profile_s_stretches_on_workers_score_as_in_this_process
     (mine,) = (tmp_path / "cells").iterdir()  # this machine's folder in the shared one ...
     assert mine.name == socket.gethostname() and not list(mine.iterdir())  # ... and the cells removed from it
     for name in candidates:
-        assert here[name].window > 0 and len(here[name].score_m) == 16
+        assert here[name].window > 0 and len(here[name].score) == 16
         for view in ("all", "past", "future"):
             np.testing.assert_array_equal(there[name].views_m[view], here[name].views_m[view])
         assert there[name].noise_m == here[name].noise_m and there[name].segments == here[name].segments

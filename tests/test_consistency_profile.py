@@ -70,8 +70,8 @@ def test_the_true_poses_of_the_simulated_street_raise_no_flag():
     _, seq, gt = street()
     p = profile(seq, gt)
     assert p.segments == [], p.segments
-    assert np.isfinite(p.score_m).all()
-    assert p.level_m < 0.03  # 2 cm range noise: the frames agree at the sensor's noise
+    assert np.isfinite(p.score).all()
+    assert p.levels_m["all"] < 0.03  # 2 cm range noise: the frames agree at the sensor's noise
 
 
 @pytest.mark.parametrize("break_it", ["one frame", "jump", "drift"])
@@ -99,7 +99,7 @@ def test_a_sequence_longer_than_the_cell_budget_is_judged_a_stretch_at_a_time(mo
     monkeypatch.setattr(profile_cells, "ONE_PASS_CELLS", one_pass_cells)
     poses = gt if poses_of == "truth" else jump_from(gt, 40)
     p = profile(seq, poses)
-    assert np.isfinite(p.score_m).all()
+    assert np.isfinite(p.score).all()
     if poses_of == "truth":
         assert p.segments == [], p.segments
         for view in ("all", "past", "future"):
@@ -161,7 +161,7 @@ def test_files_and_plot_hold_the_profile(tmp_path):
     assert names == ["consistency.json", "consistency.csv", "consistency.png"]
     doc = json.loads((tmp_path / "consistency.json").read_text())
     assert doc["steps"] == {"held": [39, 40], "contradicted": []}  # the step guard's decisions beside the scores
-    assert np.allclose(doc["broken"]["score_m"], profiles["broken"].score_m)
+    assert np.allclose(doc["broken"]["score"], profiles["broken"].score)
     assert doc["broken"]["segments"][0]["first"] <= 40 <= doc["broken"]["segments"][0]["last"]
     rows = list(csv.DictReader((tmp_path / "consistency.csv").open()))
     assert len(rows) == len(gt)
@@ -173,11 +173,12 @@ def test_files_and_plot_hold_the_profile(tmp_path):
     top = next(ax for ax in fig.axes if ax.get_title().startswith("broken:"))  # one map panel per profile
     series = next(ax for ax in fig.axes if ax.get_xlabel() == "frame")
     assert np.allclose(top.collections[0].get_offsets(), gt[:, :2, 3])  # x-y top view of the given positions
-    assert np.allclose(top.collections[0].get_array(), profiles["broken"].score_m)
+    assert np.allclose(top.collections[0].get_array(), profiles["broken"].score)
     lines = [ln for ln in series.get_lines() if len(ln.get_xdata()) == len(gt)]
-    assert np.allclose(lines[-1].get_ydata(), profiles["broken"].score_m)
+    assert np.allclose(lines[-1].get_ydata(), profiles["broken"].score)
     assert series.get_xlim() == (-0.5, len(gt) - 0.5) and series.get_ylim()[0] == 0.0
-    assert series.get_ylim()[1] >= np.nanmax(profiles["broken"].score_m)
+    assert series.get_ylim()[1] >= max(np.nanmax(profiles["broken"].score), 1.0)  # the threshold (1) in sight
+    assert float(rows[40]["broken_past_m"]) == pytest.approx(profiles["broken"].views_m["past"][40], rel=1e-5)
 
 
 def test_eval_writes_the_profile_and_names_the_flagged_frames(tmp_path):
@@ -230,12 +231,30 @@ def test_the_fast_street_of_dm2_simulate_raises_no_flag_from_truth_or_the_floor_
     assert hit and false == 0, profiles["jump"].segments
 
 
-def test_the_flag_threshold_never_falls_below_the_measured_noise():
-    """Relative to the agreeing frames' level, and at least the noise the planes measure: a trajectory whose
-    frames all agree to a hair is not flagged for its scene's own spread."""
-    score = np.array([1.0, 1.0, 1.0, 1.0, 3.0]) * 1e-5
-    assert cp.threshold_of(score)[1] == pytest.approx(cp.RATIO * 1e-5)
-    assert cp.threshold_of(score, noise=0.01)[1] == pytest.approx(cp.FLOOR * 0.01)
+def test_the_flag_threshold_stands_out_from_the_frames_and_never_falls_below_its_floor():
+    """``SPREAD`` robust standard deviations above the view's median, and at least the floor (the noise the
+    planes measure): a trajectory whose frames all agree to a hair is not flagged for its scene's own spread."""
+    distance = np.array([1.0, 2.0, 3.0, 4.0, 5.0, np.nan]) * 1e-3
+    level, threshold = cp.threshold_of(distance)
+    assert level == pytest.approx(3e-3) and threshold == pytest.approx(3e-3 + cp.SPREAD * 1.4826e-3)
+    assert cp.threshold_of(distance, floor=0.1)[1] == pytest.approx(0.1)
+    assert cp.threshold_of(np.full(4, np.nan)) == (pytest.approx(np.nan, nan_ok=True), np.inf)
+
+
+def test_each_view_is_judged_against_its_own_level():
+    """A frame's flat cells against its neighbours' dense planes agree several times closer than its points against
+    the map of all others. A frame only the neighbour views see off (the long street's jump: five times their level,
+    under the "all" view's) is flagged by its view; judged by the largest view's level, it was not."""
+    rng = np.random.default_rng(0)
+    n = 200
+    views = {"all": 0.010 + 0.001 * rng.random(n), "past": 0.002 + 0.0002 * rng.random(n),
+             "future": 0.002 + 0.0002 * rng.random(n)}
+    views["past"][100] = 0.009
+    assert views["past"][100] < views["all"].min()
+    p = cp._profile(views, 0.001, None, 1.0, 4)
+    assert [(s.first, s.last, s.peak_frame, s.peak_view) for s in p.segments] == [(100, 100, 100, "past")]
+    assert p.score[100] == pytest.approx(0.009 / p.thresholds_m["past"]) and p.score[100] > 1.0
+    assert np.nanmax(np.delete(p.score, 100)) < 1.0
 
 
 def _planar_street(frames: int) -> tuple[ScanSequence, np.ndarray]:
@@ -275,7 +294,8 @@ def test_noise_free_scans_are_not_flagged_below_their_resolution(tmp_path):
     gt = se3.from_xy_yaw(scipy.io.loadmat(src / "gt_pose.mat")["pose"])
     seq = ScanSequence(lambda i: Scan(points[i]), len(points), planar=True)
     p = consistency_profile(seq, gt, planar=True)
-    assert p.level_m < 1e-4 and p.threshold_m > 100 * p.level_m  # the resolution floor sets the threshold
+    # the resolution floor sets the threshold of the "all" view
+    assert p.levels_m["all"] < 1e-4 and p.thresholds_m["all"] > 100 * p.levels_m["all"]
     assert p.segments == [], p.segments
 
 
@@ -286,7 +306,7 @@ def test_the_true_poses_of_a_simulated_depth_camera_raise_no_flag(tmp_path):
     inputs = load_inputs(tmp_path / "room", None, tmp_path / "room" / "truth.tum", None, ReadOptions())
     p = consistency_profile(inputs.scans, inputs.given.poses)
     assert p.segments == [], p.segments
-    assert p.threshold_m >= cp.FLOOR * p.noise_m
+    assert p.thresholds_m["all"] >= cp.FLOOR * p.noise_m
 
 
 def test_a_frames_own_cells_in_the_map_do_not_judge_it():
@@ -314,10 +334,12 @@ def test_a_frames_own_cells_in_the_map_do_not_judge_it():
 
 def test_the_console_line_counts_the_stretches_and_names_the_worst_few():
     segments = [{"first": 10 * i, "last": 10 * i + 2, "start_s": None, "end_s": None, "peak_frame": 10 * i + 1,
-                 "peak_m": 0.01 * (i + 1)} for i in range(6)]
-    text = cp.flag_text({"level_m": 0.01, "threshold_m": 0.02, "segments": segments, "flagged_frames": 18})
+                 "peak": 1.0 + i, "peak_view": "past"} for i in range(6)]
+    text = cp.flag_text({"levels_m": {"all": 0.01, "past": 0.002}, "thresholds_m": {"all": 0.02, "past": 0.004},
+                         "segments": segments, "flagged_frames": 18})
+    assert text.startswith("frames agree to 0.01 m (all), 0.002 m (past), flagged above 0.02 m, 0.004 m: ")
     assert "6 flagged stretches (18 frames)" in text
-    assert "50-52 peak 0.06 m at 51" in text and "0-2" not in text  # the worst first, the mildest left out
+    assert "50-52 peak 6x the past view's threshold at 51" in text and "0-2" not in text  # the worst first
     assert text.count(" peak ") == cp.NAMED and "the other 3 in consistency.csv" in text
 
 

@@ -136,7 +136,7 @@ def profile(score: np.ndarray, threshold: float, segments: list[tuple[int, int]]
     flagged = np.zeros(len(score), bool)
     for a, b in segments:
         flagged[a:b + 1] = True
-    return SimpleNamespace(score_m=score, threshold_m=threshold, flagged=flagged,
+    return SimpleNamespace(score=score, flagged=flagged,
                            segments=[SimpleNamespace(first=a, last=b) for a, b in segments])
 
 

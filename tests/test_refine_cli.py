@@ -139,10 +139,10 @@ def test_consistency_profile_before_and_after(run):
     profiles = report["consistency"]
     assert set(profiles) == {"warm start", "dm2 refine"}
     for summary in profiles.values():
-        assert summary["frames"] == report["frames"] and summary["threshold_m"] > summary["level_m"] > 0
+        assert summary["frames"] == report["frames"] and summary["thresholds_m"]["all"] > summary["levels_m"]["all"] > 0
     assert {"consistency.json", "consistency.csv", "consistency.png"} <= set(report["files"])
     doc = json.loads((out / "consistency.json").read_text())
-    assert len(doc["dm2 refine"]["score_m"]) == report["frames"]
+    assert len(doc["dm2 refine"]["score"]) == report["frames"]
 
 
 def test_quiet_prints_no_progress_bars(run):

@@ -299,13 +299,18 @@ def plot_topology(path: str | Path, positions: np.ndarray, closures: dict[str, n
 CONSISTENCY_MAP_TITLE = "{label}: where frames disagree with the map"
 
 
+#: the consistency profile's score, as its pictures label it
+CONSISTENCY_SCORE_LABEL = "worst view / its flag threshold"
+
+
 def consistency_figure(positions: np.ndarray | dict[str, np.ndarray], profiles: dict[str, object],
                        title: str = "", positions_by_label: dict[str, np.ndarray] | None = None) -> Figure:
     """Consistency profiles (:mod:`dm2_backend.evaluation.consistency_profile`) along the trajectory: one top-view
-    panel per profile, of that estimate's positions coloured by its own per-frame score (one colour scale for
-    all, from 0) with its flagged frames ringed, and a panel of every profile's score over the frames in the
-    colour of its map's path, with its threshold (dashed) and its flagged frames shaded in that colour, each
-    profile in a band of its own (one legend entry ``flagged: <label>`` each, so no two shadings blend).
+    panel per profile, of that estimate's positions coloured by its own per-frame score (its worst view over that
+    view's flag threshold; one colour scale for all, from 0) with its flagged frames ringed, and a panel of every
+    profile's score over the frames in the colour of its map's path, the flag threshold (1, dashed) and its flagged
+    frames shaded in that colour, each profile in a band of its own (one legend entry ``flagged: <label>`` each, so
+    no two shadings blend).
 
     ``positions``: (N,3) positions (the last profile's poses: every panel is drawn over them), or a dict
     label -> positions; ``positions_by_label`` adds or overrides labels' own positions."""
@@ -314,7 +319,7 @@ def consistency_figure(positions: np.ndarray | dict[str, np.ndarray], profiles: 
     fallback = positions if not isinstance(positions, dict) else list(positions.values())[-1]
     items = list(profiles.items())
     k_all = len(items)
-    scores = [np.asarray(p.score_m, dtype=np.float64) for _, p in items]
+    scores = [np.asarray(p.score, dtype=np.float64) for _, p in items]
     finite = np.concatenate([s[np.isfinite(s)] for s in scores]) if scores else np.zeros(0)
     vmax = float(finite.max()) if len(finite) and finite.max() > 0 else 1.0
     n = max((len(s) for s in scores), default=0)
@@ -344,22 +349,22 @@ def consistency_figure(positions: np.ndarray | dict[str, np.ndarray], profiles: 
             ax.legend(loc="best", fontsize=8)
         _setup(ax, top, CONSISTENCY_MAP_TITLE.format(label=label))
     if sc is not None:
-        fig.colorbar(sc, ax=maps, label="frame vs the others' planes, RMS [m]")
+        fig.colorbar(sc, ax=maps, label=CONSISTENCY_SCORE_LABEL)
     ax2 = fig.add_subplot(series_slot)
     handles = []
     for k, ((label, prof), score) in enumerate(zip(items, scores, strict=True)):
         colour = f"C{k}"
         line, = ax2.plot(np.arange(len(score)), score, lw=1.0, color=colour, label=label)
-        ax2.axhline(prof.threshold_m, ls="--", lw=0.8, color=colour)
         band = (1.0 - (k + 1) / k_all, 1.0 - k / k_all)  # the first profile's band on top
         for seg in prof.segments:
             ax2.axvspan(seg.first - 0.5, seg.last + 0.5, ymin=band[0], ymax=band[1], color=colour, alpha=0.25)
         none = "" if prof.segments else " (none)"
         handles += [line, Patch(facecolor=colour, alpha=0.25, label=f"flagged: {label}{none}")]
+    ax2.axhline(1.0, ls="--", lw=0.8, color="black")
     ax2.set_xlabel("frame")
-    ax2.set_ylabel("RMS distance to the others' planes [m]")
+    ax2.set_ylabel(CONSISTENCY_SCORE_LABEL)
     ax2.set_xlim(-0.5, n - 0.5)
-    ax2.set_ylim(bottom=0.0)
+    ax2.set_ylim(0.0, 1.05 * max(vmax, 1.05))  # the threshold in sight
     ax2.grid(True, alpha=0.3)
     ax2.legend(handles=handles, loc="best", fontsize=8)
     bands = ", a band per estimate" if k_all > 1 else ""

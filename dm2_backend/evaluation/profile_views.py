@@ -2,11 +2,12 @@
 neighbouring blocks of frames (past and future; :func:`neighbour_views`).
 
 The blocks are moved apart (:func:`_apart`) so that one plane assignment (``kernel.planes``) holds every block's
-planes side by side. Each cell of a judged frame is measured to the nearest of the neighbouring block's planes that
-reaches it (so a point a jump moved out of its plane's voxel still finds it) and, for a flat cell, faces its way
-(``SAME_SURFACE_DEG``), capped at ``CAP`` noise sigmas, and the frame's worst ``TRIM`` of points is left out (what
-the block could not see). A front-end jump makes the frames after it disagree with the sharp map of the block
-before.
+planes side by side. Each flat cell of a judged frame (its own points make a plane: :func:`flat_normals`) is measured
+to the nearest of the neighbouring block's planes that reaches it (so a point a jump moved out of its plane's voxel
+still finds it) and faces its way (``SAME_SURFACE_DEG``), capped at ``CAP`` noise sigmas, and the frame's worst
+``TRIM`` of points is left out (what the block could not see). A cell that is not flat (an edge, a corner, a point
+or two) has no surface to be measured along: the nearest plane may be another surface's. A front-end jump makes the
+frames after it disagree with the sharp map of the block before.
 """
 
 from __future__ import annotations
@@ -72,9 +73,9 @@ def _apart(poses: np.ndarray, group: np.ndarray, far: float) -> np.ndarray:
 
 def _against(judged: Cells, placed: np.ndarray, a: Assignment, planes: Planes, tree: cKDTree, shift: np.ndarray,
              has_reference: np.ndarray, cap: float, surface: np.ndarray) -> np.ndarray:
-    """Per frame, the RMS distance (m) of the ``judged`` cells' means (at ``placed`` moved by their frame's
-    ``shift`` onto another group's planes) to the nearest plane that reaches the cell and, for a flat cell, lies
-    within ``SAME_SURFACE_DEG`` of its normal (``surface`` (3,K), world, NaN where not flat), each distance
+    """Per frame, the RMS distance (m) of the ``judged`` flat cells' means (at ``placed`` moved by their frame's
+    ``shift`` onto another group's planes) to the nearest plane that reaches the cell and lies within
+    ``SAME_SURFACE_DEG`` of its normal (``surface`` (3,K), world, NaN where not flat: not measured), each distance
     capped at ``cap`` (m), weighted by the cell's points, the worst ``TRIM`` left out; NaN for a frame without
     ``has_reference``. A point a jump moved out of its plane's voxel still finds that plane."""
     f = judged.frame.astype(np.int64)
@@ -99,7 +100,7 @@ def _against(judged: Cells, placed: np.ndarray, a: Assignment, planes: Planes, t
             found &= np.abs(x[axis] - np.take(centre[axis], i)) <= size
         nx, ny, nz = (np.take(normal[axis], i) for axis in range(3))
         n = surface[:, None, c]
-        found &= ~flat[c] | (np.abs(nx * n[0] + ny * n[1] + nz * n[2]) >= cos_limit)
+        found &= flat[c] & (np.abs(nx * n[0] + ny * n[1] + nz * n[2]) >= cos_limit)
         dist = np.abs(nx * x[0] + ny * x[1] + nz * x[2] - np.take(planes.offset, i))
         nearest = np.where(found, dist, np.inf).min(0)
         best[c] = nearest
@@ -160,6 +161,9 @@ def neighbour_views(cells: Cells, poses: np.ndarray, voxel: float, window: int, 
         keep[scored] = True
         judged = cells.of_frames(keep)
     surface = flat_normals(judged) if surface is None else surface
+    flat = np.isfinite(surface[:, 0])  # only flat cells are measured (:func:`_against`)
+    judged = Cells(judged.frame[flat], judged.count[flat], judged.mean[flat], judged.scatter[flat], judged.size)
+    surface = surface[flat]
     own = _offset(block, far)
     cap = CAP * a.sigma
     surface = rotated(np.ascontiguousarray(surface.T), placed, judged.frame)  # world (3,K), NaN rows stay NaN
