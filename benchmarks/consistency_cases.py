@@ -95,7 +95,7 @@ def main() -> None:
             rows.append({"sequence": name, "case": case, "frames": len(poses),
                          "broken_frames": [int(b) for b in np.flatnonzero(broken)],
                          "flagged": [[s.first, s.last] for s in prof.segments], "hit": hit if broken.any() else None,
-                         "false_flags": false, "levels_m": prof.levels_m, "thresholds_m": prof.thresholds_m,
+                         "false_flags": false, **{k: prof.summary()[k] for k in ("levels_m", "thresholds_m")},
                          "seconds_per_profile": seconds})
             print(f"{name:28s} {case:22s} broken {rows[-1]['broken_frames'][:3]}... flagged {rows[-1]['flagged']} "
                   f"hit {rows[-1]['hit']} false {false}")

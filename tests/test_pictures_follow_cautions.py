@@ -132,7 +132,8 @@ def test_eval_pictures_follow_the_caution(tmp_path, monkeypatch):
 
 # (b) ------------------------------------------------------------------------------------------------------------
 
-def profile(score: np.ndarray, threshold: float, segments: list[tuple[int, int]]) -> SimpleNamespace:
+def profile(score: np.ndarray, segments: list[tuple[int, int]]) -> SimpleNamespace:
+    """A profile as the pictures read it: each frame's score (worst view over its threshold) and flagged stretches."""
     flagged = np.zeros(len(score), bool)
     for a, b in segments:
         flagged[a:b + 1] = True
@@ -147,9 +148,9 @@ def test_consistency_picture_has_a_map_per_estimate_and_a_shading_entry_each():
     pos_b = pos_a + [0.0, 0.0, 0.0]
     pos_b[20:] += [3.0, 0.0, 0.0]  # a jump at frame 20
     score_a, score_b = np.full(n, 0.02), np.full(n, 0.02)
-    score_a[40:43] = 0.3
-    score_b[18:23] = 0.9
-    profiles = {"warm start": profile(score_a, 0.05, [(40, 42)]), "refined": profile(score_b, 0.05, [(18, 22)])}
+    score_a[40:43] = 1.3
+    score_b[18:23] = 1.9
+    profiles = {"warm start": profile(score_a, [(40, 42)]), "refined": profile(score_b, [(18, 22)])}
     fig = plots.consistency_figure(pos_b, profiles, positions_by_label={"warm start": pos_a, "refined": pos_b})
     maps = [ax for ax in fig.axes if ax.get_title().endswith("where frames disagree with the map")]
     assert [ax.get_title().split(":")[0] for ax in maps] == ["warm start", "refined"]
@@ -157,7 +158,7 @@ def test_consistency_picture_has_a_map_per_estimate_and_a_shading_entry_each():
         dots, rings = ax.collections
         np.testing.assert_allclose(dots.get_offsets(), pos[:, :2])  # its own positions ...
         np.testing.assert_allclose(dots.get_array(), score)  # ... coloured by its own score
-        assert dots.get_clim() == (0.0, 0.9)  # one colour scale for both maps
+        assert dots.get_clim() == (0.0, 1.9)  # one colour scale for both maps
         assert len(rings.get_offsets()) == (3 if score is score_a else 5)  # its flagged frames ringed
     (series,) = [ax for ax in fig.axes if ax.get_xlabel() == "frame"]
     texts = [t.get_text() for t in series.get_legend().get_texts()]
@@ -181,8 +182,7 @@ def plots_colour(c) -> tuple:
 def test_consistency_picture_falls_back_to_the_given_positions_and_names_unflagged_estimates():
     n = 30
     pos = np.c_[np.arange(n, dtype=float), np.zeros(n), np.zeros(n)]
-    profiles = {"a": profile(np.full(n, 0.01), 0.05, []), "b": profile(np.r_[np.full(n - 2, 0.01), 0.5, 0.5],
-                                                                       0.05, [(n - 2, n - 1)])}
+    profiles = {"a": profile(np.full(n, 0.3), []), "b": profile(np.r_[np.full(n - 2, 0.3), 1.5, 1.5], [(n - 2, n - 1)])}
     fig = plots.consistency_figure(pos, profiles)
     maps = [ax for ax in fig.axes if "disagree" in ax.get_title()]
     assert len(maps) == 2 and all(np.allclose(ax.collections[0].get_offsets(), pos[:, :2]) for ax in maps)

@@ -15,12 +15,12 @@ or for a long sequence in temporary files), and a long sequence is judged a stre
 
 The views have levels and spreads of their own (a frame's flat cells against the dense planes of its neighbours
 agree several times closer than its points against the sparser map of all others), so each is judged against its
-own: a view flags a frame that stands out from the sequence's frames, ``SPREAD`` robust standard deviations above
-the view's median (1.4826 times the median absolute deviation: it holds while fewer than half the frames are
-broken), and at least ``FLOOR`` times the noise the planes measure (a frame placed within the sensor's own noise is
-not misplaced, however sharp the rest; a depth camera's noise is not averaged away in a cell's mean). A frame's
-score is its largest view over that view's threshold (flagged above 1); flagged frames make segments with their
-frame and time ranges. Cases and their results: ``benchmarks/consistency_cases.py`` and the tests (true,
+own. A view flags a frame that stands out from the sequence's frames: ``SPREAD`` robust standard deviations (1.4826
+times the median absolute deviation) above the view's median, which are the agreeing frames' while most frames
+agree. The threshold is at least ``FLOOR`` times the noise the planes measure: a frame placed within the sensor's
+own noise is not misplaced, however sharp the rest (a depth camera's noise is not averaged away in a cell's mean).
+A frame's score is its largest view over that view's threshold (flagged above 1); flagged frames make segments with
+their frame and time ranges. Cases and their results: ``benchmarks/consistency_cases.py`` and the tests (true,
 refined-to-floor and broken poses of 3D and 2D simulations, real LiDAR keyframes, a ray-cast through their map, a
 simulated depth camera, the noise-free DeepMapping set); why these thresholds:
 docs/decisions/0013-consistency-profile-thresholds.md.
@@ -119,7 +119,7 @@ def flag_text(summary: dict) -> str:
     if not levels:
         return "no frame scored"
     level = ("frames agree to " + ", ".join(f"{v:.3g} m ({view})" for view, v in levels.items()) + ", flagged above "
-             + ", ".join(f"{summary['thresholds_m'][view]:.3g} m" for view in levels))
+             + ", ".join(f"{summary['thresholds_m'][view]:.3g} m ({view})" for view in levels))
     segments = summary["segments"]
     if not segments:
         return f"{level}: no flagged frame"

@@ -321,7 +321,7 @@ def consistency_figure(positions: np.ndarray | dict[str, np.ndarray], profiles: 
     k_all = len(items)
     scores = [np.asarray(p.score, dtype=np.float64) for _, p in items]
     finite = np.concatenate([s[np.isfinite(s)] for s in scores]) if scores else np.zeros(0)
-    vmax = float(finite.max()) if len(finite) and finite.max() > 0 else 1.0
+    vmax = max(float(finite.max()) if len(finite) else 0.0, 1.0)  # the threshold (1) the top colour at least
     n = max((len(s) for s in scores), default=0)
     # the colour bar beside the maps, clear of the series
     if k_all == 1:

@@ -154,7 +154,7 @@ def neighbour_views(cells: Cells, poses: np.ndarray, voxel: float, window: int, 
         return np.full(n, np.nan), np.full(n, np.nan)
     planes = fit(a, placed)
     tree = cKDTree(a.centre)
-    # every cell: where a stretch sees a fifth of a frame, fewer leave a score of a few cells
+    # every flat cell: where a stretch sees a fifth of a frame, fewer leave a score of a few cells
     judged = cells
     if scored is not None:
         keep = np.zeros(n, bool)
