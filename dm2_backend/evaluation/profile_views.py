@@ -75,15 +75,13 @@ def _against(judged: Cells, placed: np.ndarray, a: Assignment, planes: Planes, t
              has_reference: np.ndarray, cap: float, surface: np.ndarray) -> np.ndarray:
     """Per frame, the RMS distance (m) of the ``judged`` flat cells' means (at ``placed`` moved by their frame's
     ``shift`` onto another group's planes) to the nearest plane that reaches the cell and lies within
-    ``SAME_SURFACE_DEG`` of its normal (``surface`` (3,K), world, NaN where not flat: not measured), each distance
+    ``SAME_SURFACE_DEG`` of its normal (``surface`` (3,K), world), each distance
     capped at ``cap`` (m), weighted by the cell's points, the worst ``TRIM`` left out; NaN for a frame without
     ``has_reference``. A point a jump moved out of its plane's voxel still finds that plane."""
     f = judged.frame.astype(np.int64)
     best = np.empty(len(judged))
     centre, normal = np.ascontiguousarray(a.centre.T), np.ascontiguousarray(planes.normal.T)
     assert surface.shape == (3, len(judged))
-    flat = np.isfinite(surface[0])
-    surface = np.nan_to_num(surface)
     cos_limit = np.cos(np.radians(SAME_SURFACE_DEG))
     for c in chunks(len(judged)):  # bounded temporaries: a few (NEAREST_PLANES, chunk) arrays
         world = placed_means(judged, placed, c) + np.take(shift, f[c], axis=0)
@@ -100,7 +98,7 @@ def _against(judged: Cells, placed: np.ndarray, a: Assignment, planes: Planes, t
             found &= np.abs(x[axis] - np.take(centre[axis], i)) <= size
         nx, ny, nz = (np.take(normal[axis], i) for axis in range(3))
         n = surface[:, None, c]
-        found &= flat[c] & (np.abs(nx * n[0] + ny * n[1] + nz * n[2]) >= cos_limit)
+        found &= np.abs(nx * n[0] + ny * n[1] + nz * n[2]) >= cos_limit
         dist = np.abs(nx * x[0] + ny * x[1] + nz * x[2] - np.take(planes.offset, i))
         nearest = np.where(found, dist, np.inf).min(0)
         best[c] = nearest
@@ -166,7 +164,7 @@ def neighbour_views(cells: Cells, poses: np.ndarray, voxel: float, window: int, 
     surface = surface[flat]
     own = _offset(block, far)
     cap = CAP * a.sigma
-    surface = rotated(np.ascontiguousarray(surface.T), placed, judged.frame)  # world (3,K), NaN rows stay NaN
+    surface = rotated(np.ascontiguousarray(surface.T), placed, judged.frame)  # world (3,K)
     past = _against(judged, placed, a, planes, tree, _offset(block - 1, far) - own, np.isin(block - 1, block), cap,
                     surface)
     future = _against(judged, placed, a, planes, tree, _offset(block + 1, far) - own, np.isin(block + 1, block), cap,
