@@ -92,10 +92,12 @@ def main() -> None:
         for case, prof in profiles.items():
             broken = broken_frames(poses, cases[case])
             hit, false = hits_and_false_flags(prof.flagged, broken, prof.window + GAP)
+            summary = prof.summary()
             rows.append({"sequence": name, "case": case, "frames": len(poses),
                          "broken_frames": [int(b) for b in np.flatnonzero(broken)],
                          "flagged": [[s.first, s.last] for s in prof.segments], "hit": hit if broken.any() else None,
-                         "false_flags": false, **{k: prof.summary()[k] for k in ("levels_m", "thresholds_m")},
+                         "false_flags": false, "levels_m": summary["levels_m"],
+                         "thresholds_m": summary["thresholds_m"],
                          "seconds_per_profile": seconds})
             print(f"{name:28s} {case:22s} broken {rows[-1]['broken_frames'][:3]}... flagged {rows[-1]['flagged']} "
                   f"hit {rows[-1]['hit']} false {false}")
